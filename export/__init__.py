@@ -1,0 +1,1 @@
+"""dimenet.export: MLP -> ONNX with its model spec."""

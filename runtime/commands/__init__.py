@@ -1,0 +1,1 @@
+"""Subcommands of the `dimenet` command line that live in the runtime."""

@@ -1,0 +1,26 @@
+"""Typed errors. Every one is a ``ValueError`` so callers can catch bad input broadly."""
+from __future__ import annotations
+
+
+class DimenetError(ValueError):
+    """Base class of every error dimenet raises for bad input or bad data."""
+
+
+class DatasetError(DimenetError):
+    """A dataset file does not conform to ``dimenet-dataset/1`` (the message names the key)."""
+
+
+class InputError(DimenetError):
+    """Correspondences handed to the runtime are unusable (shape, count, NaN, degenerate, ...)."""
+
+
+class ModelError(DimenetError):
+    """A model file is missing, corrupt, foreign or of an unsupported spec version."""
+
+
+class CalibrationError(DimenetError):
+    """A calibration problem is ill-posed (too few or coplanar points) or did not converge."""
+
+
+class RigError(DimenetError):
+    """A rig description does not conform to ``dimenet-rig/1``."""

@@ -1,0 +1,179 @@
+"""Pinhole geometry: the one home of projection, rotation and pose helpers.
+
+Conventions (OpenCV): ``K`` is a 3x3 float64 matrix in pixels with zero skew,
+``rvec`` is an axis-angle rotation (rad) and ``tvec`` a translation (mm) taking
+points from the world frame {W} into the camera frame {C}: X_C = R(rvec) X_W + tvec.
+Pixels are x right, y down, origin at the centre of the top-left pixel.
+
+Every function is pure and accepts leading batch dimensions where noted.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .errors import CalibrationError, InputError
+
+# Smallest depth (mm) a point may have in front of the camera and still be projected.
+MIN_DEPTH_MM = 1e-6
+
+
+def k_params(K: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) intrinsic matrices -> (..., 4) as (fx, fy, cx, cy) in pixels."""
+    K = np.asarray(K, dtype=np.float64)
+    return np.stack([K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]], axis=-1)
+
+
+def k_matrix(params: np.ndarray) -> np.ndarray:
+    """(..., 4) (fx, fy, cx, cy) in pixels -> (..., 3, 3) zero-skew intrinsic matrices."""
+    params = np.asarray(params, dtype=np.float64)
+    K = np.zeros(params.shape[:-1] + (3, 3))
+    K[..., 0, 0] = params[..., 0]
+    K[..., 1, 1] = params[..., 1]
+    K[..., 0, 2] = params[..., 2]
+    K[..., 1, 2] = params[..., 3]
+    K[..., 2, 2] = 1.0
+    return K
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices, skew(a) @ b == cross(a, b)."""
+    v = np.asarray(v, dtype=np.float64)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def rvec_to_matrix(rvec: np.ndarray) -> np.ndarray:
+    """(..., 3) axis-angle (rad) -> (..., 3, 3) rotation matrices (Rodrigues' formula)."""
+    rvec = np.asarray(rvec, dtype=np.float64)
+    theta = np.linalg.norm(rvec, axis=-1)[..., None, None]
+    S = skew(rvec)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    return np.eye(3) + a * S + b * (S @ S)
+
+
+def matrix_to_rvec(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 3) axis-angle (rad), angle in [0, pi]."""
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 3))
+    for i, Ri in enumerate(flat):  # cv2 handles the angle-near-pi branch robustly
+        out[i] = cv2.Rodrigues(Ri)[0].ravel()
+    return out.reshape(R.shape[:-2] + (3,))
+
+
+def to_camera(points_3d: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """{W} points (..., N, 3) in mm -> {C} points (..., N, 3) in mm for poses (..., 3)."""
+    R = rvec_to_matrix(rvec)
+    return np.einsum("...ij,...nj->...ni", R, points_3d) + np.asarray(tvec)[..., None, :]
+
+
+def project_camera(K: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
+    """{C} points (..., N, 3) in mm -> pixels (..., N, 2) under K (..., 3, 3)."""
+    p = k_params(K)[..., None, :]
+    z = points_cam[..., 2]
+    return np.stack(
+        [p[..., 0] * points_cam[..., 0] / z + p[..., 2], p[..., 1] * points_cam[..., 1] / z + p[..., 3]],
+        axis=-1,
+    )
+
+
+def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """{W} points (..., N, 3) in mm -> pixels (..., N, 2) under K and the pose {W}->{C}."""
+    return project_camera(K, to_camera(points_3d, rvec, tvec))
+
+
+def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:
+    """Euclidean reprojection error (px) of each correspondence, shape (..., N)."""
+    return np.linalg.norm(project(points_3d, K, rvec, tvec) - points_2d, axis=-1)
+
+
+def mean_reprojection_error(points_2d, points_3d, weights, K, rvec, tvec) -> np.ndarray:
+    """Mean Euclidean reprojection error (px) over the points with weight > 0, shape (...)."""
+    w = (np.asarray(weights) > 0).astype(np.float64)
+    err = reprojection_errors(np.where(w[..., None] > 0, points_2d, 0.0),
+                              np.where(w[..., None] > 0, points_3d, 1.0), K, rvec, tvec)
+    return (np.where(w > 0, err, 0.0)).sum(-1) / w.sum(-1)
+
+
+def check_not_degenerate(points_3d: np.ndarray, points_2d: np.ndarray) -> None:
+    """Raise InputError when the correspondences cannot fix a pose.
+
+    Rejects coincident or collinear 3D points (mm) and coincident image points (px).
+    """
+    for name, pts, unit in (("points_3d", points_3d, "mm"), ("points_2d", points_2d, "px")):
+        centred = pts - pts.mean(axis=0)
+        sv = np.linalg.svd(centred, compute_uv=False)
+        scale = max(np.abs(pts).max(), 1.0)
+        if sv[0] <= 1e-9 * scale:
+            raise InputError(f"{name}: all points coincide ({unit}); a pose needs spread-out points")
+        if sv[1] <= 1e-6 * sv[0]:
+            raise InputError(f"{name}: all points are collinear; a pose needs points off one line")
+
+
+def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fast closed-form pose {W}->{C} (SQPnP) for one frame: (N, 2) px, (N, 3) mm -> rvec, tvec (3,).
+
+    Raises InputError when OpenCV finds no pose.
+    """
+    ok, rvec, tvec = cv2.solvePnP(
+        np.ascontiguousarray(points_3d, dtype=np.float64),
+        np.ascontiguousarray(points_2d, dtype=np.float64),
+        np.asarray(K, dtype=np.float64), None, flags=cv2.SOLVEPNP_SQPNP,
+    )
+    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+        raise InputError("PnP failed: no camera pose explains these correspondences")
+    return rvec.ravel(), tvec.ravel()
+
+
+def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed-form K, rvec, tvec from >= 6 non-coplanar correspondences of one frame (DLT + RQ).
+
+    Hartley-normalised direct linear transform of the 3x4 camera matrix, then an RQ
+    decomposition; skew is dropped (the 4-parameter model). Raises CalibrationError
+    when the 3D points are coplanar or too few, where K is not observable from one view.
+    """
+    n = len(points_3d)
+    if n < 6:
+        raise CalibrationError(f"K from one frame needs >= 6 points, got {n}")
+    c3 = points_3d.mean(0)
+    s3 = np.sqrt(3) / np.sqrt(((points_3d - c3) ** 2).sum(1).mean())
+    sv = np.linalg.svd((points_3d - c3) * s3, compute_uv=False)
+    if sv[2] < 0.05 * sv[0]:
+        raise CalibrationError("the 3D points are (nearly) coplanar: K is not observable from one planar view")
+    c2 = points_2d.mean(0)
+    s2 = np.sqrt(2) / np.sqrt(((points_2d - c2) ** 2).sum(1).mean())
+    T3 = np.diag([s3, s3, s3, 1.0])
+    T3[:3, 3] = -s3 * c3
+    T2 = np.diag([s2, s2, 1.0])
+    T2[:2, 2] = -s2 * c2
+    Xh = np.c_[(points_3d - c3) * s3, np.ones(n)]
+    xn = (points_2d - c2) * s2
+    A = np.zeros((2 * n, 12))
+    A[0::2, 0:4] = Xh
+    A[0::2, 8:12] = -xn[:, :1] * Xh
+    A[1::2, 4:8] = Xh
+    A[1::2, 8:12] = -xn[:, 1:] * Xh
+    P = np.linalg.svd(A)[2][-1].reshape(3, 4)
+    P = np.linalg.inv(T2) @ P @ T3
+    M = P[:, :3]
+    if np.linalg.det(M) < 0:
+        P, M = -P, -M
+    # RQ decomposition of M = K R via QR of the row-reversed transpose.
+    flip = np.eye(3)[::-1]
+    Q, U = np.linalg.qr((flip @ M).T)
+    Kr = flip @ U.T @ flip
+    R = flip @ Q.T
+    signs = np.diag(np.sign(np.diag(Kr)))
+    Kr, R = Kr @ signs, signs @ R
+    t = np.linalg.solve(Kr, P[:, 3])
+    Kr = Kr / Kr[2, 2]
+    if np.linalg.det(R) < 0:
+        raise CalibrationError("DLT gave a reflection: the correspondences are inconsistent")
+    return k_matrix(k_params(Kr)), matrix_to_rvec(R), t
