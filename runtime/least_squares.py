@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import MIN_DEPTH_MM, k_matrix, k_params, matrix_to_rvec, rvec_to_matrix
+from .errors import CalibrationError
+from .geometry import MIN_DEPTH_MM, dlt_camera, k_matrix, k_params, matrix_to_rvec, rvec_to_matrix, solve_pnp_start
 
 
 @dataclass(frozen=True)
@@ -110,3 +111,36 @@ def fit(points_2d, points_3d, weights, K, rvec, tvec, *, fit_k: bool,
         if not active.any():
             break
     return FitResult(K=k_matrix(kp), rvec=matrix_to_rvec(R), tvec=t, cost=cost, iterations=it)
+
+
+def _weighted_points(points_2d, points_3d, weights, b):
+    use = np.asarray(weights[b]) > 0
+    return points_2d[b][use], points_3d[b][use]
+
+
+def solve_pnp(points_2d, points_3d, weights, K) -> FitResult:
+    """The least-squares PnP optimum of B frames under fixed K (B, 3, 3).
+
+    Start: SQPnP per frame on the weighted points; then batched LM on the pose only.
+    Raises InputError when a frame has no pose.
+    """
+    starts = [solve_pnp_start(*_weighted_points(points_2d, points_3d, weights, b), K[b]) for b in range(len(K))]
+    rvec, tvec = (np.array(a) for a in zip(*starts))
+    return fit(points_2d, points_3d, weights, K, rvec, tvec, fit_k=False)
+
+
+def calibrate(points_2d, points_3d, weights) -> FitResult:
+    """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames.
+
+    Start: DLT + RQ per frame (closed form, needs non-coplanar points); then batched LM
+    over the 10 parameters. Raises CalibrationError naming the frame when K is not
+    observable from it.
+    """
+    starts = []
+    for b in range(len(points_2d)):
+        try:
+            starts.append(dlt_camera(*_weighted_points(points_2d, points_3d, weights, b)))
+        except CalibrationError as exc:
+            raise CalibrationError(f"frame {b}: {exc}") from None
+    K0, rvec, tvec = (np.array(a) for a in zip(*starts))
+    return fit(points_2d, points_3d, weights, K0, rvec, tvec, fit_k=True)
