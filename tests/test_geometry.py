@@ -1,0 +1,64 @@
+import cv2
+import numpy as np
+import pytest
+
+from dimenet.runtime import geometry as g
+from dimenet.runtime.errors import CalibrationError, InputError
+from helpers import K_TEST, random_frames
+
+
+def test_rodrigues_matches_opencv_and_round_trips():
+    rng = np.random.default_rng(0)
+    rvecs = np.r_[rng.normal(0, 1, (20, 3)), [[0, 0, 0], [1e-10, 0, 0], [np.pi - 1e-3, 0, 0]]]
+    R = g.rvec_to_matrix(rvecs)
+    for r, Ri in zip(rvecs, R):
+        np.testing.assert_allclose(Ri, cv2.Rodrigues(r)[0], atol=1e-12)
+    np.testing.assert_allclose(g.rvec_to_matrix(g.matrix_to_rvec(R)), R, atol=1e-9)
+
+
+def test_project_matches_opencv():
+    rng = np.random.default_rng(1)
+    x, X, K, rvec, tvec = random_frames(rng, frames=1)
+    ref = cv2.projectPoints(X[0], rvec[0], tvec[0], K[0], None)[0][:, 0]
+    np.testing.assert_allclose(g.project(X[0], K[0], rvec[0], tvec[0]), ref, atol=1e-9)
+
+
+def test_k_params_round_trip_and_skew():
+    p = np.array([[3000.0, 3010.0, 2016.0, 1512.0]])
+    np.testing.assert_array_equal(g.k_params(g.k_matrix(p)), p)
+    a, b = np.array([1.0, 2.0, 3.0]), np.array([-2.0, 0.5, 4.0])
+    np.testing.assert_allclose(g.skew(a) @ b, np.cross(a, b))
+
+
+def test_mean_reprojection_error_hand_computed():
+    # Two points, offsets (3, 4) px and (0, 0) px from their exact projections: mean 2.5 px.
+    X = np.array([[0.0, 0.0, 1000.0], [100.0, 50.0, 1000.0]])
+    exact = g.project(X, K_TEST, np.zeros(3), np.zeros(3))
+    x = exact + np.array([[3.0, 4.0], [0.0, 0.0]])
+    assert g.mean_reprojection_error(x, X, np.ones(2), K_TEST, np.zeros(3), np.zeros(3)) == pytest.approx(2.5)
+    # A weight-0 point does not count.
+    assert g.mean_reprojection_error(x, X, np.array([0.0, 1.0]), K_TEST, np.zeros(3), np.zeros(3)) == pytest.approx(0.0)
+
+
+def test_dlt_recovers_exact_camera_from_noise_free_points():
+    rng = np.random.default_rng(2)
+    x, X, K, rvec, tvec = random_frames(rng, frames=1)
+    K0, r0, t0 = g.dlt_camera(x[0], X[0])
+    np.testing.assert_allclose(K0, K[0], atol=1e-6)
+    np.testing.assert_allclose(r0, rvec[0], atol=1e-9)
+    np.testing.assert_allclose(t0, tvec[0], atol=1e-6)
+
+
+def test_dlt_refuses_coplanar_points():
+    rng = np.random.default_rng(3)
+    x, X, *_ = random_frames(rng, frames=1, planar=True)
+    with pytest.raises(CalibrationError, match="coplanar"):
+        g.dlt_camera(x[0], X[0])
+
+
+@pytest.mark.parametrize("kind", ["coincide", "collinear"])
+def test_degenerate_configurations_are_named(kind):
+    X = np.zeros((8, 3)) if kind == "coincide" else np.c_[np.arange(8.0), np.arange(8.0), 500 + np.arange(8.0)]
+    x = np.c_[np.arange(8.0), np.arange(8.0) * 2]
+    with pytest.raises(InputError, match=kind):
+        g.check_not_degenerate(X, x)
