@@ -1,0 +1,100 @@
+import numpy as np
+import pytest
+
+from dimenet.runtime import geometry as g
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.features import CHANNELS, DEFAULT_SCALE, FeatureSpec, grid_features
+from dimenet.runtime.grid import Grid
+from helpers import K_TEST, random_frames
+
+IMAGE = (4032, 3024)
+
+
+def reference_features(p2, p3, mask, K_c, rvec, tvec, spec):
+    """Per-point Python loop written from the paper's equations, to check the vectorised code."""
+    u, v = spec.grid.cols, spec.grid.rows
+    C = len(spec.channels)
+    out = np.zeros((v, u, C))
+    count = np.zeros((v, u))
+    R = g.rvec_to_matrix(rvec)
+    for x, X, m in zip(p2, p3, mask):
+        if not m:
+            continue
+        Xc = R @ X + tvec
+        proj = K_c @ (Xc / Xc[2])
+        full = {"dx": proj[0] - x[0], "dy": proj[1] - x[1], "X": Xc[0], "Y": Xc[1], "inv_z": 1 / Xc[2]}
+        col = min(int(x[0] // (IMAGE[0] / u)), u - 1)
+        row = min(int(x[1] // (IMAGE[1] / v)), v - 1)
+        out[row, col] += [full[c] * spec.scale[c] for c in spec.channels]
+        count[row, col] += 1
+    out /= np.maximum(count, 1)[..., None]
+    return out.reshape(-1)
+
+
+@pytest.mark.parametrize("variant", ["A", "B", "C", "D", "E"])
+def test_vectorised_feature_equals_per_point_reference(variant):
+    rng = np.random.default_rng(0)
+    x, X, K, rvec, tvec = random_frames(rng, frames=3, points=50, noise_px=2.0)
+    mask = rng.random((3, 50)) > 0.3
+    spec = FeatureSpec(grid=Grid(8, 6), variant=variant)
+    K_c = K_TEST.copy()
+    K_c[0, 2] += 12.0
+    feats = grid_features(x, X, mask, K_c, IMAGE, spec, poses=(rvec, tvec))
+    assert feats.shape == (3, spec.size)
+    for b in range(3):
+        np.testing.assert_allclose(feats[b], reference_features(x[b], X[b], mask[b], K_c, rvec[b], tvec[b], spec), atol=1e-10)
+
+
+def test_layout_is_row_major_and_empty_cells_are_zero():
+    # One point at pixel (1100, 600): column 2, row 1 of the 8x6 grid (504 px cells).
+    K_c = K_TEST
+    X = np.array([[[(1100 - 2016) / 3000 * 1000, (600 - 1512) / 3010 * 1000, 1000.0]] * 6])
+    x = np.full((1, 6, 2), [1100.0, 600.0])
+    x[0, 0] += [3.0, -1.0]
+    spec = FeatureSpec()
+    f = grid_features(x, X, np.ones((1, 6), bool), K_c, IMAGE, spec, poses=(np.zeros((1, 3)), np.zeros((1, 3))))
+    cell = 1 * 8 + 2
+    nonzero = np.flatnonzero(f[0])
+    assert set(nonzero // 5) == {cell}
+    np.testing.assert_allclose(f[0, cell * 5: cell * 5 + 2], np.array([-3.0, 1.0]) / 6 * DEFAULT_SCALE["dx"], atol=1e-9)
+    np.testing.assert_allclose(f[0, cell * 5 + 4], 500.0 / 1000.0)
+
+
+def test_pmd_vanishes_when_k_c_is_the_true_k_and_pnp_is_solved():
+    rng = np.random.default_rng(1)
+    x, X, K, *_ = random_frames(rng, frames=2, points=60)
+    f = grid_features(x, X, np.ones((2, 60), bool), K_TEST, IMAGE, FeatureSpec(variant="B"))
+    assert np.abs(f).max() < 1e-6
+
+
+def test_batch_equals_single_frames_and_masked_points_have_no_effect():
+    rng = np.random.default_rng(2)
+    x, X, *_ = random_frames(rng, frames=4, points=40, noise_px=1.0)
+    mask = np.ones((4, 40), bool)
+    mask[:, :5] = False
+    spec = FeatureSpec()
+    batch = grid_features(x, X, mask, K_TEST, IMAGE, spec)
+    x2 = x.copy()
+    x2[:, :5] = np.nan  # garbage on masked points
+    for b in range(4):
+        np.testing.assert_allclose(grid_features(x2[b:b + 1], X[b:b + 1], mask[b:b + 1], K_TEST, IMAGE, spec)[0], batch[b], atol=1e-9)
+
+
+def test_spec_round_trip_and_bad_variant():
+    spec = FeatureSpec(grid=Grid(12, 9), variant="D")
+    assert FeatureSpec.from_dict(spec.to_dict()) == spec
+    assert spec.size == 4 * 12 * 9
+    with pytest.raises(InputError, match="variant"):
+        FeatureSpec(variant="F")
+    with pytest.raises(InputError, match="8x6"):
+        Grid.parse("8 by 6")
+    assert set(CHANNELS) == set(DEFAULT_SCALE)
+
+
+def test_too_few_inference_points_is_named():
+    rng = np.random.default_rng(3)
+    x, X, *_ = random_frames(rng, frames=1, points=10)
+    mask = np.zeros((1, 10), bool)
+    mask[0, :3] = True
+    with pytest.raises(InputError, match="3 inference points"):
+        grid_features(x, X, mask, K_TEST, IMAGE, FeatureSpec())
