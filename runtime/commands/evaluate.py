@@ -13,24 +13,28 @@ from ..dataset import SPLITS, read_dataset
 from ..errors import DatasetError
 from ..evaluation import evaluate, format_table
 from ..grid import Grid
+from ..predictor import load_predictor
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz)")
+    p.add_argument("--model", help="trained model: a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`")
     p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")
     p.add_argument("--drop", type=int, metavar="N", help="keep N uniformly drawn inference points per frame")
     p.add_argument("--noise-2d", type=positive_float, default=0.0, metavar="PX", help="extra 2D Gaussian noise, px")
     p.add_argument("--noise-3d", type=positive_float, default=0.0, metavar="MM", help="extra 3D Gaussian noise, mm")
     p.add_argument("--eta", type=positive_float, default=0.0, metavar="FRACTION",
                    help="empty this fraction of the occupied grid cells (paper Table 2)")
-    p.add_argument("--grid", default="8x6", help="grid (columns x rows) for --eta (default 8x6)")
+    p.add_argument("--grid", help="grid (columns x rows) for --eta (default: the model's, else 8x6)")
     p.add_argument("--seed", type=int, default=0, help="seed of the test conditions (default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
 def run(args: argparse.Namespace) -> int:
     ds = read_dataset(args.data)
-    K_c = calibrate_dataset(ds).K_c
+    predictor = load_predictor(args.model) if args.model else None
+    K_c = predictor.spec.K_c if predictor else calibrate_dataset(ds).K_c
+    grid = Grid.parse(args.grid) if args.grid else (predictor.spec.features.grid if predictor else Grid(8, 6))
     frames = ds.select(ds.frames_in(args.split))
     if frames.n_frames == 0:
         raise DatasetError(f"split: the dataset has no {args.split!r} frames")
@@ -40,8 +44,8 @@ def run(args: argparse.Namespace) -> int:
     if args.drop is not None:
         frames = drop_inference_points(frames, args.drop, rng)
     if args.eta:
-        frames = empty_cells(frames, args.eta, Grid.parse(args.grid), rng)
-    ev = evaluate(frames, K_c, split=args.split)
+        frames = empty_cells(frames, args.eta, grid, rng)
+    ev = evaluate(frames, K_c, predictor.predict_k if predictor else None, split=args.split)
     print(json.dumps(ev.to_json()) if args.json else format_table(ev))
     return 0
 
@@ -49,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="evaluate",
     summary="Report Avg(e_c) and Avg(e*) per scene (and Avg(e), rho with a model) on one split, in px.",
-    example="dimenet evaluate s8.npz --split test --drop 64 --noise-2d 3 --noise-3d 0.1 --json",
+    example="dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --noise-2d 3 --noise-3d 0.1 --json",
     add_arguments=add_arguments,
     run=run,
 )

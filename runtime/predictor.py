@@ -1,0 +1,64 @@
+"""From a trained model to per-frame K: the part shared by every model backend.
+
+A backend (the ONNX session in the runtime, or a torch RUN_DIR from dimenet.training,
+registered under the ``dimenet.predictors`` entry-point group) only maps features to
+Delta K; building the features and turning Delta K into K lives here once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .dataset import Dataset
+from .errors import ModelError
+from .features import grid_features
+from .geometry import k_matrix, k_params
+from .model_spec import ModelSpec
+
+# Fewest inference points from which a frame's K is predicted; below, K = K_c.
+MIN_INFER_POINTS = 6
+
+
+@dataclass(frozen=True)
+class Predictor:
+    """spec: the model's dimenet-model/1 spec; delta_k: features (B, D) float32 -> (B, 4) px."""
+
+    spec: ModelSpec
+    delta_k: Callable[[np.ndarray], np.ndarray]
+    source: str
+
+    def predict_k(self, frames: Dataset) -> np.ndarray:
+        """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few
+        inference points or the prediction is outside the spec's plausible bounds."""
+        spec = self.spec
+        if tuple(frames.image_size.tolist()) != tuple(spec.image_size):
+            raise ModelError(f"{self.source}: trained for {spec.image_size[0]}x{spec.image_size[1]} px images, "
+                             f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}")
+        K = np.broadcast_to(spec.K_c, (frames.n_frames, 3, 3)).copy()
+        usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
+        if usable.any():
+            sub = frames.select(usable)
+            feats = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size, spec.features)
+            dk = np.asarray(self.delta_k(feats.astype(np.float32)), dtype=np.float64)
+            K_pred = k_matrix(k_params(spec.K_c) + dk)
+            ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
+            K[np.flatnonzero(usable)[ok]] = K_pred[ok]
+        return K
+
+
+def load_predictor(path: str | Path) -> Predictor:
+    """A predictor from a model path: a RUN_DIR (needs the train extra) or an exported .onnx."""
+    path = Path(path)
+    if not path.exists():
+        raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")
+    kind = "run_dir" if path.is_dir() else path.suffix.lstrip(".").lower()
+    eps = metadata.entry_points()
+    group = eps.select(group="dimenet.predictors") if hasattr(eps, "select") else eps.get("dimenet.predictors", [])
+    loaders = {ep.name: ep for ep in group}
+    if kind not in loaders:
+        raise ModelError(f"{path}: not a model this installation can load (known kinds: {', '.join(sorted(loaders))})")
+    return loaders[kind].load()(path)

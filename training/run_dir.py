@@ -1,0 +1,69 @@
+"""RUN_DIR layout written by `dimenet train`: weights.safetensors, spec.json (dimenet-model/1),
+history.json and curve.png. Loading never unpickles (safetensors only)."""
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import torch
+from safetensors.torch import load as load_safetensors
+from safetensors.torch import save as save_safetensors
+
+from dimenet.runtime.atomic import atomic_write, atomic_write_text
+from dimenet.runtime.errors import ModelError
+from dimenet.runtime.model_spec import ModelSpec
+
+from .model import DimeNet
+
+WEIGHTS, SPEC, HISTORY, CURVE = "weights.safetensors", "spec.json", "history.json", "curve.png"
+
+
+def write_run(run_dir: str | Path, model: DimeNet, spec: ModelSpec, history: list) -> Path:
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    blob = save_safetensors({k: v.detach().contiguous() for k, v in model.state_dict().items()})
+    atomic_write(run_dir / WEIGHTS, lambda f: f.write(blob))
+    atomic_write_text(run_dir / SPEC, spec.to_json())
+    atomic_write_text(run_dir / HISTORY, json.dumps(history))
+    atomic_write(run_dir / CURVE, lambda f: f.write(curve_png(history)))
+    return run_dir
+
+
+def curve_png(history: list) -> bytes:
+    """Training curve: train loss (px^2) and val error (px) per epoch, as PNG bytes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    epochs = [h["epoch"] for h in history]
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    ax.semilogy(epochs, [h["train_mse_px2"] for h in history], label="train loss, mean sq. error (px²)")
+    ax.semilogy(epochs, [h["val_e_px"] for h in history], label="val Avg(e) (px)")
+    best = min(history, key=lambda h: h["val_e_px"])
+    ax.axvline(best["epoch"], color="grey", ls=":", label=f"best epoch {best['epoch']}: {best['val_e_px']:.3f} px")
+    ax.set_xlabel("epoch")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def load_run(run_dir: str | Path) -> tuple[DimeNet, ModelSpec]:
+    """The trained model (eval mode) and its spec. Raises ModelError naming the file."""
+    run_dir = Path(run_dir)
+    spec = ModelSpec.read(run_dir / SPEC)
+    path = run_dir / WEIGHTS
+    if not path.is_file():
+        raise ModelError(f"{path}: no weights file")
+    try:
+        state = load_safetensors(path.read_bytes())
+        model = DimeNet(spec.features.size, spec.hidden)
+        model.load_state_dict(state)
+    except Exception as exc:  # safetensors raises its own error types for corrupt files
+        raise ModelError(f"{path}: unreadable or mismatched weights ({type(exc).__name__}: {exc})") from None
+    return model.eval(), spec

@@ -1,0 +1,186 @@
+"""Training DIME-Net with the paper's reprojection loss through the BPnP layer.
+
+Per step: grid features (the runtime's numpy code) from each frame's inference points ->
+MLP -> K = K_c + Delta K -> pose by the BPnP layer under K on all valid points -> loss =
+mean squared reprojection error (px^2) over those points (paper eq. L_rep).
+
+Robust by construction: every epoch each training frame is re-drawn with a random number of
+inference points (min_points..all) and a random fraction (0..max_eta) of its occupied grid
+cells emptied, so one model serves 320 down to 64 points and eta up to 80%.
+Early stopping on the val split, or on a held-back part of train when there is no val.
+"""
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from dimenet.runtime import __version__
+from dimenet.runtime.calibration import calibrate_dataset
+from dimenet.runtime.conditions import drop_inference_points, empty_cells
+from dimenet.runtime.dataset import Dataset
+from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.features import FeatureSpec, grid_features
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.grid import Grid
+from dimenet.runtime.model_spec import ModelSpec
+from dimenet.runtime.progress import progress
+
+from .bpnp import project, solve_pnp
+from .model import DimeNet
+from .run_dir import write_run
+
+# Plausible K: the train frames' K* range widened by this many times its span on each side.
+K_BOUNDS_MARGIN = 1.0
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    grid: str = "8x6"
+    variant: str = "A"
+    epochs: int = 400
+    batch_size: int = 32
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    hidden: tuple = (256, 128)
+    seed: int = 0
+    val_fraction: float = 0.15  # of train, held back when the dataset has no val split
+    min_points: int = 64
+    max_eta: float = 0.8
+    patience: int = 80  # epochs without val improvement before stopping
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    run_dir: Path
+    best_epoch: int
+    best_val_e: float  # px, mean over val frames (clean and reduced) at the best epoch
+    seconds: float
+    history: list = field(default_factory=list)
+
+
+def split_train_val(dataset: Dataset, config: TrainConfig) -> tuple[Dataset, Dataset]:
+    """Train frames and early-stopping frames (the val split, else a seeded part of train)."""
+    train = dataset.frames_in("train")
+    if train.sum() < 2:
+        raise DatasetError("split: training needs at least 2 train frames")
+    val = dataset.frames_in("val")
+    if val.any():
+        return dataset.select(train), dataset.select(val)
+    idx = np.flatnonzero(train)
+    rng = np.random.default_rng(config.seed)
+    n_val = max(1, int(round(config.val_fraction * len(idx))))
+    held = np.zeros(dataset.n_frames, bool)
+    held[rng.choice(idx, n_val, replace=False)] = True
+    return dataset.select(train & ~held), dataset.select(held)
+
+
+def k_bounds(K_star: np.ndarray) -> np.ndarray:
+    """(4, 2) px plausible range of (fx, fy, cx, cy): the K* range widened by its span."""
+    p = k_params(K_star)
+    lo, hi = p.min(0), p.max(0)
+    span = np.maximum(hi - lo, 1.0)
+    return np.stack([lo - K_BOUNDS_MARGIN * span, hi + K_BOUNDS_MARGIN * span], -1)
+
+
+def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> Dataset:
+    """Each frame with a random inference-point count and a random share of emptied cells."""
+    n_infer = frames.infer_mask.sum(1)
+    low = np.minimum(config.min_points, n_infer)
+    n = rng.integers(low, n_infer + 1)
+    eta = rng.uniform(0.0, config.max_eta, frames.n_frames)
+    return empty_cells(drop_inference_points(frames, n, rng), eta, grid, rng)
+
+
+def _tensors(frames: Dataset):
+    w = torch.from_numpy(frames.valid.astype(np.float64))
+    p2 = torch.from_numpy(np.where(frames.valid[..., None], frames.points_2d, 0.0))
+    p3 = torch.from_numpy(np.where(frames.valid[..., None], frames.points_3d, 0.0))
+    return p2, p3, w
+
+
+def reprojection_loss(delta_k: torch.Tensor, K_c: torch.Tensor, p2, p3, w) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean squared error px^2 over frames, per-frame mean Euclidean error px) under K = K_c + delta_k."""
+    dk = delta_k.double()
+    K = K_c.expand(len(dk), 3, 3).clone()
+    K[:, 0, 0] = K[:, 0, 0] + dk[:, 0]
+    K[:, 1, 1] = K[:, 1, 1] + dk[:, 1]
+    K[:, 0, 2] = K[:, 0, 2] + dk[:, 2]
+    K[:, 1, 2] = K[:, 1, 2] + dk[:, 3]
+    rvec, tvec = solve_pnp(p2, p3, K, w)
+    r = (project(p3, K, rvec, tvec) - p2) * w[..., None]
+    n = w.sum(1)
+    mse = ((r**2).sum((1, 2)) / n).mean()
+    e = (torch.linalg.norm(r, dim=-1) * w).sum(1) / n
+    return mse, e.detach()
+
+
+def train(dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset_sha256: str = "",
+          command: str = "") -> TrainResult:
+    """Train on the dataset's train split and write RUN_DIR (weights, spec.json, curve.png)."""
+    start = time.monotonic()
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    spec_features = FeatureSpec(grid=Grid.parse(config.grid), variant=config.variant)
+    cal = calibrate_dataset(dataset)
+    K_c = cal.K_c
+    train_frames, val_frames = split_train_val(dataset, config)
+    val_sets = [val_frames, drop_inference_points(val_frames, config.min_points, np.random.default_rng(config.seed + 1))]
+    image_size = dataset.image_size
+    feats_of = lambda fr: torch.from_numpy(  # noqa: E731
+        grid_features(fr.points_2d, fr.points_3d, fr.infer_mask, K_c, image_size, spec_features).astype(np.float32))
+    val_inputs = [(feats_of(v), *_tensors(v)) for v in val_sets]
+    K_c_t = torch.from_numpy(K_c)
+
+    model = DimeNet(spec_features.size, config.hidden)
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs)
+    best = (np.inf, 0, None)
+    history = []
+    for epoch in progress(range(1, config.epochs + 1), desc="train"):
+        frames = augment(train_frames, config, spec_features.grid, rng)
+        feats = feats_of(frames)
+        p2, p3, w = _tensors(frames)
+        order = torch.from_numpy(rng.permutation(frames.n_frames))
+        model.train()
+        losses = []
+        for i in range(0, len(order), config.batch_size):
+            b = order[i:i + config.batch_size]
+            loss, _ = reprojection_loss(model(feats[b]), K_c_t, p2[b], p3[b], w[b])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss))
+        sched.step()
+        model.eval()
+        with torch.no_grad():
+            val_e = float(np.mean([reprojection_loss(model(f), K_c_t, *t)[1].mean() for f, *t in val_inputs]))
+        history.append({"epoch": epoch, "train_mse_px2": float(np.mean(losses)), "val_e_px": val_e})
+        if val_e < best[0]:
+            best = (val_e, epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
+        elif epoch - best[1] >= config.patience:
+            break
+    model.load_state_dict(best[2])
+    spec = ModelSpec(
+        features=spec_features, K_c=K_c, image_size=tuple(int(v) for v in image_size),
+        K_bounds=k_bounds(cal.K_star[dataset.frames_in("train")]), hidden=tuple(config.hidden),
+        provenance={"dataset_sha256": dataset_sha256, "seed": config.seed, "dimenet_version": __version__,
+                    "torch_version": torch.__version__, "config": asdict(config), "command": command,
+                    "best_epoch": best[1], "best_val_e_px": best[0]},
+    )
+    run_dir = write_run(run_dir, model, spec, history)
+    return TrainResult(run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0],
+                       seconds=time.monotonic() - start, history=history)
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
