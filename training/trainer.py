@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -22,16 +22,17 @@ import torch
 
 from dimenet.runtime import __version__
 from dimenet.runtime.calibration import calibrate_dataset
-from dimenet.runtime.conditions import drop_inference_points, empty_cells
+from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells
 from dimenet.runtime.dataset import Dataset
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.features import FeatureSpec, grid_features
-from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry import k_params, project
 from dimenet.runtime.grid import Grid
 from dimenet.runtime.model_spec import ModelSpec
+from dimenet.runtime.predictor import MIN_INFER_POINTS
 from dimenet.runtime.progress import progress
 
-from .bpnp import project, solve_pnp
+from . import bpnp
 from .model import DimeNet
 from .run_dir import write_run
 
@@ -52,6 +53,8 @@ class TrainConfig:
     val_fraction: float = 0.15  # of train, held back when the dataset has no val split
     min_points: int = 64
     max_eta: float = 0.8
+    max_noise_px: float = 3.0  # per-frame extra 2D noise drawn from U(0, max), px
+    resynthesis: float = 0.75  # share of train frames re-imaged under another frame's principal point
     patience: int = 80  # epochs without val improvement before stopping
 
 
@@ -64,20 +67,20 @@ class TrainResult:
     history: list = field(default_factory=list)
 
 
-def split_train_val(dataset: Dataset, config: TrainConfig) -> tuple[Dataset, Dataset]:
-    """Train frames and early-stopping frames (the val split, else a seeded part of train)."""
+def split_train_val(dataset: Dataset, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the fitting frames and of the early-stopping frames (the val split, else a
+    seeded part of train)."""
     train = dataset.frames_in("train")
     if train.sum() < 2:
         raise DatasetError("split: training needs at least 2 train frames")
     val = dataset.frames_in("val")
     if val.any():
-        return dataset.select(train), dataset.select(val)
+        return np.flatnonzero(train), np.flatnonzero(val)
     idx = np.flatnonzero(train)
     rng = np.random.default_rng(config.seed)
     n_val = max(1, int(round(config.val_fraction * len(idx))))
-    held = np.zeros(dataset.n_frames, bool)
-    held[rng.choice(idx, n_val, replace=False)] = True
-    return dataset.select(train & ~held), dataset.select(held)
+    held = np.sort(rng.choice(idx, n_val, replace=False))
+    return np.setdiff1d(idx, held), held
 
 
 def k_bounds(K_star: np.ndarray) -> np.ndarray:
@@ -88,13 +91,49 @@ def k_bounds(K_star: np.ndarray) -> np.ndarray:
     return np.stack([lo - K_BOUNDS_MARGIN * span, hi + K_BOUNDS_MARGIN * span], -1)
 
 
+@dataclass(frozen=True)
+class FrameTruth:
+    """Per-frame calibration of the train frames: K* (F, 3, 3) px, pose* {W}->{C}, and the
+    residuals x - pi(K*, pose*) (F, P, 2) px that the calibration leaves (the frame's noise)."""
+
+    K_star: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    residual: np.ndarray
+
+
+def frame_truth(frames: Dataset, cal_K, cal_rvec, cal_tvec) -> FrameTruth:
+    residual = frames.points_2d - project(frames.points_3d, cal_K, cal_rvec, cal_tvec)
+    return FrameTruth(cal_K, cal_rvec, cal_tvec, np.where(frames.valid[..., None], residual, 0.0))
+
+
+def resynthesise(frames: Dataset, truth: FrameTruth, rng: np.random.Generator, share: float) -> Dataset:
+    """K-resynthesis augmentation: frame i re-imaged under the principal point of a random
+    train frame j (its own focal length kept, so focus breathing stays tied to distance):
+    x' = pi(K', pose*_i) + residual_i. The OIS state is independent of the hand-held pose,
+    so this is a draw from the same joint distribution, with frame i's real noise.
+    A random ``share`` of the frames is re-imaged; the others stay as captured."""
+    j = rng.integers(0, frames.n_frames, frames.n_frames)
+    j = np.where(rng.random(frames.n_frames) < share, j, np.arange(frames.n_frames))
+    K_new = truth.K_star.copy()
+    K_new[:, :2, 2] = truth.K_star[j, :2, 2]
+    x_new = project(frames.points_3d, K_new, truth.rvec, truth.tvec) + truth.residual
+    return replace(frames, points_2d=np.where(frames.valid[..., None], x_new, np.nan))
+
+
 def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> Dataset:
-    """Each frame with a random inference-point count and a random share of emptied cells."""
+    """Each frame with random extra 2D noise, a random inference-point count and a random share
+    of emptied cells."""
     n_infer = frames.infer_mask.sum(1)
-    low = np.minimum(config.min_points, n_infer)
+    low = np.minimum(max(config.min_points, MIN_INFER_POINTS), n_infer)
     n = rng.integers(low, n_infer + 1)
     eta = rng.uniform(0.0, config.max_eta, frames.n_frames)
-    return empty_cells(drop_inference_points(frames, n, rng), eta, grid, rng)
+    noisy = add_noise(frames, rng.uniform(0.0, config.max_noise_px, frames.n_frames), 0.0, rng)
+    dropped = drop_inference_points(noisy, n, rng)
+    emptied = empty_cells(dropped, eta, grid, rng)
+    # A frame the emptying left with too few points keeps its points (the runtime would fall back).
+    too_few = emptied.infer_mask.sum(1) < MIN_INFER_POINTS
+    return replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
 
 
 def _tensors(frames: Dataset):
@@ -112,8 +151,8 @@ def reprojection_loss(delta_k: torch.Tensor, K_c: torch.Tensor, p2, p3, w) -> tu
     K[:, 1, 1] = K[:, 1, 1] + dk[:, 1]
     K[:, 0, 2] = K[:, 0, 2] + dk[:, 2]
     K[:, 1, 2] = K[:, 1, 2] + dk[:, 3]
-    rvec, tvec = solve_pnp(p2, p3, K, w)
-    r = (project(p3, K, rvec, tvec) - p2) * w[..., None]
+    rvec, tvec = bpnp.solve_pnp(p2, p3, K, w)
+    r = (bpnp.project(p3, K, rvec, tvec) - p2) * w[..., None]
     n = w.sum(1)
     mse = ((r**2).sum((1, 2)) / n).mean()
     e = (torch.linalg.norm(r, dim=-1) * w).sum(1) / n
@@ -129,7 +168,9 @@ def train(dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset
     spec_features = FeatureSpec(grid=Grid.parse(config.grid), variant=config.variant)
     cal = calibrate_dataset(dataset)
     K_c = cal.K_c
-    train_frames, val_frames = split_train_val(dataset, config)
+    fit_idx, val_idx = split_train_val(dataset, config)
+    train_frames, val_frames = dataset.select(fit_idx), dataset.select(val_idx)
+    truth = frame_truth(train_frames, cal.K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx])
     val_sets = [val_frames, drop_inference_points(val_frames, config.min_points, np.random.default_rng(config.seed + 1))]
     image_size = dataset.image_size
     feats_of = lambda fr: torch.from_numpy(  # noqa: E731
@@ -143,7 +184,7 @@ def train(dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset
     best = (np.inf, 0, None)
     history = []
     for epoch in progress(range(1, config.epochs + 1), desc="train"):
-        frames = augment(train_frames, config, spec_features.grid, rng)
+        frames = augment(resynthesise(train_frames, truth, rng, config.resynthesis), config, spec_features.grid, rng)
         feats = feats_of(frames)
         p2, p3, w = _tensors(frames)
         order = torch.from_numpy(rng.permutation(frames.n_frames))
@@ -155,7 +196,7 @@ def train(dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset
             opt.zero_grad()
             loss.backward()
             opt.step()
-            losses.append(float(loss))
+            losses.append(loss.item())
         sched.step()
         model.eval()
         with torch.no_grad():

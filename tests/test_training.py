@@ -1,0 +1,99 @@
+"""Trainer, model and run directory: real behaviour on small simulated datasets."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")  # the base-only install has no torch: skip, not fail
+
+from dimenet.runtime.calibration import calibrate_dataset  # noqa: E402
+from dimenet.runtime.dataset import write_dataset  # noqa: E402
+from dimenet.runtime.evaluation import evaluate  # noqa: E402
+from dimenet.runtime.geometry import k_params  # noqa: E402
+from dimenet.runtime.predictor import load_predictor  # noqa: E402
+from dimenet.runtime.simulator import PROFILES, simulate  # noqa: E402
+from dimenet.training.model import DimeNet  # noqa: E402
+from dimenet.training.run_dir import load_run  # noqa: E402
+from dimenet.training.trainer import TrainConfig, frame_truth, resynthesise, split_train_val, train  # noqa: E402
+
+SMALL = dataclasses.replace(PROFILES["galaxy-s8"], name="small-s8", n_train=30, n_test=8)
+
+
+@pytest.fixture(scope="module")
+def small():
+    return simulate(SMALL, seed=3)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_zero_feature_gives_exactly_zero_delta_k():
+    model = DimeNet(240)
+    torch.nn.init.normal_(model.fc1.weight, std=1.0)
+    out = model(torch.zeros(3, 240))
+    assert torch.equal(out, torch.zeros(3, 4))
+    assert model(torch.ones(1, 240)).abs().sum() > 0
+
+
+def test_training_is_deterministic_and_improves_on_k_c(small, tmp_path):
+    cfg = TrainConfig(epochs=25, seed=5, patience=100)
+    a = train(small, cfg, tmp_path / "a")
+    b = train(small, cfg, tmp_path / "b")
+    ma, _ = load_run(a.run_dir)
+    mb, _ = load_run(b.run_dir)
+    for (ka, va), (kb, vb) in zip(ma.state_dict().items(), mb.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb)
+    hist = a.history
+    assert hist[-1]["train_mse_px2"] < hist[0]["train_mse_px2"]
+    pred = load_predictor(a.run_dir)
+    test = small.select(small.frames_in("test"))
+    ev = evaluate(test, pred.spec.K_c, pred.predict_k)
+    assert ev.overall.avg_e < ev.overall.avg_e_c  # better than the fixed K_c already
+    for name in ("weights.safetensors", "spec.json", "history.json", "curve.png"):
+        assert (a.run_dir / name).stat().st_size > 0
+    spec = json.loads((a.run_dir / "spec.json").read_text())
+    assert spec["format"] == "dimenet-model/1" and spec["provenance"]["seed"] == 5
+
+
+def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principal_point(small):
+    cal = calibrate_dataset(small)
+    idx = np.flatnonzero(small.frames_in("train"))
+    frames = small.select(idx)
+    truth = frame_truth(frames, cal.K_star[idx], cal.rvec[idx], cal.tvec[idx])
+    same = resynthesise(frames, truth, np.random.default_rng(0), share=0.0)
+    np.testing.assert_allclose(same.points_2d[frames.valid], frames.points_2d[frames.valid], atol=1e-9)
+    moved = resynthesise(frames, truth, np.random.default_rng(0), share=1.0)
+    # Re-calibrating a re-imaged frame finds its own focal length and another frame's principal point.
+    K_new = calibrate_dataset(dataclasses.replace(moved, split=np.full(moved.n_frames, "train"))).K_star
+    p_old, p_new = k_params(cal.K_star[idx]), k_params(K_new)
+    np.testing.assert_allclose(p_new[:, :2], p_old[:, :2], atol=1e-4)
+    candidates = p_old[:, 2:]
+    dist = np.abs(p_new[:, None, 2:] - candidates[None]).max(-1).min(-1)
+    assert np.all(dist < 1e-4)  # px: LM convergence, far below the ~50 px spread of principal points
+
+
+def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_path):
+    hd = dataclasses.replace(PROFILES["galaxy-s8"], name="hd-cam", image_size_px=(1920, 1080), pixel_pitch_um=2.8,
+                             n_train=24, n_test=6)
+    ds = simulate(hd, seed=1)
+    keep = np.arange(0, ds.n_points, 2)  # other P: 160 points per frame
+    ds = dataclasses.replace(ds, points_2d=ds.points_2d[:, keep], points_3d=ds.points_3d[:, keep],
+                             valid=ds.valid[:, keep], infer_mask=ds.infer_mask[:, keep])
+    assert not ds.frames_in("val").any()
+    fit_idx, val_idx = split_train_val(ds, TrainConfig())
+    assert len(val_idx) > 0 and not set(fit_idx) & set(val_idx)
+    path = write_dataset(ds, tmp_path / "hd.npz")
+    result = train(ds, TrainConfig(epochs=3, grid="4x3"), tmp_path / "run")
+    pred = load_predictor(result.run_dir)
+    assert pred.spec.image_size == (1920, 1080) and pred.spec.features.size == 5 * 12
+    K = pred.predict_k(ds.select(ds.frames_in("test")))
+    assert K.shape == (6, 3, 3) and np.all(np.isfinite(K))
+    assert path.exists()
