@@ -36,6 +36,8 @@ from . import bpnp
 from .model import DimeNet
 from .run_dir import write_run
 
+# Training clamps Delta K to +-this (px) inside the loss; OIS moves K by tens of px.
+DELTA_K_LIMIT_PX = 300.0
 # Plausible K: the train frames' K* range widened by this many times its span on each side.
 K_BOUNDS_MARGIN = 1.0
 
@@ -145,7 +147,9 @@ def _tensors(frames: Dataset):
 
 def reprojection_loss(delta_k: torch.Tensor, K_c: torch.Tensor, p2, p3, w) -> tuple[torch.Tensor, torch.Tensor]:
     """(mean squared error px^2 over frames, per-frame mean Euclidean error px) under K = K_c + delta_k."""
-    dk = delta_k.double()
+    # An untrained net may emit a wild Delta K under which PnP has no solution; the clamp is
+    # the identity on realistic values (the runtime uses Delta K unclamped).
+    dk = delta_k.double().clamp(-DELTA_K_LIMIT_PX, DELTA_K_LIMIT_PX)
     K = K_c.expand(len(dk), 3, 3).clone()
     K[:, 0, 0] = K[:, 0, 0] + dk[:, 0]
     K[:, 1, 1] = K[:, 1, 1] + dk[:, 1]
