@@ -1,0 +1,95 @@
+"""Freeze a trained DIME-Net into a ``dimenet-model/1`` ONNX file (needs the ``export`` extra: onnx).
+
+The graph maps ``features`` float32 [batch, D] (dynamic batch) to ``delta_k`` float32
+[batch, 4] px; the model spec JSON rides in ``metadata_props`` under ``METADATA_KEY``.
+The exported bytes are checked (onnx.checker, then ONNX Runtime against torch on probe
+features, and zero features -> exactly zero Delta K) before anything is written, and the
+file is written atomically: a failed export leaves any previous file intact.
+"""
+from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from dimenet.runtime.atomic import atomic_write
+from dimenet.runtime.errors import ModelError
+from dimenet.runtime.model_spec import METADATA_KEY, ModelSpec
+from dimenet.runtime.onnx_model import INPUT_NAME, OUTPUT_NAME, onnx_model_from_bytes
+from dimenet.training.model import DimeNet
+from dimenet.training.run_dir import load_run
+
+from .commands import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
+
+# Largest |Delta K| difference allowed between ONNX Runtime and torch on the probe features:
+# PARITY_TOLERANCE_PX plus float32 rounding, PARITY_RELATIVE times the largest |Delta K|.
+PARITY_TOLERANCE_PX = 1e-3
+PARITY_RELATIVE = 1e-5
+PROBE_FRAMES = 16
+
+
+def _trace(model: DimeNet, size: int, opset: int) -> bytes:
+    """The MLP as ONNX bytes from the TorchScript exporter (a small, plain MatMul/Erf graph)."""
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter announces its deprecation
+        torch.onnx.export(model.eval(), (torch.zeros(1, size),), buf, dynamo=False, opset_version=opset,
+                          input_names=[INPUT_NAME], output_names=[OUTPUT_NAME], do_constant_folding=True,
+                          dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}})
+    return buf.getvalue()
+
+
+def _with_spec(blob: bytes, spec: ModelSpec) -> bytes:
+    """The model bytes with the spec JSON in metadata_props, after onnx.checker (full check)."""
+    proto = onnx.load_from_string(blob)
+    del proto.metadata_props[:]
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = METADATA_KEY, spec.to_json()
+    proto.doc_string = f"DIME-Net: grid feature -> Delta K (px); model spec in metadata_props[{METADATA_KEY!r}]"
+    try:
+        onnx.checker.check_model(proto, full_check=True)
+    except onnx.checker.ValidationError as exc:
+        raise ModelError(f"export: the exported graph fails onnx.checker ({str(exc).splitlines()[0]})") from None
+    return proto.SerializeToString()
+
+
+def _check_parity(model: DimeNet, blob: bytes, size: int) -> None:
+    """ModelError unless ONNX Runtime matches torch (see PARITY_TOLERANCE_PX) and f(0) = 0 exactly."""
+    probe = np.random.default_rng(0).normal(size=(PROBE_FRAMES, size)).astype(np.float32)
+    probe[0] = 0.0
+    with torch.no_grad():
+        expected = model(torch.from_numpy(probe)).numpy()
+    got = onnx_model_from_bytes(blob, "exported model").delta_k(probe)
+    worst = float(np.abs(got - expected).max())
+    if not worst <= PARITY_TOLERANCE_PX + PARITY_RELATIVE * float(np.abs(expected).max()):
+        raise ModelError(f"export: ONNX Runtime and torch differ by up to {worst:.2e} px "
+                         f"(allowed {PARITY_TOLERANCE_PX} px + {PARITY_RELATIVE:g} x the largest |Delta K|)")
+    if np.any(got[0] != 0.0):
+        raise ModelError(f"export: zero features give Delta K {got[0].tolist()} px in ONNX, expected exactly 0")
+
+
+def export_model(model: DimeNet, spec: ModelSpec, *, opset: int = DEFAULT_OPSET) -> bytes:
+    """The checked ``dimenet-model/1`` ONNX bytes of a DimeNet and its spec."""
+    if not MIN_OPSET <= opset <= MAX_OPSET:
+        raise ModelError(f"export: opset must be {MIN_OPSET} to {MAX_OPSET}, got {opset}")
+    size = spec.features.size
+    if model.fc1.in_features != size:
+        raise ModelError(f"export: the model reads {model.fc1.in_features} features, its spec's feature has {size}")
+    try:
+        traced = _trace(model, size, opset)
+    except Exception as exc:  # the exporter raises assorted types, e.g. for an unsupported opset
+        raise ModelError(f"export: torch.onnx.export failed at opset {opset} ({type(exc).__name__}: {exc})") from None
+    blob = _with_spec(traced, spec)
+    _check_parity(model, blob, size)
+    return blob
+
+
+def export_run(run_dir: str | Path, out: str | Path, *, opset: int = DEFAULT_OPSET) -> Path:
+    """Export a RUN_DIR from `dimenet train` to ``out`` (.onnx), atomically. Returns ``out``."""
+    model, spec = load_run(run_dir)
+    blob = export_model(model, spec, opset=opset)
+    return atomic_write(out, lambda f: f.write(blob))

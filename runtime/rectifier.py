@@ -1,0 +1,354 @@
+"""Per-frame K rectification at run time: 2D-3D correspondences -> K, pose {W}->{C}.
+
+numpy, OpenCV and ONNX Runtime only. Pipeline of one frame (``Rectifier.rectify``), with the
+stage names of ``timings_us``:
+
+1. ``validate``: shapes, casts, >= 6 points, finite values, 2D points inside the image the
+   model was trained for, a non-degenerate configuration;
+2. ``pnp_kc``: SQPnP pose {W}->{C0} under the prior K_c;
+3. ``features``: the grid feature (``dimenet.runtime.features.grid_features``) at that pose;
+4. ``model``: one ONNX Runtime call, Delta K (px); K = K_c + Delta K;
+5. ``pnp_k``: SQPnP pose under K at native resolution;
+6. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of both poses;
+7. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, fallback rules.
+
+Fallback (the result is then K_c's own solution, Delta K = 0, and ``fallback`` says why):
+Delta K not finite; K outside the spec's ``K_bounds``; no pose under K; or
+e(K) > (1 + WORSE_RELATIVE) e(K_c) + WORSE_ABSOLUTE_PX, i.e. the predicted K fits the
+frame's own points worse than K_c by more than 5 % + 0.05 px.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Optional, Sequence
+
+import cv2
+import numpy as np
+
+from .errors import InputError, ModelError
+from .features import grid_features
+from .geometry import check_not_degenerate, k_matrix, k_params, mean_reprojection_error, solve_pnp_start
+from .model_spec import ModelSpec
+from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
+
+MIN_POINTS = 6
+WORSE_RELATIVE = 0.05
+WORSE_ABSOLUTE_PX = 0.05
+DEFAULT_MODEL = "default_model.onnx"
+# Cheap sufficient test of a spread-out configuration (see _well_spread): second largest over
+# largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
+# than check_not_degenerate's limits, which then decides the frames failing it.
+SPREAD_RATIO = 1e-4
+SPREAD_ABSOLUTE = 1e-10
+_COVARIANCE = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """One frame. K (3, 3) px; rvec (3,) rad and tvec (3,) mm {W}->{C} under K; the mean Euclidean
+    reprojection errors (px) over the given points under K and under K_c (each with its own
+    pose); delta_k (4,) px the applied (dfx, dfy, dcx, dcy), 0 on fallback; fallback None or
+    why K_c's solution was returned; timings_us: microseconds per stage."""
+
+    K: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    reprojection_error_px: float
+    reprojection_error_kc_px: float
+    delta_k: np.ndarray
+    fallback: Optional[str]
+    timings_us: dict
+
+
+@dataclass(frozen=True)
+class BatchRectification:
+    """B frames, as Rectification: K (B, 3, 3), rvec (B, 3), tvec (B, 3), errors (B,) px over
+    each frame's valid points, delta_k (B, 4) px, fallback: one reason or None per frame."""
+
+    K: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    reprojection_error_px: np.ndarray
+    reprojection_error_kc_px: np.ndarray
+    delta_k: np.ndarray
+    fallback: tuple
+
+
+def _real_array(value, name: str, shape: str, ndim: int, last: int) -> np.ndarray:
+    """C-contiguous float64 array of ``ndim`` dims ending in ``last`` from any real array-like."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: not an array of numbers ({exc})") from None
+    if a.dtype.kind not in "iuf":
+        raise InputError(f"{name}: dtype {a.dtype} cannot be cast to float64 coordinates")
+    if a.ndim != ndim or a.shape[-1] != last:
+        raise InputError(f"{name}: expected shape {shape}, got {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _bool_mask(value, name: str, shape: tuple) -> np.ndarray:
+    a = np.asarray(value)
+    if a.dtype.kind not in "biu" or a.shape != shape:
+        raise InputError(f"{name}: expected a bool array of shape {shape}, got {a.dtype} {a.shape}")
+    return a.astype(bool, copy=False)
+
+
+def _well_spread(points: np.ndarray) -> bool:
+    """(N, D) finite points clearly span >= 2 dimensions: a cheap sufficient condition for
+    ``check_not_degenerate`` to pass. The covariance's two largest eigenvalues must satisfy
+    l2 > SPREAD_RATIO l1 and l1 > SPREAD_ABSOLUTE max(|point|, 1)^2."""
+    ev = cv2.eigen(cv2.calcCovarMatrix(points, None, _COVARIANCE)[0])[1].ravel()
+    return bool(ev[1] > SPREAD_RATIO * ev[0] and ev[0] > SPREAD_ABSOLUTE * max(cv2.norm(points, cv2.NORM_INF), 1.0) ** 2)
+
+
+def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
+    """InputError (from check_not_degenerate) when the points cannot fix a pose."""
+    if not (_well_spread(points_3d) and _well_spread(points_2d)):
+        check_not_degenerate(points_3d, points_2d)
+
+
+def _sqpnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SQPnP pose {W}->{C} (rvec, tvec (3,)); InputError when there is none."""
+    try:
+        return solve_pnp_start(points_2d, points_3d, K)
+    except cv2.error as exc:
+        raise InputError(f"PnP failed: OpenCV could not solve for a pose ({exc.err})") from None
+
+
+def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.solvePnPRefineLM polish of a pose: least-squares reprojection error under K."""
+    r, t = cv2.solvePnPRefineLM(points_3d, points_2d, K, None, rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy())
+    return r.ravel(), t.ravel()
+
+
+def _mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
+    """Mean Euclidean reprojection error (px) of one frame's (N, 2) px / (N, 3) mm points."""
+    P = K @ np.hstack([cv2.Rodrigues(rvec)[0], tvec[:, None]])
+    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d[:, None], P))[:, 0] - points_2d
+    return float(np.hypot(d[:, 0], d[:, 1]).mean())
+
+
+def _worse(e: np.ndarray, e_c: np.ndarray) -> np.ndarray:
+    """The fallback margin: e(K) worse than e(K_c) by more than 5 % + 0.05 px (a NaN counts as worse)."""
+    return np.logical_not(e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX)
+
+
+def _worse_reason(e: float, e_c: float) -> str:
+    return (f"the predicted K fits worse than K_c: {e:.3f} px vs {e_c:.3f} px "
+            f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX} px)")
+
+
+def _implausible_reason(delta_k: np.ndarray, K: np.ndarray) -> str:
+    if not np.all(np.isfinite(delta_k)):
+        return "the model's Delta K is not finite"
+    fx, fy, cx, cy = k_params(K)
+    return f"implausible K (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px) outside the model's K_bounds"
+
+
+class Rectifier:
+    """A loaded model ready to rectify frames. ``Rectifier.load()`` uses the bundled default model."""
+
+    def __init__(self, model: OnnxModel) -> None:
+        self.model = model
+        spec = model.spec
+        self._kc_params = k_params(spec.K_c)
+        # K_bounds as bounds on Delta K (px): a NaN fails them too.
+        self._dk_low = spec.K_bounds[:, 0] - self._kc_params
+        self._dk_high = spec.K_bounds[:, 1] - self._kc_params
+        width, height = spec.image_size
+        # Pixel centres run from 0 to size - 1, so the image covers [-0.5, size - 0.5] px.
+        self._image_low = np.array([-0.5, -0.5])
+        self._image_high = np.array([width - 0.5, height - 0.5])
+
+    @classmethod
+    def load(cls, path: Optional[str | Path] = None, *, threads: int = 1,
+             providers: Optional[Sequence[str]] = None) -> "Rectifier":
+        """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model."""
+        if path is not None:
+            return cls(load_onnx_model(path, threads=threads, providers=providers))
+        resource = resources.files("dimenet.runtime") / "data" / DEFAULT_MODEL
+        if not resource.is_file():
+            raise ModelError(f"this installation has no bundled default model (dimenet/runtime/data/{DEFAULT_MODEL}); "
+                             f"pass a model file from `dimenet export`")
+        return cls(onnx_model_from_bytes(resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})",
+                                         threads=threads, providers=providers))
+
+    @property
+    def spec(self) -> ModelSpec:
+        return self.model.spec
+
+    def _plausible(self, delta_k: np.ndarray) -> np.ndarray:
+        """(..., 4) px -> (...,) bool: K = K_c + Delta K is finite and inside K_bounds."""
+        return np.all((delta_k >= self._dk_low) & (delta_k <= self._dk_high), -1)
+
+    def _inside(self, points_2d: np.ndarray, points_3d: np.ndarray) -> np.ndarray:
+        """(..., N) bool: finite 3D point and 2D point inside the model's image."""
+        return np.all((points_2d >= self._image_low) & (points_2d <= self._image_high), -1) & np.isfinite(points_3d).all(-1)
+
+    def _raise_bad_values(self, points_2d, points_3d, valid, where: str) -> None:
+        """InputError naming the first non-finite or outside-the-image point of one frame among
+        its ``valid`` ones ((N,) bool, or True for all)."""
+        for name, a in (("points_2d", points_2d), ("points_3d", points_3d)):
+            bad = valid & ~np.isfinite(a).all(-1)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise InputError(f"{where}{name}: point {i} is not finite ({a[i].tolist()})")
+        i = int(np.argmax(valid & ~self._inside(points_2d, points_3d)))
+        width, height = self.spec.image_size
+        raise InputError(f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
+                         f"outside the {width}x{height} px image the model was trained for")
+
+    def _validated(self, points_2d, points_3d) -> tuple[np.ndarray, np.ndarray]:
+        """One frame's points as float64 (N, 2) px and (N, 3) mm, or InputError naming the problem."""
+        p2 = _real_array(points_2d, "points_2d", "(N, 2)", 2, 2)
+        p3 = _real_array(points_3d, "points_3d", "(N, 3)", 2, 3)
+        n = len(p2)
+        if len(p3) != n:
+            raise InputError(f"points_2d has {n} points and points_3d {len(p3)}: they must correspond one to one")
+        if n < MIN_POINTS:
+            raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
+        if not self._inside(p2, p3).all():
+            self._raise_bad_values(p2, p3, True, "")
+        _check_spread(p2, p3)
+        return p2, p3
+
+    def rectify(self, points_2d, points_3d, *, refine: bool = False) -> Rectification:
+        """K and pose of one frame from its correspondences: points_2d (N, 2) px, points_3d (N, 3) mm in {W}.
+
+        Lists and other real dtypes are accepted and cast to float64. Raises InputError for
+        unusable input. See the module docstring for the pipeline and the fallback rules.
+        """
+        clock = time.perf_counter_ns
+        t0 = clock()
+        p2, p3 = self._validated(points_2d, points_3d)
+        t1 = clock()
+        spec = self.spec
+        rvec_c, tvec_c = _sqpnp(p2, p3, spec.K_c)
+        t2 = clock()
+        feats = grid_features(p2[None], p3[None], np.ones((1, len(p2)), bool), spec.K_c, spec.image_size,
+                              spec.features, poses=(rvec_c[None], tvec_c[None]))
+        t3 = clock()
+        dk = self.model.delta_k(feats.astype(np.float32))[0].astype(np.float64)
+        t4 = clock()
+        K = k_matrix(self._kc_params + dk)
+        reason = None if self._plausible(dk) else _implausible_reason(dk, K)
+        rvec, tvec = rvec_c, tvec_c
+        if reason is None:
+            try:
+                rvec, tvec = _sqpnp(p2, p3, K)
+            except InputError:
+                reason = "no pose under the predicted K"
+        t5 = clock()
+        timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3, "pnp_k": t5 - t4}
+        if refine:
+            rvec_c, tvec_c = _refine(p2, p3, spec.K_c, rvec_c, tvec_c)
+            if reason is None:
+                rvec, tvec = _refine(p2, p3, K, rvec, tvec)
+            t6 = clock()
+            timings["refine"], t5 = t6 - t5, t6
+        e_c = _mean_error(p2, p3, spec.K_c, rvec_c, tvec_c)
+        e = _mean_error(p2, p3, K, rvec, tvec) if reason is None else e_c
+        if reason is None and _worse(e, e_c):
+            reason = _worse_reason(e, e_c)
+        if reason is not None:
+            K, dk, rvec, tvec, e = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c
+        timings["check"] = clock() - t5
+        return Rectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
+                             delta_k=dk, fallback=reason, timings_us={k: v / 1e3 for k, v in timings.items()})
+
+    def _validated_batch(self, points_2d, points_3d, valid, infer_mask):
+        """Float64 arrays and bool masks of B frames, and each frame's valid points ((N_b, 2), (N_b, 3))."""
+        p2 = _real_array(points_2d, "points_2d", "(B, P, 2)", 3, 2)
+        p3 = _real_array(points_3d, "points_3d", "(B, P, 3)", 3, 3)
+        if p3.shape[:2] != p2.shape[:2]:
+            raise InputError(f"points_2d has shape {p2.shape} and points_3d {p3.shape}: (B, P) must agree")
+        valid = _bool_mask(valid, "valid", p2.shape[:2])
+        infer = valid if infer_mask is None else _bool_mask(infer_mask, "infer_mask", p2.shape[:2])
+        if np.any(infer & ~valid):
+            raise InputError("infer_mask: must be a subset of valid")
+        counts = valid.sum(1)
+        if np.any(counts < MIN_POINTS):
+            b = int(np.argmin(counts))
+            raise InputError(f"frame {b}: {int(counts[b])} valid points, rectification needs at least {MIN_POINTS}")
+        for b in np.flatnonzero(np.any(valid & ~self._inside(p2, p3), 1)):
+            self._raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
+        frames = []
+        for b in range(len(p2)):
+            x, X = p2[b][valid[b]], p3[b][valid[b]]
+            try:
+                _check_spread(x, X)
+            except InputError as exc:
+                raise InputError(f"frame {b}: {exc}") from None
+            frames.append((x, X))
+        return p2, p3, valid, infer, frames
+
+    def _inference_poses(self, p2, p3, infer, rvec_c, tvec_c, reasons):
+        """SQPnP poses under K_c from each frame's inference points; frames with too few of
+        them or no pose get a fallback reason and an empty inference mask."""
+        rvec, tvec, infer = rvec_c.copy(), tvec_c.copy(), infer.copy()
+        for b in range(len(p2)):
+            n = int(infer[b].sum())
+            try:
+                if n < MIN_POINTS:
+                    raise InputError(f"{n} inference points, fewer than {MIN_POINTS}")
+                rvec[b], tvec[b] = _sqpnp(p2[b][infer[b]], p3[b][infer[b]], self.spec.K_c)
+            except InputError as exc:
+                reasons[b], infer[b] = f"no K inferred: {exc}", False
+        return rvec, tvec, infer
+
+    def rectify_batch(self, points_2d, points_3d, valid, *, infer_mask=None, refine: bool = False) -> BatchRectification:
+        """K and pose of B frames: points_2d (B, P, 2) px, points_3d (B, P, 3) mm, valid (B, P) bool.
+
+        Features of all frames are computed together and the model runs once. Poses and
+        errors use each frame's valid points; K is inferred from ``infer_mask`` (B, P), a
+        subset of valid (default: valid). A frame with fewer than 6 inference points, or no
+        pose from them, falls back to K_c. Same results as ``rectify`` frame by frame when
+        infer_mask is valid. Raises InputError naming the first unusable frame.
+        """
+        p2, p3, valid, infer, frames = self._validated_batch(points_2d, points_3d, valid, infer_mask)
+        spec, B = self.spec, len(frames)
+        poses_c = []
+        for b, (x, X) in enumerate(frames):
+            try:
+                poses_c.append(_sqpnp(x, X, spec.K_c))
+            except InputError as exc:
+                raise InputError(f"frame {b}: {exc}") from None
+        rvec_c, tvec_c = (np.array(a) for a in zip(*poses_c))
+        reasons: list = [None] * B
+        if infer is valid:
+            rvec_i, tvec_i = rvec_c, tvec_c
+        else:
+            rvec_i, tvec_i, infer = self._inference_poses(p2, p3, infer, rvec_c, tvec_c, reasons)
+        feats = grid_features(p2, p3, infer, spec.K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i))
+        dk = np.asarray(self.model.delta_k(feats.astype(np.float32)), dtype=np.float64)
+        K = k_matrix(self._kc_params + dk)
+        plausible = self._plausible(dk)
+        rvec, tvec = rvec_c.copy(), tvec_c.copy()
+        for b, (x, X) in enumerate(frames):
+            if reasons[b] is None and not plausible[b]:
+                reasons[b] = _implausible_reason(dk[b], K[b])
+            if reasons[b] is None:
+                try:
+                    rvec[b], tvec[b] = _sqpnp(x, X, K[b])
+                except InputError:
+                    reasons[b] = "no pose under the predicted K"
+        pending = np.array([r is None for r in reasons])
+        if refine:
+            for b, (x, X) in enumerate(frames):
+                rvec_c[b], tvec_c[b] = _refine(x, X, spec.K_c, rvec_c[b], tvec_c[b])
+                if pending[b]:
+                    rvec[b], tvec[b] = _refine(x, X, K[b], rvec[b], tvec[b])
+        K[~pending], rvec[~pending], tvec[~pending] = spec.K_c, rvec_c[~pending], tvec_c[~pending]
+        e_c = mean_reprojection_error(p2, p3, valid, spec.K_c, rvec_c, tvec_c)
+        e = mean_reprojection_error(p2, p3, valid, K, rvec, tvec)
+        for b in np.flatnonzero(pending & _worse(e, e_c)):
+            reasons[b] = _worse_reason(e[b], e_c[b])
+        fell_back = np.array([r is not None for r in reasons])
+        K[fell_back], dk[fell_back] = spec.K_c, 0.0
+        rvec[fell_back], tvec[fell_back], e[fell_back] = rvec_c[fell_back], tvec_c[fell_back], e_c[fell_back]
+        return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
+                                  delta_k=dk, fallback=tuple(reasons))

@@ -1,0 +1,40 @@
+"""`dimenet bench`: the report's keys and the budget exit code (no timing assertions)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dimenet.runtime.bench import bench_frames, percentiles_us
+from dimenet.runtime.cli import main
+from dimenet.runtime.errors import InputError
+from test_rectifier import frames, model_path  # noqa: F401  (module fixtures)
+
+
+def test_bench_json_reports_every_key(model_path, capsys):  # noqa: F811
+    model = [] if model_path is None else ["--model", str(model_path)]
+    assert main(["bench", *model, "--frames", "12", "--points", "64", "--batch", "4", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    for key in ("end_to_end_us", "baseline_solvepnp_us"):
+        assert set(report[key]) == {"p50", "p90", "p99", "max"}
+    assert set(report["stages_us"]) == {"validate", "pnp_kc", "features", "model", "pnp_k", "check"}
+    assert report["ratio_p50"] > 0 and report["batch_frames_per_s"] > 0 and report["threads"] == 1
+    assert len(report["model_sha256"]) == 64 and report["ort_version"] and report["cpu_model"]
+    assert report["frames"] == 12 and report["points"] == 64
+
+
+def test_budget_exceeded_exits_1_and_refine_adds_its_stage(model_path, capsys):  # noqa: F811
+    model = [] if model_path is None else ["--model", str(model_path)]
+    assert main(["bench", *model, "--frames", "3", "--points", "32", "--refine", "--budget-ms", "0.000001"]) == 1
+    out = capsys.readouterr().out
+    assert "stage refine" in out and "exceeds the budget" in out
+
+
+def test_bench_frames_have_exactly_the_requested_points():
+    p2, p3 = bench_frames(5, 100, (4032, 3024))
+    assert p2.shape == (5, 100, 2) and p3.shape == (5, 100, 3)
+    assert np.all(np.isfinite(p2)) and np.all(np.isfinite(p3))
+    with pytest.raises(InputError, match="--points"):
+        bench_frames(5, 1000, (4032, 3024))
+    assert percentiles_us([1.0, 2.0, 3.0])["max"] == 3.0
