@@ -27,14 +27,6 @@ def small():
     return simulate(SMALL, seed=3)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_zero_feature_gives_exactly_zero_delta_k():
     model = DimeNet(240)
     torch.nn.init.normal_(model.fc1.weight, std=1.0)
