@@ -57,7 +57,6 @@ class TrainConfig:
     min_points: int = 64
     max_eta: float = 0.8
     max_noise_px: float = 3.0  # per-frame extra 2D noise drawn from U(0, max), px
-    max_noise_mm: float = 0.0  # per-frame extra 3D noise drawn from U(0, max), mm
     resynthesis: float = 0.75  # share of train frames re-imaged under another frame's principal point
     patience: int = 80  # epochs without val improvement before stopping
 
@@ -132,8 +131,7 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     low = np.minimum(max(config.min_points, MIN_INFER_POINTS), n_infer)
     n = rng.integers(low, n_infer + 1)
     eta = rng.uniform(0.0, config.max_eta, frames.n_frames)
-    noisy = add_noise(frames, rng.uniform(0.0, config.max_noise_px, frames.n_frames),
-                      rng.uniform(0.0, config.max_noise_mm, frames.n_frames), rng)
+    noisy = add_noise(frames, rng.uniform(0.0, config.max_noise_px, frames.n_frames), 0.0, rng)
     dropped = drop_inference_points(noisy, n, rng)
     emptied = empty_cells(dropped, eta, grid, rng)
     # A frame the emptying left with too few points keeps its points (the runtime would fall back).
