@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .geometry import k_params, rvec_to_matrix, solve_pnp_start
+from .geometry import rotation_matrices, solve_pnp_start
 from .grid import Grid
 
 CHANNELS = ("dx", "dy", "X", "Y", "inv_z")
@@ -80,35 +80,68 @@ def poses_c0(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray]:
 
 def point_features(points_2d, points_3d, K_c, rvec, tvec) -> np.ndarray:
     """(F, N, 5) raw [dx, dy, X, Y, 1/Z] (px, px, mm, mm, 1/mm) in {C0}; unmasked values are arbitrary."""
-    Xc = np.einsum("fij,fnj->fni", rvec_to_matrix(rvec), points_3d) + tvec[:, None, :]
-    inv_z = 1.0 / Xc[..., 2]
-    fx, fy, cx, cy = k_params(K_c)
-    dx = fx * Xc[..., 0] * inv_z + cx - points_2d[..., 0]
-    dy = fy * Xc[..., 1] * inv_z + cy - points_2d[..., 1]
-    return np.stack([dx, dy, Xc[..., 0], Xc[..., 1], inv_z], axis=-1)
+    points_2d = np.asarray(points_2d, dtype=np.float64)
+    out = np.empty((len(points_2d), len(CHANNELS), points_2d.shape[1]))
+    _point_features_into(out, points_2d, np.asarray(points_3d, dtype=np.float64), K_c, rvec, tvec)
+    return np.ascontiguousarray(np.swapaxes(out, 1, 2))
 
 
-def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None) -> np.ndarray:
+def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec) -> None:
+    """The raw point features of ``point_features`` channel-major into out[:, :5] of an (F, >= 5, N) array."""
+    K_c = np.asarray(K_c, dtype=np.float64)
+    Xc = np.matmul(rotation_matrices(rvec), np.swapaxes(points_3d, 1, 2))  # (F, 3, N)
+    Xc += np.asarray(tvec, dtype=np.float64)[:, :, None]
+    inv_z = np.divide(1.0, Xc[:, 2:], out=out[:, 4:5])
+    # dx, dy = fx X / Z + cx - x, fy Y / Z + cy - y, in that order of operations.
+    pmd = np.multiply(Xc[:, :2], K_c.diagonal()[:2, None], out=out[:, :2])
+    pmd *= inv_z
+    pmd += K_c[:2, 2:]
+    pmd -= np.swapaxes(points_2d, 1, 2)
+    out[:, 2:4] = Xc[:, :2]
+
+
+def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None,
+                  return_pmd: bool = False):
     """The flattened, scaled grid feature of F frames: (F, spec.size) float64.
 
     points_2d (F, N, 2) px; points_3d (F, N, 3) mm in {W}; mask (F, N) bool, the inference
     points; K_c (3, 3) the prior; image_size (width, height) px. ``poses`` (rvec, tvec) of
     {W}->{C0} may be passed when already known (else solved here with SQPnP).
+
+    With ``return_pmd``, returns (feature, pmd): pmd (F, N, 2) the raw unscaled [dx, dy] (px)
+    of every point, i.e. its reprojection residual under K_c at the C0 pose (arbitrary on
+    unmasked points).
     """
     points_2d = np.asarray(points_2d, dtype=np.float64)
     points_3d = np.asarray(points_3d, dtype=np.float64)
     mask = np.asarray(mask, dtype=bool)
     F, N = mask.shape
     rvec, tvec = poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
-    safe_2d = np.where(mask[..., None], points_2d, 0.0)
-    safe_3d = np.where(mask[..., None], points_3d, 0.0)
-    feats = point_features(safe_2d, safe_3d, K_c, rvec, tvec)
-    keep = [CHANNELS.index(c) for c in spec.channels]
-    feats = feats[..., keep] * np.array([spec.scale[c] for c in spec.channels])
-    n_cells = spec.grid.n_cells
-    cells = spec.grid.cell_index(safe_2d, image_size) + n_cells * np.arange(F)[:, None]
-    cells, feats = cells[mask], feats[mask]
-    counts = np.bincount(cells, minlength=F * n_cells).astype(np.float64)
-    sums = np.stack([np.bincount(cells, weights=feats[:, c], minlength=F * n_cells) for c in range(len(keep))], -1)
-    means = sums / np.maximum(counts, 1.0)[:, None]
-    return means.reshape(F, n_cells * len(keep))
+    every = bool(mask.all())
+    if not every:
+        points_2d = np.where(mask[..., None], points_2d, 0.0)
+        points_3d = np.where(mask[..., None], points_3d, 0.0)
+    # Channel-major point rows [dx, dy, X, Y, 1/Z, 1] (F, 6, N); the last one counts points.
+    rows = np.empty((F, len(CHANNELS) + 1, N))
+    _point_features_into(rows, points_2d, points_3d, K_c, rvec, tvec)
+    rows[:, -1] = 1.0
+    pmd = np.swapaxes(rows[:, :2], 1, 2)
+    channels = spec.channels
+    if channels != CHANNELS:
+        rows = rows[:, [CHANNELS.index(c) for c in channels] + [len(CHANNELS)]]
+    width = rows.shape[1]
+    bins = F * spec.grid.n_cells  # cell bins of all frames; one block of them per channel
+    cells = spec.grid.cell_index(points_2d, image_size)
+    if F > 1:
+        cells += spec.grid.n_cells * np.arange(F)[:, None]
+    index = cells[:, None, :] + np.arange(0, width * bins, bins)[:, None]
+    if every:
+        index, weights = index.ravel(), rows.ravel()
+    else:
+        index, weights = np.swapaxes(index, 1, 2)[mask], np.swapaxes(rows, 1, 2)[mask]
+    # Per channel and cell, the sum of its points' values in point order.
+    sums = np.bincount(index.ravel(), weights=weights.ravel(), minlength=width * bins).reshape(width, bins)
+    means = sums[:-1] / np.maximum(sums[-1], 1.0)
+    means *= np.array([spec.scale[c] for c in channels])[:, None]
+    feats = means.T.reshape(F, bins // F * (width - 1))
+    return (feats, pmd) if return_pmd else feats

@@ -16,6 +16,8 @@ from .errors import CalibrationError, InputError
 
 # Smallest depth (mm) a point may have in front of the camera and still be projected.
 MIN_DEPTH_MM = 1e-6
+# Up to this many poses, rotation_matrices calls cv2.Rodrigues pose by pose.
+FEW_POSES = 8
 
 
 def k_params(K: np.ndarray) -> np.ndarray:
@@ -56,6 +58,19 @@ def rvec_to_matrix(rvec: np.ndarray) -> np.ndarray:
     a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
     return np.eye(3) + a * S + b * (S @ S)
+
+
+def rotation_matrices(rvec: np.ndarray) -> np.ndarray:
+    """``rvec_to_matrix`` (same values to float rounding), fast for a few poses: OpenCV's
+    Rodrigues pose by pose below ``FEW_POSES`` poses, the vectorised formula above."""
+    rvec = np.ascontiguousarray(rvec, dtype=np.float64)
+    if rvec.shape == (1, 3):
+        return cv2.Rodrigues(rvec[0])[0][None]
+    if rvec.shape == (3,):
+        return cv2.Rodrigues(rvec)[0]
+    if rvec.ndim == 2 and len(rvec) <= FEW_POSES:
+        return np.array([cv2.Rodrigues(r)[0] for r in rvec]).reshape(len(rvec), 3, 3)
+    return rvec_to_matrix(rvec)
 
 
 def matrix_to_rvec(R: np.ndarray) -> np.ndarray:
@@ -102,6 +117,28 @@ def mean_reprojection_error(points_2d, points_3d, weights, K, rvec, tvec) -> np.
     return (np.where(w > 0, err, 0.0)).sum(-1) / w.sum(-1)
 
 
+def mean_reprojection_errors(points_2d, points_3d, valid, K, R, tvec) -> np.ndarray:
+    """``mean_reprojection_error`` of B frames (same values to float rounding), computed
+    coordinate-major for speed: points_2d (B, N, 2) px, points_3d (B, N, 3) mm, valid (B, N)
+    bool or None for all points, K (3, 3) or (B, 3, 3), R (B, 3, 3) rotations and tvec (B, 3)
+    mm of the poses {W}->{C}. Returns (B,) px."""
+    if valid is not None:
+        points_2d = np.where(valid[..., None], points_2d, 0.0)
+        points_3d = np.where(valid[..., None], points_3d, 1.0)
+    K = np.asarray(K, dtype=np.float64).reshape(-1, 3, 3)
+    Xc = np.matmul(R, np.swapaxes(points_3d, 1, 2))  # (B, 3, N)
+    Xc += np.asarray(tvec, dtype=np.float64)[:, :, None]
+    # fx X / Z + cx - x and fy Y / Z + cy - y, in the order of operations of project().
+    d = np.multiply(Xc[:, :2], np.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, :, None])
+    d /= Xc[:, 2:]
+    d += K[:, :2, 2:]
+    d -= np.swapaxes(points_2d, 1, 2)
+    err = np.hypot(d[:, 0], d[:, 1])
+    if valid is None:
+        return err.sum(-1) / err.shape[-1]
+    return np.where(valid, err, 0.0).sum(-1) / valid.sum(-1)
+
+
 def check_not_degenerate(points_3d: np.ndarray, points_2d: np.ndarray) -> None:
     """Raise InputError when the correspondences cannot fix a pose.
 
@@ -127,7 +164,8 @@ def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray)
         np.ascontiguousarray(points_2d, dtype=np.float64),
         np.asarray(K, dtype=np.float64), None, flags=cv2.SOLVEPNP_SQPNP,
     )
-    if not ok or not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+    if not ok or not ((cv2.checkRange(rvec)[0] and cv2.checkRange(tvec)[0])  # fast; refuses +DBL_MAX too
+                      or (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))):
         raise InputError("PnP failed: no camera pose explains these correspondences")
     return rvec.ravel(), tvec.ravel()
 

@@ -40,10 +40,35 @@ class Grid:
         return cls(int(m.group(1)), int(m.group(2)))
 
     def cell_index(self, points_2d: np.ndarray, image_size) -> np.ndarray:
-        """(..., N, 2) px -> (..., N) cell index; points on or past the border go to the edge cell."""
-        width, height = float(image_size[0]), float(image_size[1])
-        col = np.clip(np.floor(points_2d[..., 0] * (self.cols / width)), 0, self.cols - 1)
-        row = np.clip(np.floor(points_2d[..., 1] * (self.rows / height)), 0, self.rows - 1)
-        col = np.nan_to_num(col).astype(np.int64)
-        row = np.nan_to_num(row).astype(np.int64)
-        return row * self.cols + col
+        """(..., N, 2) px -> (..., N) cell index; points on or past the border go to the edge cell
+        (a NaN coordinate to the first cell)."""
+        points_2d = np.asarray(points_2d)
+        scale, last, axes, dtype = self._cell_constants(float(image_size[0]), float(image_size[1]),
+                                                        points_2d.dtype, points_2d.ndim)
+        # Cell coordinates (x u / width, y v / height) in the points' float type, stored
+        # coordinate-major, clamped to [0, u - 1] x [0, v - 1] (fmax sends NaN to 0), then
+        # floored by the cast to integers (exact: they are >= 0).
+        xy = np.multiply(points_2d.transpose(axes), scale,
+                         out=np.empty(points_2d.shape[-1:] + points_2d.shape[:-1], dtype))
+        np.fmax(xy, 0.0, out=xy)
+        np.fmin(xy, last, out=xy)
+        col, row = xy.astype(np.int64)
+        row *= self.cols
+        row += col
+        return row
+
+    def _cell_constants(self, width: float, height: float, dtype: np.dtype, ndim: int) -> tuple:
+        """cell_index's (2, 1, ...) scale and last cell, its transpose axes and float type, cached."""
+        key = (self.cols, self.rows, width, height, dtype, ndim)
+        constants = _CELL_CONSTANTS.get(key)
+        if constants is None:
+            dtype = dtype if dtype.kind == "f" else np.dtype(np.float64)
+            shape = (2,) + (1,) * (ndim - 1)
+            constants = _CELL_CONSTANTS[key] = (
+                np.array([self.cols / width, self.rows / height], dtype).reshape(shape),
+                np.array([self.cols - 1, self.rows - 1], dtype).reshape(shape),
+                (ndim - 1,) + tuple(range(ndim - 1)), dtype)
+        return constants
+
+
+_CELL_CONSTANTS: dict = {}

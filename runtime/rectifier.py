@@ -30,7 +30,8 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import check_not_degenerate, k_matrix, k_params, mean_reprojection_error, solve_pnp_start
+from .geometry import (check_not_degenerate, k_matrix, k_params, mean_reprojection_errors, rotation_matrices,
+                       solve_pnp_start)
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
 
@@ -111,6 +112,28 @@ def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
         check_not_degenerate(points_3d, points_2d)
 
 
+def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray], counts: np.ndarray) -> np.ndarray:
+    """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all), counts (B,)
+    valid points -> (B,) bool: a sufficient condition for ``_well_spread`` of each frame's
+    valid points, from the invariants of their covariance (eigenvalues l1 >= l2 >= ...):
+    trace T = sum l and S = sum of the principal 2x2 minors. As l1 <= T and S <= 3 l1 l2,
+    S > 3 SPREAD_RATIO T^2 gives l2 > SPREAD_RATIO l1; as l1 >= T / D, T > D SPREAD_ABSOLUTE
+    scale^2 gives l1 > SPREAD_ABSOLUTE scale^2. A frame failing it takes the exact test."""
+    T = np.ascontiguousarray(np.swapaxes(points, 1, 2))  # (B, D, P), coordinate-major
+    if valid is not None:
+        np.copyto(T, 0.0, where=~valid[:, None, :])
+    scale = np.maximum(np.abs(T).max((1, 2)), 1.0)
+    n = counts.astype(np.float64)
+    T -= (T.sum(-1) / n[:, None])[:, :, None]
+    if valid is not None:
+        np.copyto(T, 0.0, where=~valid[:, None, :])
+    C = np.matmul(T, np.swapaxes(T, 1, 2)) / n[:, None, None]
+    D = points.shape[-1]
+    trace = np.trace(C, axis1=1, axis2=2)
+    minors = sum(C[:, i, i] * C[:, j, j] - C[:, i, j] * C[:, j, i] for i in range(D) for j in range(i + 1, D))
+    return (minors > 3 * SPREAD_RATIO * trace**2) & (trace > D * SPREAD_ABSOLUTE * scale**2)
+
+
 def _sqpnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """SQPnP pose {W}->{C} (rvec, tvec (3,)); InputError when there is none."""
     try:
@@ -127,14 +150,27 @@ def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray
 
 def _mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
     """Mean Euclidean reprojection error (px) of one frame's (N, 2) px / (N, 3) mm points."""
-    P = K @ np.hstack([cv2.Rodrigues(rvec)[0], tvec[:, None]])
-    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d[:, None], P))[:, 0] - points_2d
-    return float(np.hypot(d[:, 0], d[:, 1]).mean())
+    P = np.empty((3, 4))
+    np.matmul(K, cv2.Rodrigues(rvec)[0], out=P[:, :3])
+    np.matmul(K, tvec, out=P[:, 3])
+    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), P)).reshape(-1, 2)
+    d -= points_2d
+    return float(np.hypot(d[:, 0], d[:, 1]).sum()) / len(d)
+
+
+def _pmd_error(pmd: np.ndarray) -> float:
+    """Mean Euclidean norm (px) of one frame's (N, 2) residuals."""
+    return float(np.hypot(pmd[:, 0], pmd[:, 1]).sum()) / len(pmd)
 
 
 def _worse(e: np.ndarray, e_c: np.ndarray) -> np.ndarray:
     """The fallback margin: e(K) worse than e(K_c) by more than 5 % + 0.05 px (a NaN counts as worse)."""
     return np.logical_not(e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX)
+
+
+def _worse_one(e: float, e_c: float) -> bool:
+    """``_worse`` of one frame's errors (Python floats)."""
+    return not e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX
 
 
 def _worse_reason(e: float, e_c: float) -> str:
@@ -159,10 +195,13 @@ class Rectifier:
         # K_bounds as bounds on Delta K (px): a NaN fails them too.
         self._dk_low = spec.K_bounds[:, 0] - self._kc_params
         self._dk_high = spec.K_bounds[:, 1] - self._kc_params
+        self._dk_bounds = tuple(zip(self._dk_low.tolist(), self._dk_high.tolist()))
         width, height = spec.image_size
         # Pixel centres run from 0 to size - 1, so the image covers [-0.5, size - 0.5] px.
         self._image_low = np.array([-0.5, -0.5])
         self._image_high = np.array([width - 0.5, height - 0.5])
+        self._image_bounds = (tuple(self._image_low.tolist()), tuple(self._image_high.tolist()))
+        self._K_c = np.ascontiguousarray(spec.K_c, dtype=np.float64)
 
     @classmethod
     def load(cls, path: Optional[str | Path] = None, *, threads: int = 1,
@@ -184,6 +223,15 @@ class Rectifier:
     def _plausible(self, delta_k: np.ndarray) -> np.ndarray:
         """(..., 4) px -> (...,) bool: K = K_c + Delta K is finite and inside K_bounds."""
         return np.all((delta_k >= self._dk_low) & (delta_k <= self._dk_high), -1)
+
+    def _all_inside(self, points_2d: np.ndarray, points_3d: np.ndarray) -> bool:
+        """Every point finite and inside the model's image (as ``_inside(...).all()``): (N, 2),
+        (N, 3) float64 C-contiguous, or any leading dims. OpenCV's checks first (exact for all
+        but the float extremes: checkRange refuses +DBL_MAX), numpy's when they say no."""
+        if cv2.checkRange(points_3d)[0] and cv2.countNonZero(
+                cv2.inRange(points_2d.reshape(-1, 1, 2), *self._image_bounds)) == points_2d.size // 2:
+            return True
+        return bool(self._inside(points_2d, points_3d).all())
 
     def _inside(self, points_2d: np.ndarray, points_3d: np.ndarray) -> np.ndarray:
         """(..., N) bool: finite 3D point and 2D point inside the model's image."""
@@ -211,7 +259,7 @@ class Rectifier:
             raise InputError(f"points_2d has {n} points and points_3d {len(p3)}: they must correspond one to one")
         if n < MIN_POINTS:
             raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
-        if not self._inside(p2, p3).all():
+        if not self._all_inside(p2, p3):
             self._raise_bad_values(p2, p3, True, "")
         _check_spread(p2, p3)
         return p2, p3
@@ -226,16 +274,18 @@ class Rectifier:
         t0 = clock()
         p2, p3 = self._validated(points_2d, points_3d)
         t1 = clock()
-        spec = self.spec
-        rvec_c, tvec_c = _sqpnp(p2, p3, spec.K_c)
+        spec, K_c = self.model.spec, self._K_c
+        rvec_c, tvec_c = _sqpnp(p2, p3, K_c)
         t2 = clock()
-        feats = grid_features(p2[None], p3[None], np.ones((1, len(p2)), bool), spec.K_c, spec.image_size,
-                              spec.features, poses=(rvec_c[None], tvec_c[None]))
+        feats, pmd = grid_features(p2[None], p3[None], np.ones((1, len(p2)), bool), K_c, spec.image_size,
+                                   spec.features, poses=(rvec_c[None], tvec_c[None]), return_pmd=True)
         t3 = clock()
         dk = self.model.delta_k(feats.astype(np.float32))[0].astype(np.float64)
         t4 = clock()
-        K = k_matrix(self._kc_params + dk)
-        reason = None if self._plausible(dk) else _implausible_reason(dk, K)
+        fx, fy, cx, cy = (self._kc_params + dk).tolist()
+        K = np.array(((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0)))  # k_matrix of (fx, fy, cx, cy)
+        plausible = all(low <= d <= high for d, (low, high) in zip(dk.tolist(), self._dk_bounds))
+        reason = None if plausible else _implausible_reason(dk, K)
         rvec, tvec = rvec_c, tvec_c
         if reason is None:
             try:
@@ -245,14 +295,16 @@ class Rectifier:
         t5 = clock()
         timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3, "pnp_k": t5 - t4}
         if refine:
-            rvec_c, tvec_c = _refine(p2, p3, spec.K_c, rvec_c, tvec_c)
+            rvec_c, tvec_c = _refine(p2, p3, K_c, rvec_c, tvec_c)
             if reason is None:
                 rvec, tvec = _refine(p2, p3, K, rvec, tvec)
             t6 = clock()
             timings["refine"], t5 = t6 - t5, t6
-        e_c = _mean_error(p2, p3, spec.K_c, rvec_c, tvec_c)
+            e_c = _mean_error(p2, p3, K_c, rvec_c, tvec_c)
+        else:
+            e_c = _pmd_error(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
         e = _mean_error(p2, p3, K, rvec, tvec) if reason is None else e_c
-        if reason is None and _worse(e, e_c):
+        if reason is None and _worse_one(e, e_c):
             reason = _worse_reason(e, e_c)
         if reason is not None:
             K, dk, rvec, tvec, e = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c
@@ -274,16 +326,20 @@ class Rectifier:
         if np.any(counts < MIN_POINTS):
             b = int(np.argmin(counts))
             raise InputError(f"frame {b}: {int(counts[b])} valid points, rectification needs at least {MIN_POINTS}")
-        for b in np.flatnonzero(np.any(valid & ~self._inside(p2, p3), 1)):
-            self._raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
-        frames = []
-        for b in range(len(p2)):
-            x, X = p2[b][valid[b]], p3[b][valid[b]]
+        every = bool(valid.all())
+        mask = None if every else valid
+        inside = (self._all_inside(p2, p3) if every else
+                  self._all_inside(np.where(valid[..., None], p2, 0.0), np.where(valid[..., None], p3, 0.0)))
+        if not inside:
+            for b in np.flatnonzero(np.any(valid & ~self._inside(p2, p3), 1)):
+                self._raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
+        frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
+        spread = _spread_frames(p3, mask, counts) & _spread_frames(p2, mask, counts)
+        for b in np.flatnonzero(~spread):
             try:
-                _check_spread(x, X)
+                _check_spread(*frames[b])
             except InputError as exc:
                 raise InputError(f"frame {b}: {exc}") from None
-            frames.append((x, X))
         return p2, p3, valid, infer, frames
 
     def _inference_poses(self, p2, p3, infer, rvec_c, tvec_c, reasons):
@@ -310,20 +366,21 @@ class Rectifier:
         infer_mask is valid. Raises InputError naming the first unusable frame.
         """
         p2, p3, valid, infer, frames = self._validated_batch(points_2d, points_3d, valid, infer_mask)
-        spec, B = self.spec, len(frames)
-        poses_c = []
+        spec, K_c, B = self.model.spec, self._K_c, len(frames)
+        rvec_c, tvec_c = np.empty((B, 3)), np.empty((B, 3))
         for b, (x, X) in enumerate(frames):
             try:
-                poses_c.append(_sqpnp(x, X, spec.K_c))
+                rvec_c[b], tvec_c[b] = _sqpnp(x, X, K_c)
             except InputError as exc:
                 raise InputError(f"frame {b}: {exc}") from None
-        rvec_c, tvec_c = (np.array(a) for a in zip(*poses_c))
         reasons: list = [None] * B
-        if infer is valid:
+        same_poses = infer is valid
+        if same_poses:
             rvec_i, tvec_i = rvec_c, tvec_c
         else:
             rvec_i, tvec_i, infer = self._inference_poses(p2, p3, infer, rvec_c, tvec_c, reasons)
-        feats = grid_features(p2, p3, infer, spec.K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i))
+        feats, pmd = grid_features(p2, p3, infer, K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i),
+                                   return_pmd=True)
         dk = np.asarray(self.model.delta_k(feats.astype(np.float32)), dtype=np.float64)
         K = k_matrix(self._kc_params + dk)
         plausible = self._plausible(dk)
@@ -339,16 +396,25 @@ class Rectifier:
         pending = np.array([r is None for r in reasons])
         if refine:
             for b, (x, X) in enumerate(frames):
-                rvec_c[b], tvec_c[b] = _refine(x, X, spec.K_c, rvec_c[b], tvec_c[b])
+                rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
                 if pending[b]:
                     rvec[b], tvec[b] = _refine(x, X, K[b], rvec[b], tvec[b])
-        K[~pending], rvec[~pending], tvec[~pending] = spec.K_c, rvec_c[~pending], tvec_c[~pending]
-        e_c = mean_reprojection_error(p2, p3, valid, spec.K_c, rvec_c, tvec_c)
-        e = mean_reprojection_error(p2, p3, valid, K, rvec, tvec)
+        K[~pending], rvec[~pending], tvec[~pending] = K_c, rvec_c[~pending], tvec_c[~pending]
+        mask = None if valid.all() else valid
+        if same_poses and not refine:
+            # The feature's PMD: each point's residual under K_c at the C0 pose (all valid points).
+            err = np.hypot(pmd[..., 0], pmd[..., 1])
+            e_c = err.mean(-1) if mask is None else np.where(mask, err, 0.0).sum(-1) / mask.sum(-1)
+        else:
+            e_c = mean_reprojection_errors(p2, p3, mask, K_c, rotation_matrices(rvec_c), tvec_c)
+        e = e_c.copy()
+        if pending.any():
+            e[pending] = mean_reprojection_errors(p2[pending], p3[pending], None if mask is None else mask[pending],
+                                                  K[pending], rotation_matrices(rvec[pending]), tvec[pending])
         for b in np.flatnonzero(pending & _worse(e, e_c)):
             reasons[b] = _worse_reason(e[b], e_c[b])
         fell_back = np.array([r is not None for r in reasons])
-        K[fell_back], dk[fell_back] = spec.K_c, 0.0
+        K[fell_back], dk[fell_back] = K_c, 0.0
         rvec[fell_back], tvec[fell_back], e[fell_back] = rvec_c[fell_back], tvec_c[fell_back], e_c[fell_back]
         return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
                                   delta_k=dk, fallback=tuple(reasons))
