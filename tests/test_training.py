@@ -17,7 +17,8 @@ from dimenet.runtime.predictor import load_predictor  # noqa: E402
 from dimenet.runtime.simulator import PROFILES, simulate  # noqa: E402
 from dimenet.training.model import DimeNet  # noqa: E402
 from dimenet.training.run_dir import load_run  # noqa: E402
-from dimenet.training.trainer import TrainConfig, frame_truth, resynthesise, split_train_val, train  # noqa: E402
+from dimenet.training.trainer import (TrainConfig, cluster_inference_points, frame_truth, resynthesise,  # noqa: E402
+                                      split_train_val, train)
 
 SMALL = dataclasses.replace(PROFILES["galaxy-s8"], name="small-s8", n_train=30, n_test=8)
 
@@ -89,3 +90,31 @@ def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_
     K = pred.predict_k(ds.select(ds.frames_in("test")))
     assert K.shape == (6, 3, 3) and np.all(np.isfinite(K))
     assert path.exists()
+
+
+def test_clustered_inference_points_are_compact_noisy_candidates_and_spare_other_frames(small):
+    rng = np.random.default_rng(0)
+    candidates = small.valid.copy()
+    candidates[:, ::2] = False  # only odd points may become labels
+    out = cluster_inference_points(small, candidates, 0.5, (40, 60), 6.0, rng)
+    changed = np.any(out.infer_mask != small.infer_mask, 1)
+    assert 0.2 * small.n_frames < changed.sum() < 0.8 * small.n_frames
+    for f in range(small.n_frames):
+        v = small.valid[f]
+        moved = np.any(out.points_2d[f][v] != small.points_2d[f][v], -1)
+        if not changed[f]:
+            np.testing.assert_array_equal(out.points_2d[f][v], small.points_2d[f][v])
+            continue
+        infer = out.infer_mask[f]
+        assert 40 <= infer.sum() <= 60 and not np.any(infer & ~candidates[f])
+        np.testing.assert_array_equal(moved, infer[v])  # label noise on the kept points only
+        # Clusters: for some one or two kept points as centres, every kept point lies nearer to
+        # them than every candidate left out.
+        x = small.points_2d[f]
+        kept, out_ = x[infer], x[candidates[f] & ~infer]
+        d_kept = np.linalg.norm(kept[:, None] - kept[None], axis=-1)  # (k, k)
+        d_out = np.linalg.norm(out_[:, None] - kept[None], axis=-1)  # (o, k)
+        r_kept = np.minimum(d_kept[:, :, None], d_kept[:, None, :]).max(0)  # (k, k) per centre pair
+        r_out = np.minimum(d_out[:, :, None], d_out[:, None, :]).min(0)
+        assert np.any(r_kept <= r_out)
+    assert out.valid is small.valid or np.array_equal(out.valid, small.valid)

@@ -6,7 +6,8 @@ mean squared reprojection error (px^2) over those points (paper eq. L_rep).
 
 Robust by construction: every epoch each training frame is re-drawn with a random number of
 inference points (min_points..all) and a random fraction (0..max_eta) of its occupied grid
-cells emptied, so one model serves 320 down to 64 points and eta up to 80%.
+cells emptied, so one model serves 320 down to 64 points and eta up to 80%; a share of the
+frames keeps only clustered, noisily labelled inference points, like natural-object labels.
 Early stopping on the val split, or on a held-back part of train when there is no val.
 """
 from __future__ import annotations
@@ -58,6 +59,9 @@ class TrainConfig:
     max_eta: float = 0.8
     max_noise_px: float = 3.0  # per-frame extra 2D noise drawn from U(0, max), px
     resynthesis: float = 0.75  # share of train frames re-imaged under another frame's principal point
+    cluster_share: float = 0.15  # share of frames whose inference points shrink to hand-labelled-like clusters
+    cluster_points: tuple = (40, 100)  # how many points those clusters keep, drawn uniformly
+    max_label_noise_px: float = 6.0  # per-frame label noise on the clustered points drawn from U(0, max), px
     patience: int = 80  # epochs without val improvement before stopping
 
 
@@ -124,9 +128,29 @@ def resynthesise(frames: Dataset, truth: FrameTruth, rng: np.random.Generator, s
     return replace(frames, points_2d=np.where(frames.valid[..., None], x_new, np.nan))
 
 
+def cluster_inference_points(frames: Dataset, candidates: np.ndarray, share: float, n_points: tuple,
+                             max_noise_px: float, rng: np.random.Generator) -> Dataset:
+    """Natural-object-like inference points in a random ``share`` of the frames: only the
+    n ~ U(n_points) ``candidates`` ((F, P) bool, e.g. the frame's own inference points) nearest
+    (px) to one or two random candidates stay inference points, and they get hand-labelling
+    noise, std ~ U(0, max_noise_px) per image axis (px). The other valid points keep their
+    values and still count in the loss, as the boards do in the paper's LEGO test."""
+    picked = np.flatnonzero(rng.random(frames.n_frames) < share)
+    infer, points_2d = frames.infer_mask.copy(), frames.points_2d.copy()
+    for f in picked:
+        idx = np.flatnonzero(candidates[f])
+        centres = points_2d[f, rng.choice(idx, rng.integers(1, 3), replace=False)]
+        dist = np.linalg.norm(points_2d[f, idx, None] - centres, axis=-1).min(1)
+        keep = idx[np.argsort(dist)[:rng.integers(n_points[0], n_points[1] + 1)]]
+        infer[f] = False
+        infer[f, keep] = True
+        points_2d[f, keep] += rng.normal(0.0, rng.uniform(0.0, max_noise_px), (len(keep), 2))
+    return replace(frames, infer_mask=infer, points_2d=points_2d)
+
+
 def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> Dataset:
     """Each frame with random extra 2D noise, a random inference-point count and a random share
-    of emptied cells."""
+    of emptied cells; a share of the frames with clustered, noisily labelled inference points."""
     n_infer = frames.infer_mask.sum(1)
     low = np.minimum(max(config.min_points, MIN_INFER_POINTS), n_infer)
     n = rng.integers(low, n_infer + 1)
@@ -136,7 +160,9 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     emptied = empty_cells(dropped, eta, grid, rng)
     # A frame the emptying left with too few points keeps its points (the runtime would fall back).
     too_few = emptied.infer_mask.sum(1) < MIN_INFER_POINTS
-    return replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
+    kept = replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
+    return cluster_inference_points(kept, frames.infer_mask, config.cluster_share, config.cluster_points,
+                                    config.max_label_noise_px, rng)
 
 
 def _tensors(frames: Dataset):
