@@ -89,6 +89,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 130
 
 
+def integer_at_least(minimum: int) -> Callable[[str], int]:
+    """argparse type: an integer >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite number >= 0."""
     try:

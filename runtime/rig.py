@@ -26,6 +26,7 @@ UNITS = "mm"
 _TOP_KEYS = ("format", "units", "boards")
 _BOARD_KEYS = ("name", "inner_corners", "square_mm", "rvec", "tvec_mm")
 _ARUCO_KEYS = ("dictionary", "first_id", "marker_mm")
+PAPER_RIG_NAME = "paper"  # names the bundled paper rig on the command line (``--rig paper``)
 
 
 @dataclass(frozen=True)
@@ -209,3 +210,8 @@ def paper_rig() -> Rig:
     """The paper's rig (Sec. IV-D): four 10x8-inner-corner, 22 mm boards on four planes."""
     text = resources.files("dimenet.runtime").joinpath("data/paper_rig.json").read_text(encoding="utf-8")
     return _parse_json(text, "paper_rig.json")
+
+
+def rig_from_argument(text: str) -> Rig:
+    """A command line's ``--rig``: ``paper`` for the bundled paper rig, else a rig file's path."""
+    return paper_rig() if text == PAPER_RIG_NAME else load_rig(text)

@@ -292,17 +292,21 @@ def natural_view_ok(scene: Scene, seen: np.ndarray) -> bool:
     return bool(seen[scene.group < 0].all())
 
 
-def shoot(scene: Scene, profile: DeviceProfile, rng: np.random.Generator, usable: Callable[[Scene, np.ndarray], bool]):
-    """One hand-held photo: OIS and AF state, then poses until ``usable``. Returns K_true, pixels, seen."""
+def shoot(scene: Scene, profile: DeviceProfile, rng: np.random.Generator, usable: Callable[[Scene, np.ndarray], bool],
+          pose: Callable = sample_pose):
+    """One hand-held photo: OIS and AF state, then poses ``pose(profile, centre, rng)`` until ``usable``.
+
+    Returns K_true (px), the pose {W}->{C} (rvec, tvec mm), the scene's pixels (N, 2) and which are seen (N,).
+    """
     theta_deg = rng.normal(0.0, profile.shake_sigma_deg, 2)
     af_error = rng.normal(0.0, profile.af_error_rel)
     for _ in range(MAX_POSE_ATTEMPTS):
-        rvec, tvec = sample_pose(profile, scene.centre, rng)
+        rvec, tvec = pose(profile, scene.centre, rng)
         focus_mm = to_camera(scene.centre[None], rvec, tvec)[0, 2] * (1.0 + af_error)
         K = intrinsics(profile, focus_mm, theta_deg)
         px, seen = visible(scene, profile, K, rvec, tvec)
         if usable(scene, seen):
-            return K, px, seen
+            return K, rvec, tvec, px, seen
     raise RigError(f"no hand-held pose out of {MAX_POSE_ATTEMPTS} gives a usable view of the scene "
                    f"with profile {profile.name!r}: does the rig fit the camera's view?")
 
@@ -328,7 +332,7 @@ def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frame
     valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
     K_true = np.zeros((F, 3, 3))
     for k in range(n_rig):
-        K_true[k], px, seen = shoot(rig_set, profile, rng, rig_view_ok)
+        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok)
         n = len(px)
         p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
         p3[k, :n][seen] = rig_set.points[seen]
@@ -337,7 +341,7 @@ def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frame
     model_points = nature.points + building[:, None] * rng.normal(0.0, profile.model_sigma_mm, nature.points.shape)
     noise_px = np.where(building, profile.label_sigma_px, profile.corner_sigma_px)[:, None]
     for k in range(n_rig, F):
-        K_true[k], px, seen = shoot(nature, profile, rng, natural_view_ok)
+        K_true[k], _, _, px, seen = shoot(nature, profile, rng, natural_view_ok)
         n = len(px)
         p2[k, :n][seen] = (px + rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
         p3[k, :n][seen] = model_points[seen]

@@ -5,26 +5,15 @@ import argparse
 
 import numpy as np
 
-from ..cli import Command
+from ..cli import Command, integer_at_least
 from ..dataset import write_dataset
 from ..simulator import PROFILES, simulate
 
 
-def non_negative_int(text: str) -> int:
-    """argparse type: an integer >= 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", required=True, choices=sorted(PROFILES), help="simulated device")
-    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0); same seed, same file")
-    p.add_argument("--natural-frames", type=non_negative_int, default=0,
+    p.add_argument("--seed", type=integer_at_least(0), default=0, help="random seed (default 0); same seed, same file")
+    p.add_argument("--natural-frames", type=integer_at_least(0), default=0,
                    help="natural-scene (LEGO buildings) test frames to add (the paper has 34; default 0)")
     p.add_argument("--out", required=True, help="dataset file to write (dimenet-dataset/1 .npz)")
 
