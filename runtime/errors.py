@@ -24,3 +24,19 @@ class CalibrationError(DimenetError):
 
 class RigError(DimenetError):
     """A rig description does not conform to ``dimenet-rig/1``."""
+
+
+class PhotoError(DimenetError):
+    """A photo cannot be read or decoded, or its format is not supported (the message names the file)."""
+
+
+class IdentificationError(DimenetError):
+    """The boards found in a photo cannot be told apart with confidence."""
+
+
+class LabelsError(DimenetError):
+    """A natural-object CSV (OBJECT.csv or LABELS.csv) does not conform (the message names file and line)."""
+
+
+class IngestError(DimenetError):
+    """Photos cannot become a dataset (duplicate names, no usable photo, ...)."""

@@ -12,7 +12,7 @@ from dimenet.runtime.cli import build_parser, main
 from dimenet.runtime.evaluation import evaluate
 from dimenet.runtime.metrics import reduction_ratio
 
-COMMANDS = ["simulate", "calibrate", "evaluate", "train", "reproduce", "export", "rectify", "bench"]
+COMMANDS = ["simulate", "calibrate", "evaluate", "train", "reproduce", "export", "rectify", "bench", "render", "ingest"]
 
 
 def dimenet(*args: str) -> subprocess.CompletedProcess:
@@ -81,3 +81,27 @@ def test_rho_hand_computed_and_k_c_as_the_prediction_gives_zero(s8_dataset, s8_c
     assert ev.overall.rho == pytest.approx(0.0, abs=1e-12)
     oracle = evaluate(test, K_c, lambda frames: frames.K_true)
     assert oracle.overall.rho > 0.9  # the true K nearly closes the gap to per-frame calibration
+
+
+def test_ingest_bad_input_exits_2_with_one_line(tmp_path):
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    bad_rig = tmp_path / "rig.json"
+    bad_rig.write_text('{"format": "dimenet-rig/1", "units": "cm", "boards": []}')
+    obj, labels = tmp_path / "object.csv", tmp_path / "labels.csv"
+    obj.write_text("point_id,X_mm,Y_mm,Z_mm\np0,1,2,3\n")
+    labels.write_text("image,point_id,x_px,y_px\nbroken.jpg,p7,1,2\n")
+    out = str(tmp_path / "d.npz")
+    for args, words in [
+        ([str(broken), "--rig", "paper", "--out", out], "no photo gave a frame"),
+        ([str(broken), "--rig", str(bad_rig), "--out", out], "rig.json: units"),
+        ([str(tmp_path / "missing.jpg"), "--rig", "paper", "--out", out], "missing.jpg: no such photo"),
+        ([str(broken), "--rig", "paper", "--out", out, "--labels", str(labels)], "--labels and --object go together"),
+        ([str(broken), "--rig", "paper", "--out", out, "--labels", str(labels), "--object", str(obj)],
+         "labels.csv:2: point_id 'p7' is not in the object file"),
+    ]:
+        res = dimenet("ingest", *args)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and words in lines[0] and "Traceback" not in res.stderr, res.stderr
+    report = json.loads((tmp_path / "d.report.json").read_text())
+    assert "broken.jpg: cannot decode" in report["photos"][0]["skipped"]
