@@ -198,7 +198,7 @@ def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray
     A[0::2, 8:12] = -xn[:, :1] * Xh
     A[1::2, 4:8] = Xh
     A[1::2, 8:12] = -xn[:, 1:] * Xh
-    P = np.linalg.svd(A)[2][-1].reshape(3, 4)
+    P = np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 4)
     P = np.linalg.inv(T2) @ P @ T3
     M = P[:, :3]
     if np.linalg.det(M) < 0:
