@@ -111,10 +111,18 @@ def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:
 
 def mean_reprojection_error(points_2d, points_3d, weights, K, rvec, tvec) -> np.ndarray:
     """Mean Euclidean reprojection error (px) over the points with weight > 0, shape (...)."""
-    w = (np.asarray(weights) > 0).astype(np.float64)
-    err = reprojection_errors(np.where(w[..., None] > 0, points_2d, 0.0),
-                              np.where(w[..., None] > 0, points_3d, 1.0), K, rvec, tvec)
-    return (np.where(w > 0, err, 0.0)).sum(-1) / w.sum(-1)
+    valid = np.asarray(weights) > 0
+    err = reprojection_errors(np.where(valid[..., None], points_2d, 0.0),
+                              np.where(valid[..., None], points_3d, 1.0), K, rvec, tvec)
+    return mean_over(err, valid)
+
+
+def mean_over(values: np.ndarray, valid) -> np.ndarray:
+    """(..., N) values -> (...,) their mean over the ``valid`` (..., N) bool entries, or over all
+    entries when valid is None."""
+    if valid is None:
+        return values.sum(-1) / values.shape[-1]
+    return np.where(valid, values, 0.0).sum(-1) / valid.sum(-1)
 
 
 def mean_reprojection_errors(points_2d, points_3d, valid, K, R, tvec) -> np.ndarray:
@@ -133,10 +141,7 @@ def mean_reprojection_errors(points_2d, points_3d, valid, K, R, tvec) -> np.ndar
     d /= Xc[:, 2:]
     d += K[:, :2, 2:]
     d -= np.swapaxes(points_2d, 1, 2)
-    err = np.hypot(d[:, 0], d[:, 1])
-    if valid is None:
-        return err.sum(-1) / err.shape[-1]
-    return np.where(valid, err, 0.0).sum(-1) / valid.sum(-1)
+    return mean_over(np.hypot(d[:, 0], d[:, 1]), valid)
 
 
 def check_not_degenerate(points_3d: np.ndarray, points_2d: np.ndarray) -> None:

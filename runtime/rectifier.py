@@ -30,8 +30,8 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import (check_not_degenerate, k_matrix, k_params, mean_reprojection_errors, rotation_matrices,
-                       solve_pnp_start)
+from .geometry import (check_not_degenerate, k_matrix, k_params, mean_over, mean_reprojection_errors,
+                       rotation_matrices, solve_pnp_start)
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
 
@@ -155,22 +155,27 @@ def _mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
     np.matmul(K, tvec, out=P[:, 3])
     d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), P)).reshape(-1, 2)
     d -= points_2d
-    return float(np.hypot(d[:, 0], d[:, 1]).sum()) / len(d)
+    return _mean_norm(d)
 
 
-def _pmd_error(pmd: np.ndarray) -> float:
+def _mean_norm(residuals: np.ndarray) -> float:
     """Mean Euclidean norm (px) of one frame's (N, 2) residuals."""
-    return float(np.hypot(pmd[:, 0], pmd[:, 1]).sum()) / len(pmd)
+    return float(mean_over(np.hypot(residuals[:, 0], residuals[:, 1]), None))
+
+
+def _worst_allowed(e_c):
+    """The fallback margin: the largest e(K) (px) accepted next to e(K_c), 5 % + 0.05 px above it."""
+    return (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX
 
 
 def _worse(e: np.ndarray, e_c: np.ndarray) -> np.ndarray:
-    """The fallback margin: e(K) worse than e(K_c) by more than 5 % + 0.05 px (a NaN counts as worse)."""
-    return np.logical_not(e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX)
+    """(B,) bool: e(K) beyond the fallback margin (a NaN counts as worse)."""
+    return np.logical_not(e <= _worst_allowed(e_c))
 
 
 def _worse_one(e: float, e_c: float) -> bool:
-    """``_worse`` of one frame's errors (Python floats)."""
-    return not e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX
+    """``_worse`` of one frame's errors (Python floats, no numpy on the single-frame path)."""
+    return not e <= _worst_allowed(e_c)
 
 
 def _worse_reason(e: float, e_c: float) -> str:
@@ -302,7 +307,7 @@ class Rectifier:
             timings["refine"], t5 = t6 - t5, t6
             e_c = _mean_error(p2, p3, K_c, rvec_c, tvec_c)
         else:
-            e_c = _pmd_error(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
+            e_c = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
         e = _mean_error(p2, p3, K, rvec, tvec) if reason is None else e_c
         if reason is None and _worse_one(e, e_c):
             reason = _worse_reason(e, e_c)
@@ -403,8 +408,7 @@ class Rectifier:
         mask = None if valid.all() else valid
         if same_poses and not refine:
             # The feature's PMD: each point's residual under K_c at the C0 pose (all valid points).
-            err = np.hypot(pmd[..., 0], pmd[..., 1])
-            e_c = err.mean(-1) if mask is None else np.where(mask, err, 0.0).sum(-1) / mask.sum(-1)
+            e_c = mean_over(np.hypot(pmd[..., 0], pmd[..., 1]), mask)
         else:
             e_c = mean_reprojection_errors(p2, p3, mask, K_c, rotation_matrices(rvec_c), tvec_c)
         e = e_c.copy()
