@@ -98,14 +98,14 @@ def _batch_rate(rectifier: Rectifier, p2, p3, batch: int, refine: bool) -> float
 
 
 def run_bench(model: Optional[str] = None, *, frames: int = 2000, points: int = 320, threads: int = 1,
-              batch: int = 1, refine: bool = False, seed: int = 0) -> dict:
+              batch: int = 1, refine: bool = False, seed: int = 0, mode: str = "dimenet") -> dict:
     """Benchmark a model (default: the bundled one) and return the report as a JSON-able dict."""
     for name, value in (("threads", threads), ("batch", batch)):
         if value < 1:
             raise InputError(f"--{name} must be >= 1, got {value}")
     cv2.setNumThreads(threads)
     start = time.perf_counter_ns()
-    rectifier = Rectifier.load(model, threads=threads)
+    rectifier = Rectifier.load(model, threads=threads, mode=mode)
     session_ms = (time.perf_counter_ns() - start) / 1e6
     spec = rectifier.spec
     p2, p3 = bench_frames(frames, points, spec.image_size, seed=seed)
@@ -115,7 +115,7 @@ def run_bench(model: Optional[str] = None, *, frames: int = 2000, points: int = 
     baseline = _baseline_calls(spec.K_c, p2, p3)
     end_to_end, stages, fallbacks = _single_calls(rectifier, p2, p3, refine)
     report = {
-        "frames": frames, "points": points, "threads": threads, "refine": refine, "batch": batch,
+        "frames": frames, "points": points, "threads": threads, "refine": refine, "batch": batch, "mode": mode,
         "end_to_end_us": percentiles_us(end_to_end),
         "baseline_solvepnp_us": percentiles_us(baseline),
         "ratio_p50": float(np.median(end_to_end) / np.median(baseline)),
@@ -137,7 +137,7 @@ def format_report(r: dict) -> str:
     """A human-readable summary of ``run_bench``'s report."""
     row = lambda name, s: f"  {name:<22} {s['p50']:9.1f} {s['p90']:9.1f} {s['p99']:9.1f} {s['max']:9.1f}"  # noqa: E731
     lines = [
-        f"{r['frames']} simulated {BENCH_PROFILE} frames x {r['points']} points, {r['threads']} thread(s)"
+        f"{r['frames']} simulated {BENCH_PROFILE} frames x {r['points']} points, {r['threads']} thread(s), mode {r['mode']}"
         f"{', refine' if r['refine'] else ''}; model {r['model']} (sha256 {r['model_sha256'][:16]})",
         f"onnxruntime {r['ort_version']} {','.join(r['providers'])}, OpenCV {r['opencv_version']}, CPU {r['cpu_model']}",
         f"session creation {r['session_create_ms']:.1f} ms, first call {r['first_call_us']:.0f} µs",

@@ -3,21 +3,34 @@
 Protocol (paper Sec. V-C, Tables 4 and 5): every error is measured on all the frame's
 valid points; a method's K is inferred from the ``infer_mask`` points only. K_c is the
 prior (from the train frames' calibration, or the model's own K_c).
+
+Methods compared side by side (``METHODS``): ``kc`` K_c itself; ``self`` per-frame joint
+K + pose on the inference points (runtime/self_calibration.py); ``dimenet`` the network;
+``map`` the network's prior fused with the frame's points (runtime/map_fit.py); ``oracle``
+K*. For methods with a covariance (dimenet: the network's; map: the posterior), the 1-sigma
+coverage is the share of frames with |K - K*| <= sigma, per parameter.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from typing import Callable, Optional
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
 from .calibration import oracle_fit
 from .dataset import Dataset
-from .errors import DatasetError
+from .errors import DatasetError, ModelError
+from .geometry import k_matrix, k_params
+from .map_fit import map_rectify
 from .metrics import reduction_ratio, reprojection_error_under_k
+from .predictor import Predictor
+from .self_calibration import self_calibrate
+from .uncertainty import coverage
 
 # A K predictor: a dataset (the evaluated frames) -> K (F, 3, 3) px, one per frame.
 KPredictor = Callable[[Dataset], np.ndarray]
+METHODS = ("kc", "self", "dimenet", "map", "oracle")
+MODEL_METHODS = ("dimenet", "map")
 
 
 @dataclass(frozen=True)
@@ -39,6 +52,18 @@ class FrameErrors:
     e_c: np.ndarray
     e_star: np.ndarray
     e: Optional[np.ndarray]
+    K_star: np.ndarray  # (F, 3, 3) px
+
+
+@dataclass(frozen=True)
+class MethodEstimate:
+    """One method's K (F, 3, 3) px per frame; cov (F, 4, 4) px^2 of (fx, fy, cx, cy) or None;
+    fallbacks: how many frames the method could not estimate (they get K_c, or for map the
+    DIME-Net K)."""
+
+    K: np.ndarray
+    cov: Optional[np.ndarray]
+    fallbacks: int
 
 
 @dataclass(frozen=True)
@@ -48,14 +73,22 @@ class Evaluation:
     scenes: dict  # scene name -> SceneSummary
     overall: SceneSummary
     frames: FrameErrors
+    methods: dict = field(default_factory=dict)  # method -> scene name -> SceneSummary
+    coverage: dict = field(default_factory=dict)  # method -> parameter -> share of frames within 1 sigma
+    fallbacks: dict = field(default_factory=dict)  # method -> frames it could not estimate
 
     def to_json(self) -> dict:
-        return {
+        d = {
             "split": self.split,
             "K_c": self.K_c.tolist(),
             "scenes": {name: asdict(s) for name, s in self.scenes.items()},
             "overall": asdict(self.overall),
         }
+        if self.methods:
+            d["methods"] = {m: {name: asdict(s) for name, s in scenes.items()} for m, scenes in self.methods.items()}
+            d["coverage"] = self.coverage
+            d["fallbacks"] = self.fallbacks
+        return d
 
 
 def _summary(mask: np.ndarray, errors: FrameErrors) -> SceneSummary:
@@ -67,32 +100,106 @@ def _summary(mask: np.ndarray, errors: FrameErrors) -> SceneSummary:
 
 
 def frame_errors(frames: Dataset, K_c: np.ndarray, K_pred: Optional[np.ndarray] = None) -> FrameErrors:
-    """e_c, e* and (with K_pred (F, 3, 3)) e of every frame, on all valid points."""
+    """e_c, e*, K* and (with K_pred (F, 3, 3)) e of every frame, on all valid points."""
     e_c = reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, K_c)
-    e_star = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)[3]
+    K_star, _, _, e_star = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
     e = None if K_pred is None else reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, K_pred)
-    return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e)
+    return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e, K_star=K_star)
 
 
-def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Optional[KPredictor] = None, *, split: str = "test") -> Evaluation:
-    """Evaluate the given frames (already restricted to a split and any test condition)."""
+def map_estimate(frames: Dataset, predictor: Predictor) -> MethodEstimate:
+    """The map method: per frame, ``map_rectify`` on its inference points from the network's
+    K and covariance; frames the network does not predict keep K_c, failed fits its K."""
+    prediction = predictor.predict(frames)
+    if prediction.cov is None:
+        raise ModelError(f"{predictor.source}: the model has no uncertainty (spec 1.0): map needs a model "
+                         f"trained by dimenet >= the uncertainty release")
+    K, cov = prediction.K.copy(), prediction.cov.copy()
+    fallbacks = int((~prediction.predicted).sum())
+    for f in np.flatnonzero(prediction.predicted):
+        m = frames.infer_mask[f]
+        fit, reason = map_rectify(frames.points_2d[f][m], frames.points_3d[f][m], k_params(K[f]), cov[f],
+                                  predictor.spec.K_bounds)
+        if reason is None:
+            K[f], cov[f] = k_matrix(fit.k), fit.k_cov
+        else:
+            fallbacks += 1
+    return MethodEstimate(K=K, cov=cov, fallbacks=fallbacks)
+
+
+def method_estimate(method: str, frames: Dataset, K_c: np.ndarray, K_star: np.ndarray,
+                    predictor: Optional[Predictor]) -> MethodEstimate:
+    """K per frame of one of METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``)."""
+    if method not in METHODS:
+        raise DatasetError(f"methods: unknown method {method!r} (known: {', '.join(METHODS)})")
+    if method in MODEL_METHODS and predictor is None:
+        raise ModelError(f"methods: {method!r} needs a model (--model)")
+    if method == "kc":
+        return MethodEstimate(K=np.broadcast_to(K_c, K_star.shape).copy(), cov=None, fallbacks=0)
+    if method == "oracle":
+        return MethodEstimate(K=K_star, cov=None, fallbacks=0)
+    if method == "self":
+        sc = self_calibrate(frames, K_c)
+        return MethodEstimate(K=sc.K, cov=None, fallbacks=sum(r is not None for r in sc.fallback))
+    if method == "dimenet":
+        p = predictor.predict(frames)
+        return MethodEstimate(K=p.K, cov=p.cov, fallbacks=int((~p.predicted).sum()))
+    return map_estimate(frames, predictor)
+
+
+def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Union[Predictor, KPredictor, None] = None, *,
+             split: str = "test", methods: Sequence[str] = ()) -> Evaluation:
+    """Evaluate the given frames (already restricted to a split and any test condition): e with
+    the predictor's K, and one row per method of ``methods`` (dimenet and map need a Predictor)."""
     if frames.n_frames == 0:
         raise DatasetError(f"split: no {split!r} frames to evaluate")
-    K_pred = None if predictor is None else np.asarray(predictor(frames), dtype=np.float64)
+    model = predictor if isinstance(predictor, Predictor) else None
+    predict_k = model.predict_k if model is not None else predictor
+    K_pred = None if predict_k is None else np.asarray(predict_k(frames), dtype=np.float64)
     errors = frame_errors(frames, K_c, K_pred)
-    scenes = {name: _summary(frames.scene == name, errors) for name in sorted(set(frames.scene.tolist()))}
+    names = sorted(set(frames.scene.tolist()))
+    scenes = {name: _summary(frames.scene == name, errors) for name in names}
     overall = _summary(np.ones(frames.n_frames, bool), errors)
-    return Evaluation(split=split, K_c=np.asarray(K_c), scenes=scenes, overall=overall, frames=errors)
+    rows, covered, fallbacks = {}, {}, {}
+    for method in dict.fromkeys(methods):
+        est = method_estimate(method, frames, K_c, errors.K_star, model)
+        e = errors.e_star if method == "oracle" else reprojection_error_under_k(
+            frames.points_2d, frames.points_3d, frames.valid, est.K)
+        mine = FrameErrors(scene=errors.scene, e_c=errors.e_c, e_star=errors.e_star, e=e, K_star=errors.K_star)
+        rows[method] = {name: _summary(frames.scene == name, mine) for name in names}
+        rows[method]["overall"] = _summary(np.ones(frames.n_frames, bool), mine)
+        fallbacks[method] = est.fallbacks
+        if est.cov is not None:
+            ok = np.all(np.isfinite(est.cov), axis=(1, 2))
+            covered[method] = coverage(k_params(est.K[ok]), k_params(errors.K_star[ok]), est.cov[ok])
+    return Evaluation(split=split, K_c=np.asarray(K_c), scenes=scenes, overall=overall, frames=errors,
+                      methods=rows, coverage=covered, fallbacks=fallbacks)
 
 
 def format_table(ev: Evaluation) -> str:
-    """A small aligned table of the evaluation (px)."""
+    """A small aligned table of the evaluation (px), then one row per method and scene."""
     fmt = lambda v, spec: "-" if v is None else format(v, spec)  # noqa: E731
+    pct = lambda v: "-" if v is None else f"{100 * v:.1f}%"  # noqa: E731
     rows = [("scene", "frames", "Avg(e_c)", "Avg(e)", "Avg(e*)", "rho")]
     for name, s in list(ev.scenes.items()) + [("overall", ev.overall)]:
-        rho = None if s.rho is None else 100 * s.rho
         rows.append((name, str(s.n_frames), fmt(s.avg_e_c, ".3f"), fmt(s.avg_e, ".3f"), fmt(s.avg_e_star, ".3f"),
-                     "-" if rho is None else f"{rho:.1f}%"))
+                     pct(s.rho)))
+    text = [f"split {ev.split}, errors in px, K_c fx={ev.K_c[0,0]:.2f} fy={ev.K_c[1,1]:.2f} cx={ev.K_c[0,2]:.2f} "
+            f"cy={ev.K_c[1,2]:.2f}", _aligned(rows)]
+    if ev.methods:
+        rows = [("method", "scene", "frames", "Avg(e)", "rho", "fallbacks", "1-sigma coverage fx/fy/cx/cy")]
+        for method, scenes in ev.methods.items():
+            cov = ev.coverage.get(method)
+            cov_text = "-" if cov is None else "/".join(f"{100 * v:.0f}%" for v in cov.values())
+            for name, s in scenes.items():
+                rows.append((method, name, str(s.n_frames), fmt(s.avg_e, ".3f"), pct(s.rho),
+                             str(ev.fallbacks[method]) if name == "overall" else "",
+                             cov_text if name == "overall" else ""))
+        text += ["", _aligned(rows)]
+    return "\n".join(text)
+
+
+def _aligned(rows: list) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
-    return f"split {ev.split}, errors in px, K_c fx={ev.K_c[0,0]:.2f} fy={ev.K_c[1,1]:.2f} cx={ev.K_c[0,2]:.2f} cy={ev.K_c[1,2]:.2f}\n" + "\n".join(lines)
+    return "\n".join("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
+                     for r in rows)

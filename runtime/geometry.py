@@ -104,6 +104,18 @@ def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.nda
     return project_camera(K, to_camera(points_3d, rvec, tvec))
 
 
+def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray,
+                    tvec: np.ndarray) -> np.ndarray:
+    """One frame's reprojection residuals pi(K, R X + t) - x (N, 2) px, through OpenCV (few calls,
+    for the runtime's hot path): points_2d (N, 2) px, points_3d (N, 3) mm float64, pose {W}->{C}."""
+    P = np.empty((3, 4))
+    np.matmul(K, cv2.Rodrigues(rvec)[0], out=P[:, :3])
+    np.matmul(K, tvec, out=P[:, 3])
+    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), P)).reshape(-1, 2)
+    d -= points_2d
+    return d
+
+
 def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:
     """Euclidean reprojection error (px) of each correspondence, shape (..., N)."""
     return np.linalg.norm(project(points_3d, K, rvec, tvec) - points_2d, axis=-1)

@@ -129,6 +129,18 @@ def solve_pnp(points_2d, points_3d, weights, K) -> FitResult:
     return fit(points_2d, points_3d, weights, K, rvec, tvec, fit_k=False)
 
 
+def dlt_starts(points_2d, points_3d, weights) -> list:
+    """Per frame of B, the closed-form (K, rvec, tvec) start from its weighted points (DLT + RQ),
+    or the CalibrationError saying why K is not observable from that frame."""
+    starts = []
+    for b in range(len(points_2d)):
+        try:
+            starts.append(dlt_camera(*_weighted_points(points_2d, points_3d, weights, b)))
+        except CalibrationError as exc:
+            starts.append(exc)
+    return starts
+
+
 def calibrate(points_2d, points_3d, weights) -> FitResult:
     """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames.
 
@@ -136,11 +148,9 @@ def calibrate(points_2d, points_3d, weights) -> FitResult:
     over the 10 parameters. Raises CalibrationError naming the frame when K is not
     observable from it.
     """
-    starts = []
-    for b in range(len(points_2d)):
-        try:
-            starts.append(dlt_camera(*_weighted_points(points_2d, points_3d, weights, b)))
-        except CalibrationError as exc:
-            raise CalibrationError(f"frame {b}: {exc}") from None
+    starts = dlt_starts(points_2d, points_3d, weights)
+    for b, start in enumerate(starts):
+        if isinstance(start, CalibrationError):
+            raise CalibrationError(f"frame {b}: {start}")
     K0, rvec, tvec = (np.array(a) for a in zip(*starts))
     return fit(points_2d, points_3d, weights, K0, rvec, tvec, fit_k=True)

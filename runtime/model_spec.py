@@ -8,15 +8,19 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from .errors import ModelError
 from .features import FeatureSpec
 from .geometry import k_matrix, k_params
+from .uncertainty import Uncertainty
 
 FORMAT = "dimenet-model/1"
-VERSION = "1.0.0"  # semver of the spec; a reader refuses another major version
+# semver of the spec; a reader refuses another major version. 1.1: the optional
+# ``uncertainty`` (what MAP mode needs); 1.0 files still load, for mode "dimenet" only.
+VERSION = "1.1.0"
 METADATA_KEY = "dimenet_model_spec"
 
 
@@ -24,7 +28,8 @@ METADATA_KEY = "dimenet_model_spec"
 class ModelSpec:
     """features: the grid feature; K_c (3, 3) px; image_size (width, height) px; K_bounds: per
     parameter (fx, fy, cx, cy) the [low, high] px range of plausible K (outside it, the runtime
-    falls back to K_c); provenance: dataset sha256, seed, versions, command."""
+    falls back to K_c); uncertainty: the model of the network's Delta K covariance (None in
+    1.0 specs); provenance: dataset sha256, seed, versions, command."""
 
     features: FeatureSpec
     K_c: np.ndarray
@@ -32,9 +37,10 @@ class ModelSpec:
     K_bounds: np.ndarray  # (4, 2) px
     hidden: tuple
     provenance: dict = field(default_factory=dict)
+    uncertainty: Optional[Uncertainty] = None
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "format": FORMAT,
             "version": VERSION,
             "features": self.features.to_dict(),
@@ -44,6 +50,9 @@ class ModelSpec:
             "hidden": list(self.hidden),
             "provenance": self.provenance,
         }
+        if self.uncertainty is not None:
+            d["uncertainty"] = self.uncertainty.to_dict()
+        return d
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=1, sort_keys=True)
@@ -58,7 +67,8 @@ class ModelSpec:
         try:
             return cls(features=FeatureSpec.from_dict(d["features"]), K_c=k_matrix(np.asarray(d["K_c"], float)),
                        image_size=tuple(int(v) for v in d["image_size"]), K_bounds=np.asarray(d["K_bounds"], float),
-                       hidden=tuple(int(h) for h in d["hidden"]), provenance=dict(d.get("provenance", {})))
+                       hidden=tuple(int(h) for h in d["hidden"]), provenance=dict(d.get("provenance", {})),
+                       uncertainty=Uncertainty.from_dict(d["uncertainty"]) if "uncertainty" in d else None)
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"{source}: malformed {FORMAT} spec ({type(exc).__name__}: {exc})") from None
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -18,9 +18,24 @@ from .errors import ModelError
 from .features import grid_features
 from .geometry import k_matrix, k_params
 from .model_spec import ModelSpec
+from .uncertainty import input_statistics
 
 # Fewest inference points from which a frame's K is predicted; below, K = K_c.
 MIN_INFER_POINTS = 6
+
+
+@dataclass(frozen=True)
+class KPrediction:
+    """Per frame of F: K (F, 3, 3) px (K_c where not predicted); predicted (F,) bool, False
+    when the frame has too few inference points or the prediction is implausible; stats
+    (F, 3) the uncertainty statistics of the inference points (NaN where not predicted);
+    cov (F, 4, 4) px^2 the network's covariance of (fx, fy, cx, cy), None when the spec has
+    no uncertainty model (NaN where not predicted)."""
+
+    K: np.ndarray
+    predicted: np.ndarray
+    stats: np.ndarray
+    cov: Optional[np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -31,23 +46,37 @@ class Predictor:
     delta_k: Callable[[np.ndarray], np.ndarray]
     source: str
 
-    def predict_k(self, frames: Dataset) -> np.ndarray:
-        """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few
-        inference points or the prediction is outside the spec's plausible bounds."""
+    def predict(self, frames: Dataset) -> KPrediction:
+        """K and, with an uncertainty model, its covariance per frame from its inference points."""
         spec = self.spec
         if tuple(frames.image_size.tolist()) != tuple(spec.image_size):
             raise ModelError(f"{self.source}: trained for {spec.image_size[0]}x{spec.image_size[1]} px images, "
                              f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}")
-        K = np.broadcast_to(spec.K_c, (frames.n_frames, 3, 3)).copy()
+        F = frames.n_frames
+        K = np.broadcast_to(spec.K_c, (F, 3, 3)).copy()
+        stats = np.full((F, 3), np.nan)
+        predicted = np.zeros(F, bool)
         usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
         if usable.any():
             sub = frames.select(usable)
-            feats = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size, spec.features)
+            feats, pmd = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size,
+                                       spec.features, return_pmd=True)
             dk = np.asarray(self.delta_k(feats.astype(np.float32)), dtype=np.float64)
             K_pred = k_matrix(k_params(spec.K_c) + dk)
             ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
-            K[np.flatnonzero(usable)[ok]] = K_pred[ok]
-        return K
+            rows = np.flatnonzero(usable)[ok]
+            K[rows], predicted[rows] = K_pred[ok], True
+            stats[rows] = input_statistics(feats, pmd, sub.infer_mask, len(spec.features.channels))[ok]
+        cov = None
+        if spec.uncertainty is not None:
+            cov = np.full((F, 4, 4), np.nan)
+            cov[predicted] = spec.uncertainty.covariance(stats[predicted])
+        return KPrediction(K=K, predicted=predicted, stats=stats, cov=cov)
+
+    def predict_k(self, frames: Dataset) -> np.ndarray:
+        """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few
+        inference points or the prediction is outside the spec's plausible bounds."""
+        return self.predict(frames).K
 
 
 def load_predictor(path: str | Path) -> Predictor:

@@ -12,6 +12,12 @@ stage names of ``timings_us``:
 6. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of both poses;
 7. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, fallback rules.
 
+With a model whose spec carries the uncertainty model (spec >= 1.1), ``K_cov`` is the
+network's 4x4 covariance of (fx, fy, cx, cy) (px^2) for the frame. In ``mode="map"`` a stage
+``map`` follows ``pnp_k``: the MAP fusion of that prior with the frame's points
+(``dimenet.runtime.map_fit``), whose K, pose and posterior ``K_cov`` are returned; when it
+fails its checks, the DIME-Net solution stands and ``fallback`` says why.
+
 Fallback (the result is then K_c's own solution, Delta K = 0, and ``fallback`` says why):
 Delta K not finite; K outside the spec's ``K_bounds``; no pose under K; or
 e(K) > (1 + WORSE_RELATIVE) e(K_c) + WORSE_ABSOLUTE_PX, i.e. the predicted K fits the
@@ -30,15 +36,18 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import (check_not_degenerate, k_matrix, k_params, mean_over, mean_reprojection_errors,
-                       rotation_matrices, solve_pnp_start)
+from .geometry import (check_not_degenerate, frame_residuals, k_matrix, k_params, mean_over,
+                       mean_reprojection_errors, rotation_matrices, solve_pnp_start)
+from .map_fit import map_rectify
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
+from .uncertainty import input_statistics
 
 MIN_POINTS = 6
 WORSE_RELATIVE = 0.05
 WORSE_ABSOLUTE_PX = 0.05
 DEFAULT_MODEL = "default_model.onnx"
+MODES = ("dimenet", "map")
 # Cheap sufficient test of a spread-out configuration (see _well_spread): second largest over
 # largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
 # than check_not_degenerate's limits, which then decides the frames failing it.
@@ -52,7 +61,9 @@ class Rectification:
     """One frame. K (3, 3) px; rvec (3,) rad and tvec (3,) mm {W}->{C} under K; the mean Euclidean
     reprojection errors (px) over the given points under K and under K_c (each with its own
     pose); delta_k (4,) px the applied (dfx, dfy, dcx, dcy), 0 on fallback; fallback None or
-    why K_c's solution was returned; timings_us: microseconds per stage."""
+    why K_c's solution (or in map mode, DIME-Net's) was returned; timings_us: microseconds per
+    stage; K_cov (4, 4) px^2 the covariance of (fx, fy, cx, cy): the network's (mode dimenet)
+    or the MAP posterior (mode map); None when K is K_c's or the model has no uncertainty."""
 
     K: np.ndarray
     rvec: np.ndarray
@@ -62,12 +73,14 @@ class Rectification:
     delta_k: np.ndarray
     fallback: Optional[str]
     timings_us: dict
+    K_cov: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
 class BatchRectification:
     """B frames, as Rectification: K (B, 3, 3), rvec (B, 3), tvec (B, 3), errors (B,) px over
-    each frame's valid points, delta_k (B, 4) px, fallback: one reason or None per frame."""
+    each frame's valid points, delta_k (B, 4) px, fallback: one reason or None per frame;
+    K_cov (B, 4, 4) px^2, NaN for frames whose K is K_c's, or None without an uncertainty model."""
 
     K: np.ndarray
     rvec: np.ndarray
@@ -76,6 +89,7 @@ class BatchRectification:
     reprojection_error_kc_px: np.ndarray
     delta_k: np.ndarray
     fallback: tuple
+    K_cov: Optional[np.ndarray] = None
 
 
 def _real_array(value, name: str, shape: str, ndim: int, last: int) -> np.ndarray:
@@ -150,12 +164,7 @@ def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray
 
 def _mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
     """Mean Euclidean reprojection error (px) of one frame's (N, 2) px / (N, 3) mm points."""
-    P = np.empty((3, 4))
-    np.matmul(K, cv2.Rodrigues(rvec)[0], out=P[:, :3])
-    np.matmul(K, tvec, out=P[:, 3])
-    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), P)).reshape(-1, 2)
-    d -= points_2d
-    return _mean_norm(d)
+    return _mean_norm(frame_residuals(points_2d, points_3d, K, rvec, tvec))
 
 
 def _mean_norm(residuals: np.ndarray) -> float:
@@ -193,9 +202,16 @@ def _implausible_reason(delta_k: np.ndarray, K: np.ndarray) -> str:
 class Rectifier:
     """A loaded model ready to rectify frames. ``Rectifier.load()`` uses the bundled default model."""
 
-    def __init__(self, model: OnnxModel) -> None:
-        self.model = model
+    def __init__(self, model: OnnxModel, mode: str = "dimenet") -> None:
+        if mode not in MODES:
+            raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         spec = model.spec
+        if mode == "map" and spec.uncertainty is None:
+            raise ModelError(f"{model.source}: its spec has no uncertainty model (spec 1.0), which mode 'map' needs: "
+                             f"re-export a model trained by this release")
+        self.model, self.mode = model, mode
+        self._uncertainty = spec.uncertainty
+        self._n_channels = len(spec.features.channels)
         self._kc_params = k_params(spec.K_c)
         # K_bounds as bounds on Delta K (px): a NaN fails them too.
         self._dk_low = spec.K_bounds[:, 0] - self._kc_params
@@ -210,16 +226,20 @@ class Rectifier:
 
     @classmethod
     def load(cls, path: Optional[str | Path] = None, *, threads: int = 1,
-             providers: Optional[Sequence[str]] = None) -> "Rectifier":
-        """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model."""
+             providers: Optional[Sequence[str]] = None, mode: str = "dimenet") -> "Rectifier":
+        """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model.
+        ``mode``: "dimenet" (the paper's method) or "map" (the network's K as a prior, fused
+        with the frame's own points)."""
+        if mode not in MODES:
+            raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         if path is not None:
-            return cls(load_onnx_model(path, threads=threads, providers=providers))
+            return cls(load_onnx_model(path, threads=threads, providers=providers), mode)
         resource = resources.files("dimenet.runtime") / "data" / DEFAULT_MODEL
         if not resource.is_file():
             raise ModelError(f"this installation has no bundled default model (dimenet/runtime/data/{DEFAULT_MODEL}); "
                              f"pass a model file from `dimenet export`")
         return cls(onnx_model_from_bytes(resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})",
-                                         threads=threads, providers=providers))
+                                         threads=threads, providers=providers), mode)
 
     @property
     def spec(self) -> ModelSpec:
@@ -299,23 +319,41 @@ class Rectifier:
                 reason = "no pose under the predicted K"
         t5 = clock()
         timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3, "pnp_k": t5 - t4}
+        pmd_error = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
+        K_cov = e = None
+        if reason is None and self._uncertainty is not None:
+            occupied = np.count_nonzero(feats.reshape(-1, self._n_channels).any(1))
+            K_cov = self._uncertainty.frame_covariance(len(p2), occupied, pmd_error)
+        if reason is None and self.mode == "map":
+            fit, why = map_rectify(p2, p3, self._kc_params + dk, K_cov, spec.K_bounds, pose=(rvec, tvec))
+            if why is None:
+                K, dk, rvec, tvec, K_cov = k_matrix(fit.k), fit.k - self._kc_params, fit.rvec, fit.tvec, fit.k_cov
+                e = _mean_norm(fit.residuals)
+            else:
+                reason = f"map: {why}; DIME-Net's K is returned"
+            t6 = clock()
+            timings["map"], t5 = t6 - t5, t6
         if refine:
             rvec_c, tvec_c = _refine(p2, p3, K_c, rvec_c, tvec_c)
-            if reason is None:
+            if reason is None and e is None:
                 rvec, tvec = _refine(p2, p3, K, rvec, tvec)
             t6 = clock()
             timings["refine"], t5 = t6 - t5, t6
             e_c = _mean_error(p2, p3, K_c, rvec_c, tvec_c)
         else:
-            e_c = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
-        e = _mean_error(p2, p3, K, rvec, tvec) if reason is None else e_c
-        if reason is None and _worse_one(e, e_c):
-            reason = _worse_reason(e, e_c)
-        if reason is not None:
-            K, dk, rvec, tvec, e = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c
+            e_c = pmd_error
+        dimenet_kept = reason is not None and reason.startswith("map:")
+        if reason is None or dimenet_kept:
+            e = _mean_error(p2, p3, K, rvec, tvec) if e is None else e
+            if _worse_one(e, e_c):
+                reason = _worse_reason(e, e_c)
+                dimenet_kept = False
+        if reason is not None and not dimenet_kept:
+            K, dk, rvec, tvec, e, K_cov = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c, None
         timings["check"] = clock() - t5
         return Rectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
-                             delta_k=dk, fallback=reason, timings_us={k: v / 1e3 for k, v in timings.items()})
+                             delta_k=dk, fallback=reason, timings_us={k: v / 1e3 for k, v in timings.items()},
+                             K_cov=K_cov)
 
     def _validated_batch(self, points_2d, points_3d, valid, infer_mask):
         """Float64 arrays and bool masks of B frames, and each frame's valid points ((N_b, 2), (N_b, 3))."""
@@ -399,6 +437,14 @@ class Rectifier:
                 except InputError:
                     reasons[b] = "no pose under the predicted K"
         pending = np.array([r is None for r in reasons])
+        K_cov = None
+        if self._uncertainty is not None:
+            K_cov = np.full((B, 4, 4), np.nan)
+            if pending.any():
+                stats = input_statistics(feats[pending], pmd[pending], infer[pending], self._n_channels)
+                K_cov[pending] = self._uncertainty.covariance(stats)
+        if self.mode == "map":
+            self._map_batch(p2, p3, infer, frames, same_poses, pending, dk, K, K_cov, rvec, tvec, reasons)
         if refine:
             for b, (x, X) in enumerate(frames):
                 rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
@@ -417,8 +463,24 @@ class Rectifier:
                                                   K[pending], rotation_matrices(rvec[pending]), tvec[pending])
         for b in np.flatnonzero(pending & _worse(e, e_c)):
             reasons[b] = _worse_reason(e[b], e_c[b])
-        fell_back = np.array([r is not None for r in reasons])
+        fell_back = np.array([r is not None and not r.startswith("map:") for r in reasons])
         K[fell_back], dk[fell_back] = K_c, 0.0
         rvec[fell_back], tvec[fell_back], e[fell_back] = rvec_c[fell_back], tvec_c[fell_back], e_c[fell_back]
+        if K_cov is not None:
+            K_cov[fell_back] = np.nan
         return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
-                                  delta_k=dk, fallback=tuple(reasons))
+                                  delta_k=dk, fallback=tuple(reasons), K_cov=K_cov)
+
+    def _map_batch(self, p2, p3, infer, frames, same_poses, pending, dk, K, K_cov, rvec, tvec, reasons) -> None:
+        """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
+        points) and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
+        "map: ..." reason (still pending: the K_c check follows)."""
+        for b in np.flatnonzero(pending):
+            m = infer[b]
+            fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
+                                   pose=(rvec[b], tvec[b]) if same_poses else None)
+            if why is not None:
+                reasons[b] = f"map: {why}; DIME-Net's K is returned"
+                continue
+            K[b], dk[b], K_cov[b] = k_matrix(fit.k), fit.k - self._kc_params, fit.k_cov
+            rvec[b], tvec[b] = (fit.rvec, fit.tvec) if same_poses else _sqpnp(*frames[b], K[b])

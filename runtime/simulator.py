@@ -312,14 +312,18 @@ def shoot(scene: Scene, profile: DeviceProfile, rng: np.random.Generator, usable
 
 
 def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frames: int = 0,
-             rig: Optional[Rig] = None) -> Dataset:
-    """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural test frames.
+             planar_frames: int = 0, rig: Optional[Rig] = None) -> Dataset:
+    """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
+    test frames, then ``planar_frames`` planar test frames.
 
-    Deterministic per seed; rig frames do not depend on ``natural_frames``. 2D points in px,
-    3D points in mm in the frame's {W} (the rig frame, or the natural scene's frame).
+    A planar frame is a rig photo (>= 2 boards seen, so K* stays observable from all its valid
+    points) whose inference points are the corners of one of its boards, drawn at random: from
+    one planar view K is not fully observable. Deterministic per seed; rig frames depend on
+    neither count, natural frames not on ``planar_frames``. 2D points in px, 3D points in mm
+    in the frame's {W} (the rig frame, or the natural scene's frame).
     """
     profile = get_profile(profile) if isinstance(profile, str) else profile
-    for name, value in (("seed", seed), ("natural_frames", natural_frames)):
+    for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
             raise InputError(f"{name} must be an integer >= 0, got {value!r}")
     rig = paper_rig() if rig is None else rig
@@ -327,7 +331,8 @@ def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frame
     rig_set = rig_scene(rig)
     nature = natural_scene(rig.boards[0])
     n_rig = profile.n_train + profile.n_test
-    F, P = n_rig + natural_frames, max(len(rig_set.points), len(nature.points))
+    n_shot = n_rig + natural_frames
+    F, P = n_shot + planar_frames, max(len(rig_set.points), len(nature.points))
     p2, p3 = np.full((F, P, 2), np.nan), np.full((F, P, 3), np.nan)
     valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
     K_true = np.zeros((F, 3, 3))
@@ -340,17 +345,26 @@ def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frame
     building = nature.group < 0
     model_points = nature.points + building[:, None] * rng.normal(0.0, profile.model_sigma_mm, nature.points.shape)
     noise_px = np.where(building, profile.label_sigma_px, profile.corner_sigma_px)[:, None]
-    for k in range(n_rig, F):
+    for k in range(n_rig, n_shot):
         K_true[k], _, _, px, seen = shoot(nature, profile, rng, natural_view_ok)
         n = len(px)
         p2[k, :n][seen] = (px + rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
         p3[k, :n][seen] = model_points[seen]
         valid[k, :n], infer[k, :n] = seen, seen & building
+    for k in range(n_shot, F):
+        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok)
+        n = len(px)
+        p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        p3[k, :n][seen] = rig_set.points[seen]
+        board = rng.choice(np.unique(rig_set.group[seen]))
+        valid[k, :n], infer[k, :n] = seen, seen & (rig_set.group == board)
     meta = {"generator": GENERATOR, "version": __version__, "profile": profile.name, "seed": int(seed),
-            "natural_frames": int(natural_frames), "units": {"2d": "px", "3d": "mm"},
+            "natural_frames": int(natural_frames), "planar_frames": int(planar_frames), "units": {"2d": "px", "3d": "mm"},
             "device": asdict(profile), "rig": rig_to_dict(rig), "natural_board": rig.boards[0].name}
     return Dataset(
         image_size=np.array(profile.image_size_px, np.int64), points_2d=p2, points_3d=p3, valid=valid,
-        infer_mask=infer, split=np.array(["train"] * profile.n_train + ["test"] * (profile.n_test + natural_frames)),
-        scene=np.array(["rig"] * n_rig + ["natural"] * natural_frames), meta=meta, K_true=K_true,
+        infer_mask=infer,
+        split=np.array(["train"] * profile.n_train + ["test"] * (profile.n_test + natural_frames + planar_frames)),
+        scene=np.array(["rig"] * n_rig + ["natural"] * natural_frames + ["planar"] * planar_frames), meta=meta,
+        K_true=K_true,
         frame_id=np.array([f"{profile.name}-{k:04d}" for k in range(F)]))

@@ -54,6 +54,11 @@ def test_training_is_deterministic_and_improves_on_k_c(small, tmp_path):
         assert (a.run_dir / name).stat().st_size > 0
     spec = json.loads((a.run_dir / "spec.json").read_text())
     assert spec["format"] == "dimenet-model/1" and spec["provenance"]["seed"] == 5
+    # The uncertainty model is fitted on the early-stopping frames: 68 % within 1 sigma there.
+    assert pred.spec.uncertainty is not None
+    for share in spec["provenance"]["uncertainty_val_coverage"].values():
+        assert abs(share - 0.6827) < 0.03
+    assert pred.predict(test).cov.shape == (test.n_frames, 4, 4)
 
 
 def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principal_point(small):

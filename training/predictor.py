@@ -6,16 +6,24 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dimenet.runtime.model_spec import ModelSpec
 from dimenet.runtime.predictor import Predictor
 
+from .model import DimeNet
 from .run_dir import load_run
 
 
-def load_run_predictor(run_dir: str | Path) -> Predictor:
-    model, spec = load_run(run_dir)
+def torch_predictor(model: DimeNet, spec: ModelSpec, source: str) -> Predictor:
+    """A Predictor running the torch model (in eval mode, no gradients)."""
+    model.eval()
 
     def delta_k(features: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return model(torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))).double().numpy()
 
-    return Predictor(spec=spec, delta_k=delta_k, source=str(run_dir))
+    return Predictor(spec=spec, delta_k=delta_k, source=source)
+
+
+def load_run_predictor(run_dir: str | Path) -> Predictor:
+    model, spec = load_run(run_dir)
+    return torch_predictor(model, spec, str(run_dir))

@@ -9,6 +9,8 @@ inference points (min_points..all) and a random fraction (0..max_eta) of its occ
 cells emptied, so one model serves 320 down to 64 points and eta up to 80%; a share of the
 frames keeps only clustered, noisily labelled inference points, like natural-object labels.
 Early stopping on the val split, or on a held-back part of train when there is no val.
+Then the uncertainty model of Delta K (runtime/uncertainty.py) is fitted on those same
+frames, clean, reduced to 64 points and under several draws of the augmentation.
 """
 from __future__ import annotations
 
@@ -33,15 +35,20 @@ from dimenet.runtime.grid import Grid
 from dimenet.runtime.model_spec import ModelSpec
 from dimenet.runtime.predictor import MIN_INFER_POINTS
 from dimenet.runtime.progress import progress
+from dimenet.runtime.uncertainty import Uncertainty, coverage, fit_uncertainty
 
 from . import bpnp
 from .model import DimeNet
+from .predictor import torch_predictor
 from .run_dir import write_run
 
 # Training clamps Delta K to +-this (px) inside the loss; OIS moves K by tens of px.
 DELTA_K_LIMIT_PX = 300.0
 # Plausible K: the train frames' K* range widened by this many times its span on each side.
 K_BOUNDS_MARGIN = 1.0
+# The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames
+# clean, at 64 points, and under as many augmentation draws as it takes (at least 8).
+UNCERTAINTY_SAMPLES = 240
 
 
 @dataclass(frozen=True)
@@ -165,6 +172,24 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
                                     config.max_label_noise_px, rng)
 
 
+def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, K_star: np.ndarray,
+                            config: TrainConfig, rng: np.random.Generator) -> tuple[Uncertainty, dict]:
+    """The uncertainty model of the trained network's K - K* on ``frames`` (with their K*
+    (F, 3, 3)) under the test-like conditions of ``augment``; and its 1-sigma coverage there."""
+    predictor = torch_predictor(model, spec, "training")
+    draws = max(8, -(-UNCERTAINTY_SAMPLES // frames.n_frames))
+    conditions = [frames, drop_inference_points(frames, config.min_points, rng)]
+    conditions += [augment(frames, config, spec.features.grid, rng) for _ in range(draws)]
+    residuals, stats = [], []
+    for condition in conditions:
+        pred = predictor.predict(condition)
+        residuals.append((k_params(pred.K) - k_params(K_star))[pred.predicted])
+        stats.append(pred.stats[pred.predicted])
+    residuals, stats = np.concatenate(residuals), np.concatenate(stats)
+    uncertainty = fit_uncertainty(residuals, stats)
+    return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
+
+
 def _tensors(frames: Dataset):
     w = torch.from_numpy(frames.valid.astype(np.float64))
     p2 = torch.from_numpy(np.where(frames.valid[..., None], frames.points_2d, 0.0))
@@ -262,6 +287,10 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
                     "torch_version": torch.__version__, "config": asdict(config), "command": command,
                     "best_epoch": best[1], "best_val_e_px": best[0]},
     )
+    uncertainty, val_coverage = fit_network_uncertainty(model, spec, val_frames, cal.K_star[val_idx], config,
+                                                        np.random.default_rng(config.seed + 2))
+    spec = replace(spec, uncertainty=uncertainty,
+                   provenance={**spec.provenance, "uncertainty_val_coverage": val_coverage})
     run_dir = write_run(run_dir, model, spec, history)
     return TrainResult(run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0],
                        seconds=time.monotonic() - start, history=history)

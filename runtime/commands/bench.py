@@ -17,12 +17,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--budget-ms", type=positive_float, metavar="X",
                    help="exit 1 when the end-to-end p99 exceeds X ms")
     p.add_argument("--refine", action="store_true", help="polish poses with cv2.solvePnPRefineLM")
+    p.add_argument("--mode", choices=("dimenet", "map"), default="dimenet",
+                   help="rectification mode: the paper's method or the MAP fusion with the frame (default dimenet)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
 def run(args: argparse.Namespace) -> int:
     report = run_bench(args.model, frames=args.frames, points=args.points, threads=args.threads,
-                       batch=args.batch, refine=args.refine)
+                       batch=args.batch, refine=args.refine, mode=args.mode)
     over = args.budget_ms is not None and report["end_to_end_us"]["p99"] > 1e3 * args.budget_ms
     if args.budget_ms is not None:
         report["budget_ms"], report["within_budget"] = args.budget_ms, not over

@@ -1,4 +1,5 @@
-"""`dimenet evaluate`: e_c, e* (and e, rho with a model) per scene on one split."""
+"""`dimenet evaluate`: e_c, e* (and e, rho with a model) per scene on one split; with
+``--methods``, one row per method (kc, self, dimenet, map, oracle) and scene."""
 from __future__ import annotations
 
 import argparse
@@ -7,11 +8,11 @@ import json
 import numpy as np
 
 from ..calibration import calibrate_dataset
-from ..cli import Command, positive_float
+from ..cli import CliError, Command, positive_float
 from ..conditions import add_noise, drop_inference_points, empty_cells
 from ..dataset import SPLITS, read_dataset
 from ..errors import DatasetError
-from ..evaluation import evaluate, format_table
+from ..evaluation import METHODS, MODEL_METHODS, evaluate, format_table
 from ..grid import Grid
 from ..predictor import load_predictor
 
@@ -27,10 +28,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="empty this fraction of the occupied grid cells (paper Table 2)")
     p.add_argument("--grid", help="grid (columns x rows) for --eta (default: the model's, else 8x6)")
     p.add_argument("--seed", type=int, default=0, help="seed of the test conditions (default 0)")
+    p.add_argument("--methods", type=_methods, default=(), metavar="M1,M2",
+                   help=f"compare methods, comma-separated from {','.join(METHODS)} (dimenet and map need --model): "
+                        "rho per method and scene, and the 1-sigma coverage of K's uncertainty")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
+def _methods(text: str) -> tuple:
+    names = tuple(m.strip() for m in text.split(",") if m.strip())
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(METHODS)})")
+    return names
+
+
 def run(args: argparse.Namespace) -> int:
+    needs_model = [m for m in args.methods if m in MODEL_METHODS]
+    if needs_model and not args.model:
+        raise CliError(f"--methods {needs_model[0]} needs --model")
     ds = read_dataset(args.data)
     predictor = load_predictor(args.model) if args.model else None
     K_c = predictor.spec.K_c if predictor else calibrate_dataset(ds).K_c
@@ -45,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         frames = drop_inference_points(frames, args.drop, rng)
     if args.eta:
         frames = empty_cells(frames, args.eta, grid, rng)
-    ev = evaluate(frames, K_c, predictor.predict_k if predictor else None, split=args.split)
+    ev = evaluate(frames, K_c, predictor, split=args.split, methods=args.methods)
     print(json.dumps(ev.to_json()) if args.json else format_table(ev))
     return 0
 
@@ -53,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="evaluate",
     summary="Report Avg(e_c) and Avg(e*) per scene (and Avg(e), rho with a model) on one split, in px.",
-    example="dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --noise-2d 3 --noise-3d 0.1 --json",
+    example="dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --methods kc,self,dimenet,map,oracle --json",
     add_arguments=add_arguments,
     run=run,
 )

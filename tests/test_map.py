@@ -1,0 +1,197 @@
+"""Beyond the paper: the uncertainty model, MAP rectification, the self baseline, planar scenes
+and `dimenet evaluate --methods`."""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dimenet.runtime.cli import main
+from dimenet.runtime.dataset import write_dataset
+from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.geometry import k_matrix, k_params, solve_pnp_start
+from dimenet.runtime.least_squares import calibrate
+from dimenet.runtime.map_fit import map_fit
+from dimenet.runtime.model_spec import ModelSpec
+from dimenet.runtime.rectifier import Rectifier
+from dimenet.runtime.self_calibration import self_calibrate
+from dimenet.runtime.simulator import simulate
+from dimenet.runtime.uncertainty import Uncertainty, coverage, fit_uncertainty
+from helpers import K_TEST, random_frames
+from test_export import model_spec, random_model_file
+
+K_NET_OFFSET = np.array([6.0, -5.0, 8.0, -7.0])  # px: the "network's" error in the MAP tests
+
+
+def constant_uncertainty(sigma_px: float) -> Uncertainty:
+    coef = np.zeros((4, 4))
+    coef[:, 0] = np.log(sigma_px)
+    return Uncertainty(coef=coef, correlation=np.eye(4))
+
+
+def test_uncertainty_fit_recovers_a_known_noise_model():
+    rng = np.random.default_rng(0)
+    n = 4000
+    stats = np.c_[np.log(rng.uniform(60, 320, n)), np.log(rng.uniform(8, 48, n)), np.log(rng.uniform(0.3, 10, n))]
+    true_coef = np.array([[1.0, -0.5, 0.0, 0.3], [0.5, 0.0, -0.2, 0.6], [2.0, -0.3, -0.1, 0.0], [1.5, 0.0, 0.0, 0.4]])
+    corr = np.array([[1, 0.8, 0, 0], [0.8, 1, 0, 0], [0, 0, 1, -0.3], [0, 0, -0.3, 1.0]])
+    sigma = np.exp(np.c_[np.ones(n), stats] @ true_coef.T)
+    residuals = (rng.multivariate_normal(np.zeros(4), corr, n)) * sigma
+    model = fit_uncertainty(residuals, stats)
+    np.testing.assert_allclose(model.coef[:, 1:], true_coef[:, 1:], atol=0.05)  # slopes
+    np.testing.assert_allclose(model.sigma(stats), sigma, rtol=0.15)
+    np.testing.assert_allclose(model.correlation, corr, atol=0.05)
+    fresh = rng.multivariate_normal(np.zeros(4), corr, n) * sigma
+    for share in coverage(fresh, np.zeros_like(fresh), model.covariance(stats)).values():
+        assert 0.65 < share < 0.71
+    again = Uncertainty.from_dict(json.loads(json.dumps(model.to_dict())))
+    np.testing.assert_array_equal(again.coef, model.coef)
+    one = model.frame_covariance(100, 20, 2.5)
+    np.testing.assert_allclose(one, model.covariance(np.log([[100, 20, 2.5]]))[0], rtol=1e-12)
+
+
+def test_uncertainty_refuses_bad_input():
+    with pytest.raises(InputError, match="needs >= 16 frames"):
+        fit_uncertainty(np.ones((5, 4)), np.ones((5, 3)))
+    with pytest.raises(ValueError, match="not positive definite"):
+        Uncertainty.from_dict({"coef": np.zeros((4, 4)).tolist(), "correlation": np.ones((4, 4)).tolist()})
+
+
+def _frame(rng, planar=False, noise_px=0.5, points=120):
+    x, X, K, rvec, tvec = random_frames(rng, 1, points, noise_px=noise_px, planar=planar)
+    return x[0], X[0], K[0]
+
+
+def test_map_with_a_vague_prior_is_self_calibration():
+    x, X, K = _frame(np.random.default_rng(1))
+    k_net = k_params(K) + K_NET_OFFSET
+    start = solve_pnp_start(x, X, k_matrix(k_net))
+    fit = map_fit(x, X, k_net, np.eye(4) * 1e10, *start, iterations=10)
+    self_k = k_params(calibrate(x[None], X[None], np.ones((1, len(x)))).K[0])
+    np.testing.assert_allclose(fit.k, self_k, atol=1e-3)
+    # One step (the runtime's default) already removes > 97 % of the start's 6-8 px error.
+    np.testing.assert_allclose(map_fit(x, X, k_net, np.eye(4) * 1e10, *start).k, self_k, atol=0.2)
+
+
+def test_map_with_a_sharp_prior_keeps_the_network_k_and_the_pnp_pose():
+    x, X, K = _frame(np.random.default_rng(2))
+    k_net = k_params(K) + K_NET_OFFSET
+    start = solve_pnp_start(x, X, k_matrix(k_net))
+    fit = map_fit(x, X, k_net, np.eye(4) * 1e-10, *start, iterations=5)
+    np.testing.assert_allclose(fit.k, k_net, atol=1e-6)
+    assert np.all(np.linalg.eigvalsh(fit.k_cov) > 0) and np.all(np.diag(fit.k_cov) <= 1e-10 * (1 + 1e-6))
+
+
+def test_map_on_one_planar_view_follows_the_prior_where_the_data_says_nothing():
+    x, X, K = _frame(np.random.default_rng(3), planar=True)
+    with pytest.raises(Exception, match="coplanar"):
+        calibrate(x[None], X[None], np.ones((1, len(x))))
+    k_net = k_params(K) + K_NET_OFFSET
+    prior = np.diag([25.0, 25.0, 25.0, 25.0])
+    fit = map_fit(x, X, k_net, prior, *solve_pnp_start(x, X, k_matrix(k_net)), iterations=10)
+    assert np.all(np.isfinite(fit.k)) and np.all(np.abs(fit.k - k_params(K)) < 4 * 5.0)
+    # The posterior is never wider than the prior (the data only add information).
+    assert np.all(np.linalg.eigvalsh(prior - fit.k_cov) >= -1e-9)
+
+
+def test_self_calibration_falls_back_on_planar_and_too_few_points():
+    frames = simulate("galaxy-s8", seed=3, planar_frames=3)
+    test = frames.select(frames.frames_in("test"))
+    K_c = k_matrix(k_params(K_TEST))
+    infer = test.infer_mask.copy()
+    infer[0] = False
+    infer[0, np.flatnonzero(test.valid[0])[:5]] = True
+    result = self_calibrate(replace(test, infer_mask=infer), K_c)
+    assert "5 inference points" in result.fallback[0] and np.all(result.K[0] == K_c)
+    planar = np.flatnonzero(test.scene == "planar")
+    assert all("ill-posed" in result.fallback[f] and "coplanar" in result.fallback[f] for f in planar)
+    assert np.all(result.K[planar] == K_c)
+    rig = np.flatnonzero(test.scene == "rig")[1:]
+    assert all(result.fallback[f] is None for f in rig)
+    assert np.abs(k_params(result.K[rig]) - k_params(test.K_true[rig])).mean() < 2.0
+
+
+def test_planar_frames_infer_from_one_board_and_leave_the_other_frames_alone():
+    plain = simulate("galaxy-s8", seed=5, natural_frames=2)
+    ds = simulate("galaxy-s8", seed=5, natural_frames=2, planar_frames=4)
+    np.testing.assert_array_equal(ds.points_2d[:plain.n_frames], plain.points_2d)
+    planar = ds.scene == "planar"
+    assert planar.sum() == 4 and np.all(ds.split[planar] == "test") and ds.meta["planar_frames"] == 4
+    for f in np.flatnonzero(planar):
+        X = ds.points_3d[f][ds.infer_mask[f]]
+        assert np.linalg.svd(X - X.mean(0), compute_uv=False)[2] < 1e-6  # one board: coplanar
+        assert ds.valid[f].sum() > ds.infer_mask[f].sum() >= 6
+
+
+@pytest.fixture(scope="module")
+def map_model(tmp_path_factory):
+    frames = simulate("galaxy-s8", seed=7, natural_frames=2, planar_frames=2)
+    spec = replace(model_spec(frames), uncertainty=constant_uncertainty(8.0))
+    return frames, random_model_file(tmp_path_factory.mktemp("map") / "map.onnx", spec)
+
+
+def test_rectifier_map_mode_fits_at_least_as_well_and_reports_its_posterior(map_model):
+    frames, path = map_model
+    dimenet, fused = Rectifier.load(path), Rectifier.load(path, mode="map")
+    rig = np.flatnonzero(frames.scene == "rig")[-4:]
+    for b in rig:
+        m = frames.valid[b]
+        a, c = dimenet.rectify(frames.points_2d[b][m], frames.points_3d[b][m]), \
+            fused.rectify(frames.points_2d[b][m], frames.points_3d[b][m])
+        if a.fallback is None:
+            np.testing.assert_allclose(a.K_cov, np.eye(4) * 64.0)
+        assert c.fallback is None and "map" in c.timings_us
+        assert c.reprojection_error_px <= a.reprojection_error_px + 1e-9
+        assert np.all(np.linalg.eigvalsh(c.K_cov) > 0) and np.all(np.diag(c.K_cov) < 64.0)
+    batch = fused.rectify_batch(frames.points_2d[rig], frames.points_3d[rig], frames.valid[rig])
+    one = [fused.rectify(frames.points_2d[b][frames.valid[b]], frames.points_3d[b][frames.valid[b]]) for b in rig]
+    np.testing.assert_allclose(batch.K, [o.K for o in one], atol=1e-6)
+    np.testing.assert_allclose(batch.K_cov, [o.K_cov for o in one], rtol=1e-6)
+
+
+def test_map_mode_needs_an_uncertainty_model(tmp_path, map_model):
+    frames, _ = map_model
+    old = random_model_file(tmp_path / "old.onnx", model_spec(frames))
+    assert Rectifier.load(old).rectify(*(a[0][frames.valid[0]] for a in (frames.points_2d, frames.points_3d))).K_cov is None
+    with pytest.raises(ModelError, match=r"old\.onnx.*no uncertainty model.*'map'"):
+        Rectifier.load(old, mode="map")
+    with pytest.raises(InputError, match="mode must be one of dimenet, map"):
+        Rectifier.load(old, mode="fast")
+
+
+def test_spec_round_trips_its_uncertainty_and_still_reads_1_0(map_model):
+    frames, _ = map_model
+    spec = replace(model_spec(frames), uncertainty=constant_uncertainty(3.0))
+    back = ModelSpec.from_json(spec.to_json())
+    np.testing.assert_array_equal(back.uncertainty.coef, spec.uncertainty.coef)
+    old = json.loads(model_spec(frames).to_json())
+    old["version"] = "1.0.0"
+    assert ModelSpec.from_dict(old).uncertainty is None
+
+
+def test_evaluate_methods_json_and_table(map_model, tmp_path, capsys):
+    frames, path = map_model
+    data = write_dataset(frames, tmp_path / "d.npz")
+    assert main(["evaluate", str(data), "--model", str(path), "--methods", "kc,self,dimenet,map,oracle", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    methods = out["methods"]
+    assert list(methods) == ["kc", "self", "dimenet", "map", "oracle"]
+    assert set(methods["map"]) == {"rig", "natural", "planar", "overall"}
+    assert methods["kc"]["overall"]["rho"] == pytest.approx(0.0, abs=1e-12)
+    assert methods["oracle"]["overall"]["rho"] == pytest.approx(1.0, abs=1e-12)
+    assert methods["self"]["rig"]["rho"] > 0.95
+    assert methods["dimenet"]["overall"]["avg_e"] == pytest.approx(out["overall"]["avg_e"])
+    assert out["fallbacks"]["self"] >= 2  # the planar frames
+    assert set(out["coverage"]) == {"dimenet", "map"} and set(out["coverage"]["map"]) == {"fx", "fy", "cx", "cy"}
+    assert main(["evaluate", str(data), "--model", str(path), "--methods", "self,map"]) == 0
+    assert "1-sigma coverage" in capsys.readouterr().out
+
+
+def test_evaluate_methods_errors_exit_2(tmp_path, capsys):
+    data = write_dataset(simulate("galaxy-s8", seed=1), tmp_path / "d.npz")
+    for argv, message in ((["--methods", "map"], "needs --model"), (["--methods", "kc,fast"], "unknown method 'fast'")):
+        assert main(["evaluate", str(data), *argv]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
