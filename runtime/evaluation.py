@@ -23,7 +23,7 @@ from .errors import DatasetError, ModelError
 from .geometry import k_matrix, k_params
 from .map_fit import map_rectify
 from .metrics import reduction_ratio, reprojection_error_under_k
-from .predictor import Predictor
+from .predictor import KPrediction, Predictor
 from .self_calibration import self_calibrate
 from .uncertainty import coverage
 
@@ -107,13 +107,11 @@ def frame_errors(frames: Dataset, K_c: np.ndarray, K_pred: Optional[np.ndarray] 
     return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e, K_star=K_star)
 
 
-def map_estimate(frames: Dataset, predictor: Predictor) -> MethodEstimate:
+def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction) -> MethodEstimate:
     """The map method: per frame, ``map_rectify`` on its inference points from the network's
-    K and covariance; frames the network does not predict keep K_c, failed fits its K."""
-    prediction = predictor.predict(frames)
-    if prediction.cov is None:
-        raise ModelError(f"{predictor.source}: the model has no uncertainty (spec 1.0): map needs a model "
-                         f"trained by dimenet >= the uncertainty release")
+    K and covariance (``prediction``, the predictor's on these frames); frames the network
+    does not predict keep K_c, failed fits its K."""
+    predictor.spec.map_uncertainty(predictor.source)
     K, cov = prediction.K.copy(), prediction.cov.copy()
     fallbacks = int((~prediction.predicted).sum())
     for f in np.flatnonzero(prediction.predicted):
@@ -128,8 +126,9 @@ def map_estimate(frames: Dataset, predictor: Predictor) -> MethodEstimate:
 
 
 def method_estimate(method: str, frames: Dataset, K_c: np.ndarray, K_star: np.ndarray,
-                    predictor: Optional[Predictor]) -> MethodEstimate:
-    """K per frame of one of METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``)."""
+                    predictor: Optional[Predictor], prediction: Optional[KPrediction]) -> MethodEstimate:
+    """K per frame of one of METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``;
+    ``prediction`` the predictor's on these frames)."""
     if method not in METHODS:
         raise DatasetError(f"methods: unknown method {method!r} (known: {', '.join(METHODS)})")
     if method in MODEL_METHODS and predictor is None:
@@ -142,9 +141,8 @@ def method_estimate(method: str, frames: Dataset, K_c: np.ndarray, K_star: np.nd
         sc = self_calibrate(frames, K_c)
         return MethodEstimate(K=sc.K, cov=None, fallbacks=sum(r is not None for r in sc.fallback))
     if method == "dimenet":
-        p = predictor.predict(frames)
-        return MethodEstimate(K=p.K, cov=p.cov, fallbacks=int((~p.predicted).sum()))
-    return map_estimate(frames, predictor)
+        return MethodEstimate(K=prediction.K, cov=prediction.cov, fallbacks=int((~prediction.predicted).sum()))
+    return map_estimate(frames, predictor, prediction)
 
 
 def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Union[Predictor, KPredictor, None] = None, *,
@@ -154,15 +152,18 @@ def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Union[Predictor, KPred
     if frames.n_frames == 0:
         raise DatasetError(f"split: no {split!r} frames to evaluate")
     model = predictor if isinstance(predictor, Predictor) else None
-    predict_k = model.predict_k if model is not None else predictor
-    K_pred = None if predict_k is None else np.asarray(predict_k(frames), dtype=np.float64)
+    prediction = None if model is None else model.predict(frames)
+    if prediction is not None:
+        K_pred = prediction.K
+    else:
+        K_pred = None if predictor is None else np.asarray(predictor(frames), dtype=np.float64)
     errors = frame_errors(frames, K_c, K_pred)
     names = sorted(set(frames.scene.tolist()))
     scenes = {name: _summary(frames.scene == name, errors) for name in names}
     overall = _summary(np.ones(frames.n_frames, bool), errors)
     rows, covered, fallbacks = {}, {}, {}
     for method in dict.fromkeys(methods):
-        est = method_estimate(method, frames, K_c, errors.K_star, model)
+        est = method_estimate(method, frames, K_c, errors.K_star, model, prediction)
         e = errors.e_star if method == "oracle" else reprojection_error_under_k(
             frames.points_2d, frames.points_3d, frames.valid, est.K)
         mine = FrameErrors(scene=errors.scene, e_c=errors.e_c, e_star=errors.e_star, e=e, K_star=errors.K_star)
