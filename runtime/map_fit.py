@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
-from .geometry import frame_residuals, solve_pnp_start
+from .geometry import frame_k_matrix, frame_residuals, solve_pnp_start
 
 # Gauss-Newton steps. From the DIME-Net start one step lands on the optimum: on the galaxy-s8
 # test frames rho agrees to 0.01 point with 8 steps (rig, 64 points, natural, planar).
@@ -45,45 +45,38 @@ class MapFit:
     steps: int
 
 
-def _k_matrix(k) -> np.ndarray:
-    fx, fy, cx, cy = k
-    return np.array(((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0)))
-
-
 def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
             rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec the pose
-    {W}->{C} under k_net (the start)."""
+    {W}->{C} under k_net (the start); iterations >= 1 Gauss-Newton steps at most."""
     precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k = np.array(k_net, dtype=np.float64)
     rvec, tvec = np.array(rvec, dtype=np.float64).ravel(), np.array(tvec, dtype=np.float64).ravel()
-    steps = 0
-    weight = cost = None
-    for _ in range(iterations):
-        x, J = cv2.projectPoints(points_3d, rvec, tvec, _k_matrix(k), None)
+    x, J = cv2.projectPoints(points_3d, rvec, tvec, frame_k_matrix(k), None)
+    r = x.reshape(-1) - points_2d.reshape(-1)
+    weight = 1.0 / max(float(r @ r) / max(r.size - 6, 1), NOISE_FLOOR_PX**2)
+    cost, residuals, steps = weight * float(r @ r), r.reshape(-1, 2), 0
+    for it in range(iterations):
+        if it:
+            x, J = cv2.projectPoints(points_3d, rvec, tvec, frame_k_matrix(k), None)
+            r = x.reshape(-1) - points_2d.reshape(-1)
         J = J[:, :10]  # d(u, v)/d(rvec, tvec, fx, fy, cx, cy), point-interleaved rows
-        r = x.reshape(-1) - points_2d.reshape(-1)
-        if weight is None:
-            weight = 1.0 / max(float(r @ r) / max(r.size - 6, 1), NOISE_FLOOR_PX**2)
-            cost = weight * float(r @ r)
         H = weight * (J.T @ J)
         H[6:, 6:] += precision
         g = weight * (J.T @ r)
         g[6:] += precision @ (k - k_net)
         step = cv2.solve(H, g.reshape(10, 1), flags=cv2.DECOMP_CHOLESKY)[1].ravel()
         k_new, rvec_new, tvec_new = k - step[6:], rvec - step[:3], tvec - step[3:6]
-        res = frame_residuals(points_2d, points_3d, _k_matrix(k_new), rvec_new, tvec_new)
+        res = frame_residuals(points_2d, points_3d, frame_k_matrix(k_new), rvec_new, tvec_new)
         d = k_new - k_net
         cost_new = weight * float(np.vdot(res, res)) + float(d @ precision @ d)
         if not cost_new <= cost:
             break
         k, rvec, tvec, cost, residuals, steps = k_new, rvec_new, tvec_new, cost_new, res, steps + 1
-    if steps == 0:
-        residuals = frame_residuals(points_2d, points_3d, _k_matrix(k), rvec, tvec)
-    k_cov = cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1][6:, 6:] if iterations else cov_net
+    k_cov = cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1][6:, 6:]
     return MapFit(k=k, rvec=rvec, tvec=tvec, k_cov=(k_cov + k_cov.T) / 2, residuals=residuals,
-                  noise_px=float(np.sqrt(1.0 / weight)) if weight else float("nan"), steps=steps)
+                  noise_px=float(np.sqrt(1.0 / weight)), steps=steps)
 
 
 def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
@@ -93,7 +86,7 @@ def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray,
     outside ``k_bounds`` (4, 2) px; the caller then keeps the DIME-Net K."""
     if pose is None:
         try:
-            pose = solve_pnp_start(points_2d, points_3d, _k_matrix(k_net))
+            pose = solve_pnp_start(points_2d, points_3d, frame_k_matrix(k_net))
         except InputError:
             return None, "no pose under the network's K"
     result = map_fit(points_2d, points_3d, k_net, cov_net, *pose)

@@ -87,6 +87,13 @@ class ModelSpec:
             raise ModelError(f"{path}: no model spec file")
         return cls.from_json(path.read_text(encoding="utf-8"), source=str(path))
 
+    def map_uncertainty(self, source: str) -> Uncertainty:
+        """The uncertainty model that MAP rectification needs, or ModelError naming ``source``."""
+        if self.uncertainty is None:
+            raise ModelError(f"{source}: its spec has no uncertainty model (spec 1.0), which mode 'map' needs: "
+                             f"re-export a model trained by this release")
+        return self.uncertainty
+
     def k_within_bounds(self, K: np.ndarray) -> np.ndarray:
         """(..., 3, 3) -> (...,) bool: every parameter inside K_bounds."""
         p = k_params(K)

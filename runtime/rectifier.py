@@ -36,12 +36,12 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import (check_not_degenerate, frame_residuals, k_matrix, k_params, mean_over,
+from .geometry import (check_not_degenerate, frame_k_matrix, frame_residuals, k_matrix, k_params, mean_over,
                        mean_reprojection_errors, rotation_matrices, solve_pnp_start)
 from .map_fit import map_rectify
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
-from .uncertainty import input_statistics
+from .uncertainty import input_statistics, occupied_cells
 
 MIN_POINTS = 6
 WORSE_RELATIVE = 0.05
@@ -206,9 +206,8 @@ class Rectifier:
         if mode not in MODES:
             raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         spec = model.spec
-        if mode == "map" and spec.uncertainty is None:
-            raise ModelError(f"{model.source}: its spec has no uncertainty model (spec 1.0), which mode 'map' needs: "
-                             f"re-export a model trained by this release")
+        if mode == "map":
+            spec.map_uncertainty(model.source)
         self.model, self.mode = model, mode
         self._uncertainty = spec.uncertainty
         self._n_channels = len(spec.features.channels)
@@ -230,8 +229,6 @@ class Rectifier:
         """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model.
         ``mode``: "dimenet" (the paper's method) or "map" (the network's K as a prior, fused
         with the frame's own points)."""
-        if mode not in MODES:
-            raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         if path is not None:
             return cls(load_onnx_model(path, threads=threads, providers=providers), mode)
         resource = resources.files("dimenet.runtime") / "data" / DEFAULT_MODEL
@@ -307,8 +304,7 @@ class Rectifier:
         t3 = clock()
         dk = self.model.delta_k(feats.astype(np.float32))[0].astype(np.float64)
         t4 = clock()
-        fx, fy, cx, cy = (self._kc_params + dk).tolist()
-        K = np.array(((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0)))  # k_matrix of (fx, fy, cx, cy)
+        K = frame_k_matrix((self._kc_params + dk).tolist())
         plausible = all(low <= d <= high for d, (low, high) in zip(dk.tolist(), self._dk_bounds))
         reason = None if plausible else _implausible_reason(dk, K)
         rvec, tvec = rvec_c, tvec_c
@@ -322,7 +318,7 @@ class Rectifier:
         pmd_error = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
         K_cov = e = None
         if reason is None and self._uncertainty is not None:
-            occupied = np.count_nonzero(feats.reshape(-1, self._n_channels).any(1))
+            occupied = occupied_cells(feats, self._n_channels)[0]
             K_cov = self._uncertainty.frame_covariance(len(p2), occupied, pmd_error)
         if reason is None and self.mode == "map":
             fit, why = map_rectify(p2, p3, self._kc_params + dk, K_cov, spec.K_bounds, pose=(rvec, tvec))

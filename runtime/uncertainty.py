@@ -81,8 +81,7 @@ def frame_statistics(n_points, occupied_cells, mean_pmd_px) -> np.ndarray:
 
 def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
     """(B, D) grid features -> (B,) number of cells holding points (a zero cell is empty)."""
-    cells = features.reshape(len(features), -1, n_channels)
-    return np.count_nonzero(np.any(cells != 0, axis=-1), axis=-1)
+    return np.count_nonzero(features.reshape(len(features), -1, n_channels).any(-1), axis=-1)
 
 
 def input_statistics(features: np.ndarray, pmd: np.ndarray, mask, n_channels: int) -> np.ndarray:
