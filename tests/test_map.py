@@ -195,3 +195,10 @@ def test_evaluate_methods_errors_exit_2(tmp_path, capsys):
         assert main(["evaluate", str(data), *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_bench_map_mode_times_its_map_stage(map_model, capsys):
+    _, path = map_model
+    assert main(["bench", "--model", str(path), "--mode", "map", "--frames", "6", "--points", "64", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["mode"] == "map" and "map" in report["stages_us"] and report["ratio_p50"] > 0
