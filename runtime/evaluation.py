@@ -117,7 +117,7 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
     for f in np.flatnonzero(prediction.predicted):
         m = frames.infer_mask[f]
         fit, reason = map_rectify(frames.points_2d[f][m], frames.points_3d[f][m], k_params(K[f]), cov[f],
-                                  predictor.spec.K_bounds)
+                                  predictor.spec.K_bounds, predictor.spec.K_c)
         if reason is None:
             K[f], cov[f] = k_matrix(fit.k), fit.k_cov
         else:

@@ -122,6 +122,47 @@ def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray,
     return d
 
 
+def camera_points(points_3d: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """One frame's {W} points (N, 3) mm -> {C} points coordinate-major (3, N) mm, X_C = R X + t."""
+    Xc = cv2.Rodrigues(rvec)[0] @ points_3d.T
+    Xc += tvec.reshape(3, 1)
+    return Xc
+
+
+def frame_projection(Xc: np.ndarray, points_2d: np.ndarray, k) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's residuals and their Jacobian under the pinhole (fx, fy, cx, cy) px ``k``.
+
+    Xc (3, N) mm: the points in {C} (``camera_points``); points_2d (N, 2) px. Returns r (2N,)
+    px = pi(K, Xc) - x, all u residuals then all v residuals, and J (10, 2N): row j holds
+    dr/dp_j for p = (w (3) rad, tau (3) mm, fx, fy, cx, cy), where the pose is perturbed on
+    the left, X_C -> exp([w]x) X_C + tau (so R -> exp([w]x) R, t -> exp([w]x) t + tau).
+    """
+    fx, fy, cx, cy = k
+    n = Xc.shape[1]
+    inv_z = 1.0 / Xc[2]
+    a, b = Xc[0] * inv_z, Xc[1] * inv_z  # normalised image coordinates
+    r = np.empty((2, n))
+    np.multiply(a, fx, out=r[0])
+    np.multiply(b, fy, out=r[1])
+    r += ((cx,), (cy,))
+    r -= points_2d.T
+    J = np.zeros((10, 2, n))
+    ab = a * b
+    J[0, 0], J[1, 0], J[2, 0] = -ab, 1.0 + a * a, -b  # du/dw / fx
+    J[0, 1], J[1, 1], J[2, 1] = -1.0 - b * b, ab, a  # dv/dw / fy
+    J[3, 0], J[4, 1] = inv_z, inv_z  # du/dtau_x / fx, dv/dtau_y / fy
+    J[5, 0], J[5, 1] = -a * inv_z, -b * inv_z
+    J[:6] *= ((fx,), (fy,))
+    J[6, 0], J[7, 1], J[8, 0], J[9, 1] = a, b, 1.0, 1.0
+    return r.reshape(-1), J.reshape(10, -1)
+
+
+def left_update(rvec: np.ndarray, tvec: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose {W}->{C} after the left perturbation (w rad, tau mm) of ``frame_projection``."""
+    dR = cv2.Rodrigues(w)[0]
+    return cv2.Rodrigues(dR @ cv2.Rodrigues(rvec)[0])[0].ravel(), dR @ tvec + tau
+
+
 def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:
     """Euclidean reprojection error (px) of each correspondence, shape (..., N)."""
     return np.linalg.norm(project(points_3d, K, rvec, tvec) - points_2d, axis=-1)

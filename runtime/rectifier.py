@@ -7,16 +7,17 @@ stage names of ``timings_us``:
    model was trained for, a non-degenerate configuration;
 2. ``pnp_kc``: SQPnP pose {W}->{C0} under the prior K_c;
 3. ``features``: the grid feature (``dimenet.runtime.features.grid_features``) at that pose;
-4. ``model``: one ONNX Runtime call, Delta K (px); K = K_c + Delta K;
+4. ``model``: one ONNX Runtime call, Delta K (px); K = K_c + Delta K (and its covariance);
 5. ``pnp_k``: SQPnP pose under K at native resolution;
 6. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of both poses;
 7. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, fallback rules.
 
 With a model whose spec carries the uncertainty model (spec >= 1.1), ``K_cov`` is the
 network's 4x4 covariance of (fx, fy, cx, cy) (px^2) for the frame. In ``mode="map"`` a stage
-``map`` follows ``pnp_k``: the MAP fusion of that prior with the frame's points
-(``dimenet.runtime.map_fit``), whose K, pose and posterior ``K_cov`` are returned; when it
-fails its checks, the DIME-Net solution stands and ``fallback`` says why.
+``map`` replaces ``pnp_k``: the MAP fusion of that prior with the frame's points
+(``dimenet.runtime.map_fit``, from the C0 pose), whose K, pose and posterior ``K_cov`` are
+returned; when it fails its checks, the DIME-Net solution (``pnp_k`` then runs) stands and
+``fallback`` says why.
 
 Fallback (the result is then K_c's own solution, Delta K = 0, and ``fallback`` says why):
 Delta K not finite; K outside the spec's ``K_bounds``; no pose under K; or
@@ -26,10 +27,11 @@ frame's own points worse than K_c by more than 5 % + 0.05 px.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property, partial
 from importlib import resources
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -63,7 +65,8 @@ class Rectification:
     pose); delta_k (4,) px the applied (dfx, dfy, dcx, dcy), 0 on fallback; fallback None or
     why K_c's solution (or in map mode, DIME-Net's) was returned; timings_us: microseconds per
     stage; K_cov (4, 4) px^2 the covariance of (fx, fy, cx, cy): the network's (mode dimenet)
-    or the MAP posterior (mode map); None when K is K_c's or the model has no uncertainty."""
+    or the MAP posterior (mode map); None when K is K_c's or the model has no uncertainty.
+    ``covariance`` computes K_cov when first asked for: the hot path does not pay for it."""
 
     K: np.ndarray
     rvec: np.ndarray
@@ -73,7 +76,12 @@ class Rectification:
     delta_k: np.ndarray
     fallback: Optional[str]
     timings_us: dict
-    K_cov: Optional[np.ndarray] = None
+    covariance: Optional[Callable[[], np.ndarray]] = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def K_cov(self) -> Optional[np.ndarray]:
+        """(4, 4) px^2, computed on first access from ``covariance`` (None without one)."""
+        return None if self.covariance is None else self.covariance()
 
 
 @dataclass(frozen=True)
@@ -304,37 +312,40 @@ class Rectifier:
         t3 = clock()
         dk = self.model.delta_k(feats.astype(np.float32))[0].astype(np.float64)
         t4 = clock()
+        timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3}
         K = frame_k_matrix((self._kc_params + dk).tolist())
         plausible = all(low <= d <= high for d, (low, high) in zip(dk.tolist(), self._dk_bounds))
         reason = None if plausible else _implausible_reason(dk, K)
+        pmd_error = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
+        covariance = e = None
+        if reason is None and self._uncertainty is not None:
+            covariance = partial(self._uncertainty.frame_covariance, len(p2), occupied_cells(feats, self._n_channels)[0],
+                                 pmd_error)
         rvec, tvec = rvec_c, tvec_c
-        if reason is None:
+        if reason is None and self.mode == "map":
+            # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
+            fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
+                                   pose=(rvec_c, tvec_c))
+            if why is None:
+                K, dk, rvec, tvec = k_matrix(fit.k), fit.k - self._kc_params, fit.rvec, fit.tvec
+                covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals)
+            else:
+                reason = f"map: {why}; DIME-Net's K is returned"
+            t5 = clock()
+            timings["map"], t4 = t5 - t4, t5
+        if (reason is None and e is None) or (reason is not None and reason.startswith("map:")):
             try:
                 rvec, tvec = _sqpnp(p2, p3, K)
             except InputError:
                 reason = "no pose under the predicted K"
-        t5 = clock()
-        timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3, "pnp_k": t5 - t4}
-        pmd_error = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
-        K_cov = e = None
-        if reason is None and self._uncertainty is not None:
-            occupied = occupied_cells(feats, self._n_channels)[0]
-            K_cov = self._uncertainty.frame_covariance(len(p2), occupied, pmd_error)
-        if reason is None and self.mode == "map":
-            fit, why = map_rectify(p2, p3, self._kc_params + dk, K_cov, spec.K_bounds, pose=(rvec, tvec))
-            if why is None:
-                K, dk, rvec, tvec, K_cov = k_matrix(fit.k), fit.k - self._kc_params, fit.rvec, fit.tvec, fit.k_cov
-                e = _mean_norm(fit.residuals)
-            else:
-                reason = f"map: {why}; DIME-Net's K is returned"
-            t6 = clock()
-            timings["map"], t5 = t6 - t5, t6
+            t5 = clock()
+            timings["pnp_k"], t4 = t5 - t4, t5
         if refine:
             rvec_c, tvec_c = _refine(p2, p3, K_c, rvec_c, tvec_c)
             if reason is None and e is None:
                 rvec, tvec = _refine(p2, p3, K, rvec, tvec)
-            t6 = clock()
-            timings["refine"], t5 = t6 - t5, t6
+            t5 = clock()
+            timings["refine"], t4 = t5 - t4, t5
             e_c = _mean_error(p2, p3, K_c, rvec_c, tvec_c)
         else:
             e_c = pmd_error
@@ -345,11 +356,11 @@ class Rectifier:
                 reason = _worse_reason(e, e_c)
                 dimenet_kept = False
         if reason is not None and not dimenet_kept:
-            K, dk, rvec, tvec, e, K_cov = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c, None
-        timings["check"] = clock() - t5
+            K, dk, rvec, tvec, e, covariance = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c, None
+        timings["check"] = clock() - t4
         return Rectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
                              delta_k=dk, fallback=reason, timings_us={k: v / 1e3 for k, v in timings.items()},
-                             K_cov=K_cov)
+                             covariance=covariance)
 
     def _validated_batch(self, points_2d, points_3d, valid, infer_mask):
         """Float64 arrays and bool masks of B frames, and each frame's valid points ((N_b, 2), (N_b, 3))."""
@@ -440,7 +451,8 @@ class Rectifier:
                 stats = input_statistics(feats[pending], pmd[pending], infer[pending], self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
-            self._map_batch(p2, p3, infer, frames, same_poses, pending, dk, K, K_cov, rvec, tvec, reasons)
+            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov, rvec, tvec,
+                            reasons)
         if refine:
             for b, (x, X) in enumerate(frames):
                 rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
@@ -467,14 +479,15 @@ class Rectifier:
         return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
                                   delta_k=dk, fallback=tuple(reasons), K_cov=K_cov)
 
-    def _map_batch(self, p2, p3, infer, frames, same_poses, pending, dk, K, K_cov, rvec, tvec, reasons) -> None:
+    def _map_batch(self, p2, p3, infer, frames, same_poses, poses_c0, pending, dk, K, K_cov, rvec, tvec,
+                   reasons) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
-        points) and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
-        "map: ..." reason (still pending: the K_c check follows)."""
+        points and their C0 pose ``poses_c0``) and its pose on its valid points; a frame whose MAP
+        fails keeps DIME-Net's K with a "map: ..." reason (still pending: the K_c check follows)."""
         for b in np.flatnonzero(pending):
             m = infer[b]
             fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   pose=(rvec[b], tvec[b]) if same_poses else None)
+                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]))
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue

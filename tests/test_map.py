@@ -71,8 +71,11 @@ def test_map_with_a_vague_prior_is_self_calibration():
     fit = map_fit(x, X, k_net, np.eye(4) * 1e10, *start, iterations=10)
     self_k = k_params(calibrate(x[None], X[None], np.ones((1, len(x)))).K[0])
     np.testing.assert_allclose(fit.k, self_k, atol=1e-3)
-    # One step (the runtime's default) already removes > 97 % of the start's 6-8 px error.
+    # One step (the runtime's default) already removes > 97 % of the start's 6-8 px error,
+    # from the pose under k_net as from the runtime's start, the pose under another K (K_c).
     np.testing.assert_allclose(map_fit(x, X, k_net, np.eye(4) * 1e10, *start).k, self_k, atol=0.2)
+    start_c0 = solve_pnp_start(x, X, k_matrix(k_net - K_NET_OFFSET / 2))
+    np.testing.assert_allclose(map_fit(x, X, k_net, np.eye(4) * 1e10, *start_c0).k, self_k, atol=0.2)
 
 
 def test_map_with_a_sharp_prior_keeps_the_network_k_and_the_pnp_pose():
