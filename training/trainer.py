@@ -66,10 +66,11 @@ class TrainConfig:
     max_eta: float = 0.8
     max_noise_px: float = 3.0  # per-frame extra 2D noise drawn from U(0, max), px
     resynthesis: float = 0.75  # share of train frames re-imaged under another frame's principal point
-    cluster_share: float = 0.15  # share of frames whose inference points shrink to hand-labelled-like clusters
+    cluster_share: float = 0.25  # share of frames whose inference points shrink to hand-labelled-like clusters
     cluster_points: tuple = (40, 100)  # how many points those clusters keep, drawn uniformly
     max_label_noise_px: float = 6.0  # per-frame label noise on the clustered points drawn from U(0, max), px
     patience: int = 80  # epochs without val improvement before stopping
+    full_share: float = 0.4  # share of frames keeping all their inference points and every cell
 
 
 @dataclass(frozen=True)
@@ -157,11 +158,15 @@ def cluster_inference_points(frames: Dataset, candidates: np.ndarray, share: flo
 
 def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> Dataset:
     """Each frame with random extra 2D noise, a random inference-point count and a random share
-    of emptied cells; a share of the frames with clustered, noisily labelled inference points."""
+    of emptied cells, except a ``full_share`` of the frames that keep all their points and
+    cells; a share of the frames with clustered, noisily labelled inference points."""
     n_infer = frames.infer_mask.sum(1)
     low = np.minimum(max(config.min_points, MIN_INFER_POINTS), n_infer)
     n = rng.integers(low, n_infer + 1)
     eta = rng.uniform(0.0, config.max_eta, frames.n_frames)
+    # Full frames, as the rig's at test time: without them the net sees 320 points too rarely.
+    full = rng.random(frames.n_frames) < config.full_share
+    n, eta = np.where(full, n_infer, n), np.where(full, 0.0, eta)
     noisy = add_noise(frames, rng.uniform(0.0, config.max_noise_px, frames.n_frames), 0.0, rng)
     dropped = drop_inference_points(noisy, n, rng)
     emptied = empty_cells(dropped, eta, grid, rng)
