@@ -250,6 +250,11 @@ class Rectifier:
     def spec(self) -> ModelSpec:
         return self.model.spec
 
+    def _frame_covariance(self, feats: np.ndarray, n_points: int, pmd_error: float) -> np.ndarray:
+        """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count
+        and mean PMD (px)."""
+        return self._uncertainty.frame_covariance(n_points, occupied_cells(feats, self._n_channels)[0], pmd_error)
+
     def _plausible(self, delta_k: np.ndarray) -> np.ndarray:
         """(..., 4) px -> (...,) bool: K = K_c + Delta K is finite and inside K_bounds."""
         return np.all((delta_k >= self._dk_low) & (delta_k <= self._dk_high), -1)
@@ -319,15 +324,14 @@ class Rectifier:
         pmd_error = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
         covariance = e = None
         if reason is None and self._uncertainty is not None:
-            covariance = partial(self._uncertainty.frame_covariance, len(p2), occupied_cells(feats, self._n_channels)[0],
-                                 pmd_error)
+            covariance = partial(self._frame_covariance, feats, len(p2), pmd_error)
         rvec, tvec = rvec_c, tvec_c
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
             fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
                                    pose=(rvec_c, tvec_c))
             if why is None:
-                K, dk, rvec, tvec = k_matrix(fit.k), fit.k - self._kc_params, fit.rvec, fit.tvec
+                K, dk, rvec, tvec = frame_k_matrix(fit.k.tolist()), fit.k - self._kc_params, fit.rvec, fit.tvec
                 covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals)
             else:
                 reason = f"map: {why}; DIME-Net's K is returned"
