@@ -9,8 +9,8 @@ and s^2 (px^2) the frame's 2D noise variance: s^2 = RSS / (2N - 10) of the linea
 residuals (first weighted by the start's own residuals), floored at NOISE_FLOOR_PX^2.
 ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) with the
 analytic projection Jacobian (``geometry.frame_projection``, the pose perturbed on the
-left); a step that does not lower the cost ends the fit. The posterior covariance of k is the K block of the inverse Gauss-Newton Hessian at the last
-linearisation.
+left); a step that does not lower the cost ends the fit. The posterior covariance of k is
+the K block of the inverse Gauss-Newton Hessian at the last linearisation.
 
 One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
 observable even from one planar view, where the data alone cannot fix it.
@@ -38,13 +38,15 @@ NOISE_PASSES = 1
 @dataclass(frozen=True)
 class MapFit:
     """k (4,) px (fx, fy, cx, cy); rvec (3,) rad, tvec (3,) mm {W}->{C}; k_cov (4, 4) px^2 the
-    posterior covariance; residuals (N, 2) px at the result."""
+    posterior covariance; residuals (N, 2) px at the result; steps: the Gauss-Newton steps
+    taken (0: the first step would have raised the cost, the result is the start)."""
 
     k: np.ndarray
     rvec: np.ndarray
     tvec: np.ndarray
     k_cov: np.ndarray
     residuals: np.ndarray
+    steps: int
 
 
 def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
@@ -64,7 +66,7 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
         step = _posterior(JJ, precision, weight) @ Jr * weight
         weight = _noise_weight(rss - 2.0 * float(step @ Jr) + float(step @ JJ @ step), r.size - 10)
     cov = _posterior(JJ, precision, weight)
-    cost, residuals = weight * rss, None
+    cost, residuals, steps = weight * rss, None, 0
     for it in range(iterations):
         g = Jr * weight
         if it:  # the prior's gradient, zero at the start k = k_net
@@ -78,7 +80,7 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
         cost_new = weight * float(np.vdot(res, res)) + float(d @ precision @ d)
         if not cost_new <= cost:
             break
-        k, rvec, tvec, cost, residuals = k_new, rvec_new, tvec_new, cost_new, res
+        k, rvec, tvec, cost, residuals, steps = k_new, rvec_new, tvec_new, cost_new, res, steps + 1
         if it + 1 < iterations:
             r, J = frame_projection(camera_points(points_3d, rvec, tvec), points_2d, k)
             JJ, Jr = J @ J.T, J @ r
@@ -86,7 +88,7 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
     if residuals is None:
         residuals = np.ascontiguousarray(r.reshape(2, -1).T)
     k_cov = cov[6:, 6:]
-    return MapFit(k=k, rvec=rvec, tvec=tvec, k_cov=(k_cov + k_cov.T) / 2, residuals=residuals)
+    return MapFit(k=k, rvec=rvec, tvec=tvec, k_cov=(k_cov + k_cov.T) / 2, residuals=residuals, steps=steps)
 
 
 def _noise_weight(rss: float, dof: int) -> float:
@@ -105,14 +107,18 @@ def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarr
 def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
                 k_bounds: np.ndarray, K_c: np.ndarray, pose=None) -> tuple[MapFit | None, str | None]:
     """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
-    checked: (fit, None), or (None, why) when there is no start pose or the MAP K is not finite
-    or outside ``k_bounds`` (4, 2) px; the caller then keeps the DIME-Net K."""
+    checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
+    (the start pose is K_c's, not k_net's optimum, so the caller's own PnP under k_net is
+    better) or the MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then
+    keeps the DIME-Net K."""
     if pose is None:
         try:
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
             return None, "no C0 pose under K_c"
     result = map_fit(points_2d, points_3d, k_net, cov_net, *pose)
+    if result.steps == 0:
+        return None, "the MAP step did not lower the cost"
     # Plain floats: a NaN fails every comparison, so this also refuses a non-finite K.
     if not all(low <= v <= high for v, (low, high) in zip(result.k.tolist(), k_bounds.tolist())):
         return None, "the MAP K is implausible (outside the model's K_bounds)"

@@ -325,7 +325,7 @@ class Rectifier:
         covariance = e = None
         if reason is None and self._uncertainty is not None:
             covariance = partial(self._frame_covariance, feats, len(p2), pmd_error)
-        rvec, tvec = rvec_c, tvec_c
+        rvec, tvec, dimenet_kept = rvec_c, tvec_c, False  # dimenet_kept: map failed, DIME-Net's K stands
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
             fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
@@ -334,14 +334,14 @@ class Rectifier:
                 K, dk, rvec, tvec = frame_k_matrix(fit.k.tolist()), fit.k - self._kc_params, fit.rvec, fit.tvec
                 covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals)
             else:
-                reason = f"map: {why}; DIME-Net's K is returned"
+                reason, dimenet_kept = f"map: {why}; DIME-Net's K is returned", True
             t5 = clock()
             timings["map"], t4 = t5 - t4, t5
-        if (reason is None and e is None) or (reason is not None and reason.startswith("map:")):
+        if (reason is None and e is None) or dimenet_kept:
             try:
                 rvec, tvec = _sqpnp(p2, p3, K)
             except InputError:
-                reason = "no pose under the predicted K"
+                reason, dimenet_kept = "no pose under the predicted K", False
             t5 = clock()
             timings["pnp_k"], t4 = t5 - t4, t5
         if refine:
@@ -353,7 +353,6 @@ class Rectifier:
             e_c = _mean_error(p2, p3, K_c, rvec_c, tvec_c)
         else:
             e_c = pmd_error
-        dimenet_kept = reason is not None and reason.startswith("map:")
         if reason is None or dimenet_kept:
             e = _mean_error(p2, p3, K, rvec, tvec) if e is None else e
             if _worse_one(e, e_c):

@@ -13,7 +13,7 @@ from dimenet.runtime.dataset import write_dataset
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.geometry import k_matrix, k_params, solve_pnp_start
 from dimenet.runtime.least_squares import calibrate
-from dimenet.runtime.map_fit import map_fit
+from dimenet.runtime.map_fit import map_fit, map_rectify
 from dimenet.runtime.model_spec import ModelSpec
 from dimenet.runtime.rectifier import Rectifier
 from dimenet.runtime.self_calibration import self_calibrate
@@ -85,6 +85,16 @@ def test_map_with_a_sharp_prior_keeps_the_network_k_and_the_pnp_pose():
     fit = map_fit(x, X, k_net, np.eye(4) * 1e-10, *start, iterations=5)
     np.testing.assert_allclose(fit.k, k_net, atol=1e-6)
     assert np.all(np.linalg.eigvalsh(fit.k_cov) > 0) and np.all(np.diag(fit.k_cov) <= 1e-10 * (1 + 1e-6))
+
+
+def test_map_rectify_refuses_a_fit_whose_step_raised_the_cost():
+    x, X, K, rvec, tvec = random_frames(np.random.default_rng(0), 1, 60, noise_px=0.5)
+    x, X, k, bounds = x[0], X[0], k_params(K[0]), np.stack([k_params(K[0]) - 500, k_params(K[0]) + 500], -1)
+    near = map_rectify(x, X, k, np.eye(4) * 25.0, bounds, K[0], pose=(rvec[0], tvec[0]))
+    assert near[1] is None and near[0].steps == 1
+    # From a start 1 rad off, the one Gauss-Newton step overshoots: the start is no answer.
+    far = map_rectify(x, X, k, np.eye(4) * 25.0, bounds, K[0], pose=(rvec[0] + [1.0, 0.0, 0.0], tvec[0]))
+    assert far == (None, "the MAP step did not lower the cost")
 
 
 def test_map_on_one_planar_view_follows_the_prior_where_the_data_says_nothing():
