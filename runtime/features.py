@@ -67,13 +67,15 @@ class FeatureSpec:
 
 
 def poses_c0(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray]:
-    """Pose {W}->{C0} of each of F frames: SQPnP under K_c on the masked points. (F, 3) each."""
+    """Pose {W}->{C0} of each of F frames: SQPnP under K_c on the masked points (mask None:
+    all). (F, 3) each."""
     F = len(points_2d)
     rvec, tvec = np.empty((F, 3)), np.empty((F, 3))
     for b in range(F):
-        m = mask[b]
-        if m.sum() < 4:
-            raise InputError(f"frame {b}: {int(m.sum())} inference points, the C0 pose needs >= 4")
+        m = slice(None) if mask is None else mask[b]
+        n = points_2d.shape[1] if mask is None else int(m.sum())
+        if n < 4:
+            raise InputError(f"frame {b}: {n} inference points, the C0 pose needs >= 4")
         rvec[b], tvec[b] = solve_pnp_start(points_2d[b][m], points_3d[b][m], K_c)
     return rvec, tvec
 
@@ -87,45 +89,66 @@ def point_features(points_2d, points_3d, K_c, rvec, tvec) -> np.ndarray:
 
 
 def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec) -> None:
-    """The raw point features of ``point_features`` channel-major into out[:, :5] of an (F, >= 5, N) array."""
-    K_c = np.asarray(K_c, dtype=np.float64)
-    Xc = np.matmul(rotation_matrices(rvec), np.swapaxes(points_3d, 1, 2))  # (F, 3, N)
-    Xc += np.asarray(tvec, dtype=np.float64)[:, :, None]
-    inv_z = np.divide(1.0, Xc[:, 2:], out=out[:, 4:5])
-    # dx, dy = fx X / Z + cx - x, fy Y / Z + cy - y, in that order of operations.
-    pmd = np.multiply(Xc[:, :2], K_c.diagonal()[:2, None], out=out[:, :2])
+    """The raw point features of ``point_features`` channel-major into out[:, :5] of an (F, >= 5, N) array.
+
+    One matrix product maps each {W} point X to [u, v, X_C0, Y_C0, Z_C0] with (u, v, Z_C0) =
+    K_c (R X + t); then 1/Z, and dx, dy = u / Z - x, v / Z - y.
+    """
+    F = len(points_2d)
+    P = np.empty((F, 5, 4))  # rows: K_c[:2] [R | t], then [R | t]
+    P[:, 2:, :3] = rotation_matrices(rvec)
+    P[:, 2:, 3] = tvec
+    np.matmul(np.asarray(K_c, dtype=np.float64)[:2], P[:, 2:], out=P[:, :2])
+    rows = np.matmul(P[:, :, :3], np.swapaxes(points_3d, 1, 2), out=out[:, :5])
+    rows += P[:, :, 3:]
+    inv_z = np.divide(1.0, rows[:, 4:5], out=rows[:, 4:5])
+    pmd = rows[:, :2]
     pmd *= inv_z
-    pmd += K_c[:2, 2:]
     pmd -= np.swapaxes(points_2d, 1, 2)
-    out[:, 2:4] = Xc[:, :2]
+
+
+_SCALES: dict = {}
+
+
+def _channel_scale(spec: FeatureSpec) -> np.ndarray:
+    """(C,) the spec's per-channel scales in channel order, cached per (variant, scale)."""
+    key = (spec.variant, tuple(sorted(spec.scale.items())))
+    scale = _SCALES.get(key)
+    if scale is None:
+        scale = _SCALES[key] = np.array([spec.scale[c] for c in spec.channels])
+    return scale
 
 
 def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None,
-                  return_pmd: bool = False):
+                  return_points: bool = False):
     """The flattened, scaled grid feature of F frames: (F, spec.size) float64.
 
     points_2d (F, N, 2) px; points_3d (F, N, 3) mm in {W}; mask (F, N) bool, the inference
-    points; K_c (3, 3) the prior; image_size (width, height) px. ``poses`` (rvec, tvec) of
-    {W}->{C0} may be passed when already known (else solved here with SQPnP).
+    points (None: every point); K_c (3, 3) the prior; image_size (width, height) px.
+    ``poses`` (rvec, tvec) of {W}->{C0} may be passed when already known (else solved here
+    with SQPnP).
 
-    With ``return_pmd``, returns (feature, pmd): pmd (F, N, 2) the raw unscaled [dx, dy] (px)
-    of every point, i.e. its reprojection residual under K_c at the C0 pose (arbitrary on
-    unmasked points).
+    With ``return_points``, returns (feature, points): points (F, 6, N) the raw unscaled point
+    rows [dx, dy, X, Y, 1/Z, 1] channel-major (px, px, mm, mm, 1/mm, 1) in {C0}, arbitrary on
+    unmasked points; rows 0-1 (the PMD) are each point's reprojection residual under K_c at
+    the C0 pose.
     """
     points_2d = np.asarray(points_2d, dtype=np.float64)
     points_3d = np.asarray(points_3d, dtype=np.float64)
-    mask = np.asarray(mask, dtype=bool)
-    F, N = mask.shape
+    F, N = points_2d.shape[:2]
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.all():
+            mask = None
     rvec, tvec = poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
-    every = bool(mask.all())
-    if not every:
+    if mask is not None:
         points_2d = np.where(mask[..., None], points_2d, 0.0)
         points_3d = np.where(mask[..., None], points_3d, 0.0)
     # Channel-major point rows [dx, dy, X, Y, 1/Z, 1] (F, 6, N); the last one counts points.
     rows = np.empty((F, len(CHANNELS) + 1, N))
     _point_features_into(rows, points_2d, points_3d, K_c, rvec, tvec)
     rows[:, -1] = 1.0
-    pmd = np.swapaxes(rows[:, :2], 1, 2)
+    points = rows
     channels = spec.channels
     if channels != CHANNELS:
         rows = rows[:, [CHANNELS.index(c) for c in channels] + [len(CHANNELS)]]
@@ -135,13 +158,13 @@ def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec
     if F > 1:
         cells += spec.grid.n_cells * np.arange(F)[:, None]
     index = cells[:, None, :] + np.arange(0, width * bins, bins)[:, None]
-    if every:
+    if mask is None:
         index, weights = index.ravel(), rows.ravel()
     else:
         index, weights = np.swapaxes(index, 1, 2)[mask], np.swapaxes(rows, 1, 2)[mask]
     # Per channel and cell, the sum of its points' values in point order.
     sums = np.bincount(index.ravel(), weights=weights.ravel(), minlength=width * bins).reshape(width, bins)
     means = sums[:-1] / np.maximum(sums[-1], 1.0)
-    means *= np.array([spec.scale[c] for c in channels])[:, None]
+    means *= _channel_scale(spec)[:, None]
     feats = means.T.reshape(F, bins // F * (width - 1))
-    return (feats, pmd) if return_pmd else feats
+    return (feats, points) if return_points else feats

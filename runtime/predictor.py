@@ -59,14 +59,14 @@ class Predictor:
         usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
         if usable.any():
             sub = frames.select(usable)
-            feats, pmd = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size,
-                                       spec.features, return_pmd=True)
+            feats, points = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size,
+                                          spec.features, return_points=True)
             dk = np.asarray(self.delta_k(feats.astype(np.float32)), dtype=np.float64)
             K_pred = k_matrix(k_params(spec.K_c) + dk)
             ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
             rows = np.flatnonzero(usable)[ok]
             K[rows], predicted[rows] = K_pred[ok], True
-            stats[rows] = input_statistics(feats, pmd, sub.infer_mask, len(spec.features.channels))[ok]
+            stats[rows] = input_statistics(feats, points[:, :2], sub.infer_mask, len(spec.features.channels))[ok]
         cov = None
         if spec.uncertainty is not None:
             cov = np.full((F, 4, 4), np.nan)

@@ -172,12 +172,12 @@ def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray
 
 def _mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
     """Mean Euclidean reprojection error (px) of one frame's (N, 2) px / (N, 3) mm points."""
-    return _mean_norm(frame_residuals(points_2d, points_3d, K, rvec, tvec))
+    return _mean_norm(frame_residuals(points_2d, points_3d, K, rvec, tvec).T)
 
 
 def _mean_norm(residuals: np.ndarray) -> float:
-    """Mean Euclidean norm (px) of one frame's (N, 2) residuals."""
-    return float(mean_over(np.hypot(residuals[:, 0], residuals[:, 1]), None))
+    """Mean Euclidean norm (px) of one frame's (2, N) residuals (u row, v row)."""
+    return float(mean_over(np.hypot(residuals[0], residuals[1]), None))
 
 
 def _worst_allowed(e_c):
@@ -312,8 +312,8 @@ class Rectifier:
         spec, K_c = self.model.spec, self._K_c
         rvec_c, tvec_c = _sqpnp(p2, p3, K_c)
         t2 = clock()
-        feats, pmd = grid_features(p2[None], p3[None], np.ones((1, len(p2)), bool), K_c, spec.image_size,
-                                   spec.features, poses=(rvec_c[None], tvec_c[None]), return_pmd=True)
+        feats, points = grid_features(p2[None], p3[None], None, K_c, spec.image_size, spec.features,
+                                      poses=(rvec_c[None], tvec_c[None]), return_points=True)
         t3 = clock()
         dk = self.model.delta_k(feats.astype(np.float32))[0].astype(np.float64)
         t4 = clock()
@@ -321,7 +321,7 @@ class Rectifier:
         K = frame_k_matrix((self._kc_params + dk).tolist())
         plausible = all(low <= d <= high for d, (low, high) in zip(dk.tolist(), self._dk_bounds))
         reason = None if plausible else _implausible_reason(dk, K)
-        pmd_error = _mean_norm(pmd[0])  # the feature's PMD: the residuals under K_c at the C0 pose
+        pmd_error = _mean_norm(points[0, :2])  # the feature's PMD: the residuals under K_c at the C0 pose
         covariance = e = None
         if reason is None and self._uncertainty is not None:
             covariance = partial(self._frame_covariance, feats, len(p2), pmd_error)
@@ -329,10 +329,10 @@ class Rectifier:
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
             fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
-                                   pose=(rvec_c, tvec_c))
+                                   pose=(rvec_c, tvec_c), start_points=points[0, 2:5])
             if why is None:
                 K, dk, rvec, tvec = frame_k_matrix(fit.k.tolist()), fit.k - self._kc_params, fit.rvec, fit.tvec
-                covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals)
+                covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals.T)
             else:
                 reason, dimenet_kept = f"map: {why}; DIME-Net's K is returned", True
             t5 = clock()
@@ -432,8 +432,8 @@ class Rectifier:
             rvec_i, tvec_i = rvec_c, tvec_c
         else:
             rvec_i, tvec_i, infer = self._inference_poses(p2, p3, infer, rvec_c, tvec_c, reasons)
-        feats, pmd = grid_features(p2, p3, infer, K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i),
-                                   return_pmd=True)
+        feats, points = grid_features(p2, p3, infer, K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i),
+                                      return_points=True)
         dk = np.asarray(self.model.delta_k(feats.astype(np.float32)), dtype=np.float64)
         K = k_matrix(self._kc_params + dk)
         plausible = self._plausible(dk)
@@ -451,11 +451,11 @@ class Rectifier:
         if self._uncertainty is not None:
             K_cov = np.full((B, 4, 4), np.nan)
             if pending.any():
-                stats = input_statistics(feats[pending], pmd[pending], infer[pending], self._n_channels)
+                stats = input_statistics(feats[pending], points[pending, :2], infer[pending], self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
-            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov, rvec, tvec,
-                            reasons)
+            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i, points), pending, dk, K, K_cov, rvec,
+                            tvec, reasons)
         if refine:
             for b, (x, X) in enumerate(frames):
                 rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
@@ -465,7 +465,7 @@ class Rectifier:
         mask = None if valid.all() else valid
         if same_poses and not refine:
             # The feature's PMD: each point's residual under K_c at the C0 pose (all valid points).
-            e_c = mean_over(np.hypot(pmd[..., 0], pmd[..., 1]), mask)
+            e_c = mean_over(np.hypot(points[:, 0], points[:, 1]), mask)
         else:
             e_c = mean_reprojection_errors(p2, p3, mask, K_c, rotation_matrices(rvec_c), tvec_c)
         e = e_c.copy()
@@ -485,12 +485,14 @@ class Rectifier:
     def _map_batch(self, p2, p3, infer, frames, same_poses, poses_c0, pending, dk, K, K_cov, rvec, tvec,
                    reasons) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
-        points and their C0 pose ``poses_c0``) and its pose on its valid points; a frame whose MAP
-        fails keeps DIME-Net's K with a "map: ..." reason (still pending: the K_c check follows)."""
+        points, their C0 pose and the feature's point rows there: ``poses_c0`` (rvec, tvec, points))
+        and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
+        "map: ..." reason (still pending: the K_c check follows)."""
         for b in np.flatnonzero(pending):
             m = infer[b]
             fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]))
+                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]),
+                                   start_points=poses_c0[2][b][2:5][:, m])
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue

@@ -86,10 +86,10 @@ def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
 
 def input_statistics(features: np.ndarray, pmd: np.ndarray, mask, n_channels: int) -> np.ndarray:
     """(B, 3) statistics of B frames' inference points from what the grid feature computes:
-    features (B, D), pmd (B, N, 2) px (``grid_features(..., return_pmd=True)``), mask (B, N)
-    bool of the inference points or None (all)."""
-    n = np.full(len(pmd), pmd.shape[1]) if mask is None else np.count_nonzero(mask, axis=1)
-    return frame_statistics(n, occupied_cells(features, n_channels), mean_over(np.hypot(pmd[..., 0], pmd[..., 1]), mask))
+    features (B, D), pmd (B, 2, N) px the PMD rows (``grid_features(..., return_points=True)``
+    points[:, :2]), mask (B, N) bool of the inference points or None (all)."""
+    n = np.full(len(pmd), pmd.shape[2]) if mask is None else np.count_nonzero(mask, axis=1)
+    return frame_statistics(n, occupied_cells(features, n_channels), mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask))
 
 
 def _design(stats: np.ndarray) -> np.ndarray:

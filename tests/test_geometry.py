@@ -23,21 +23,23 @@ def test_project_matches_opencv():
     np.testing.assert_allclose(g.project(X[0], K[0], rvec[0], tvec[0]), ref, atol=1e-9)
 
 
-def test_frame_projection_jacobian_matches_finite_differences_of_the_updated_pose():
+def test_frame_normal_equations_match_finite_differences_of_the_updated_pose():
     rng = np.random.default_rng(4)
     x, X, K, rvec, tvec = random_frames(rng, frames=1, points=30, noise_px=0.5)
     x, X, rvec, tvec, k = x[0], X[0], rvec[0], tvec[0], g.k_params(K[0])
 
-    def residuals(p):  # p = (w, tau, dk): the pose updated on the left, K + dk
+    def residuals(p):  # p = (w, tau, dk): the pose updated on the left, K + dk; u's then v's
         r, t = g.left_update(rvec, tvec, p[:3], p[3:6])
-        return g.frame_projection(g.camera_points(X, r, t), x, k + p[6:])[0]
+        return (g.project(X, g.k_matrix(k + p[6:]), r, t) - x).T.ravel()
 
-    r, J = g.frame_projection(g.camera_points(X, rvec, tvec), x, k)
-    np.testing.assert_allclose(r, (g.project(X, K[0], rvec, tvec) - x).T.ravel(), atol=1e-9)
+    JJ, Jr, rss, r = g.frame_normal_equations(g.camera_xy_inverse_depth(X, rvec, tvec), x, k)
+    np.testing.assert_allclose(r.ravel(), residuals(np.zeros(10)), atol=1e-9)
+    assert rss == pytest.approx(float(residuals(np.zeros(10)) @ residuals(np.zeros(10))), rel=1e-12)
     steps = np.array([1e-7] * 3 + [1e-4] * 3 + [1e-3] * 4)
-    fd = np.stack([(residuals(np.eye(10)[j] * h) - residuals(-np.eye(10)[j] * h)) / (2 * h)
-                   for j, h in enumerate(steps)])
-    np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+    J = np.stack([(residuals(np.eye(10)[j] * h) - residuals(-np.eye(10)[j] * h)) / (2 * h)
+                  for j, h in enumerate(steps)])
+    np.testing.assert_allclose(JJ, J @ J.T, rtol=1e-6, atol=1e-6 * np.abs(J @ J.T).max())
+    np.testing.assert_allclose(Jr, J @ r.ravel(), rtol=1e-6, atol=1e-6 * np.abs(J @ r.ravel()).max())
 
 
 def test_k_params_round_trip_and_skew():
