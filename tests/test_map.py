@@ -11,10 +11,12 @@ import pytest
 from dimenet.runtime.cli import main
 from dimenet.runtime.dataset import write_dataset
 from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.evaluation import evaluate
 from dimenet.runtime.geometry import k_matrix, k_params, solve_pnp_start
 from dimenet.runtime.least_squares import calibrate
 from dimenet.runtime.map_fit import map_fit, map_rectify
 from dimenet.runtime.model_spec import ModelSpec
+from dimenet.runtime.onnx_model import load_onnx_predictor
 from dimenet.runtime.rectifier import Rectifier
 from dimenet.runtime.self_calibration import self_calibrate
 from dimenet.runtime.simulator import simulate
@@ -200,6 +202,20 @@ def test_evaluate_methods_json_and_table(map_model, tmp_path, capsys):
     assert set(out["coverage"]) == {"dimenet", "map"} and set(out["coverage"]["map"]) == {"fx", "fy", "cx", "cy"}
     assert main(["evaluate", str(data), "--model", str(path), "--methods", "self,map"]) == 0
     assert "1-sigma coverage" in capsys.readouterr().out
+
+
+def test_coverage_against_k_true_when_the_dataset_has_it(map_model):
+    frames, path = map_model
+    test = frames.select(frames.frames_in("test"))
+    predictor = load_onnx_predictor(path)
+    ev = evaluate(test, predictor.spec.K_c, predictor, methods=("dimenet",))
+    pred = predictor.predict(test)
+    ok = pred.predicted
+    expected = coverage(k_params(pred.K[ok]), k_params(test.K_true[ok]), pred.cov[ok])
+    assert ev.coverage_true == {"dimenet": expected}
+    assert ev.coverage_true["dimenet"] != ev.coverage["dimenet"]  # K* is not K_true
+    blind = evaluate(replace(test, K_true=None), predictor.spec.K_c, predictor, methods=("dimenet",))
+    assert blind.coverage == ev.coverage and blind.coverage_true == {} and "coverage_true" not in blind.to_json()
 
 
 def test_evaluate_methods_errors_exit_2(tmp_path, capsys):

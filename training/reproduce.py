@@ -146,7 +146,8 @@ def _baseline_cases(data: dict, config: ReproduceConfig) -> dict:
 
 
 def _baselines(data: dict, predictors: dict, config: ReproduceConfig) -> dict:
-    """case -> {"methods": method -> {avg_e, rho, fallbacks}, "coverage": method -> parameter -> share}."""
+    """case -> {"methods": method -> {avg_e, rho, fallbacks}, "coverage" and "coverage_true":
+    method -> parameter -> share (against K* and against the simulator's K_true)}."""
     out = {}
     for case, (frames, name) in progress(_baseline_cases(data, config).items(), desc="reproduce: baselines"):
         p = predictors[name]
@@ -154,7 +155,7 @@ def _baselines(data: dict, predictors: dict, config: ReproduceConfig) -> dict:
         out[case] = {"n_frames": frames.n_frames,
                      "methods": {m: {"avg_e": rows["overall"].avg_e, "rho": rows["overall"].rho,
                                      "fallbacks": ev.fallbacks[m]} for m, rows in ev.methods.items()},
-                     "coverage": ev.coverage}
+                     "coverage": ev.coverage, "coverage_true": ev.coverage_true}
     return out
 
 
@@ -231,13 +232,17 @@ def _baselines_report(baselines: dict) -> list:
         L.append(f"| {case} | {r['n_frames']} | " + " | ".join(cells) + " |")
     L += ["", "![rho vs points, every method](methods_vs_points.png)", "",
           "### 1σ coverage of K's uncertainty", "",
-          "Share of frames with |K − K*| ≤ σ per parameter (68 % expected for a calibrated Gaussian): "
-          "`dimenet` with the network's covariance, `map` with its posterior.", "",
-          "| case | dimenet fx / fy / cx / cy % | map fx / fy / cx / cy % |", "|---|---|---|"]
+          "Share of frames within 1σ per parameter (68 % expected for a calibrated Gaussian), "
+          "`dimenet` with the network's covariance, `map` with its posterior; against K* (the "
+          "issue's definition) and against the simulator's true K. Where every valid point also "
+          "infers K (rig cases), K* is fitted to the same noisy points as the map estimate, so "
+          "|K − K*| understates the error the posterior describes: compare those against K_true.", "",
+          "| case | dimenet vs K* fx / fy / cx / cy % | map vs K* | dimenet vs K_true | map vs K_true |",
+          "|---|---|---|---|---|"]
     for case, r in baselines.items():
-        cov = r["coverage"]
-        L.append(f"| {case} | " + " | ".join(" / ".join(f"{100 * v:.0f}" for v in cov[m].values())
-                                             for m in ("dimenet", "map")) + " |")
+        cells = [" / ".join(f"{100 * v:.0f}" for v in r[key][m].values())
+                 for key in ("coverage", "coverage_true") for m in ("dimenet", "map")]
+        L.append(f"| {case} | " + " | ".join(cells) + " |")
     return L + [""]
 
 
