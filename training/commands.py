@@ -14,7 +14,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png")
     p.add_argument("--grid", default="8x6", help="grid, columns x rows (default 8x6)")
     p.add_argument("--features", default="A", choices="ABCDE", help="feature variant of paper Table 3 (default A)")
-    p.add_argument("--epochs", type=int, default=400, help="maximum epochs (default 400; early stopping on val)")
+    p.add_argument("--epochs", type=int, default=600, help="epochs (default 600; the best val epoch is kept)")
     p.add_argument("--seed", type=int, default=0, help="seed: same seed, same model (default 0)")
 
 
@@ -46,7 +46,7 @@ TRAIN = Command(
 
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="folder for REPRODUCTION.md, results.json, plots, runs/")
-    p.add_argument("--epochs", type=int, default=400, help="epochs of the three device models (default 400)")
+    p.add_argument("--epochs", type=int, default=600, help="epochs of the three device models (default 600)")
     p.add_argument("--ablation-epochs", type=int, default=150,
                    help="epochs of the Table 2/3 ablation models (default 150)")
     p.add_argument("--seed", type=int, default=0, help="seed of simulation, training and conditions (default 0)")

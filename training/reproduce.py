@@ -56,7 +56,7 @@ NOISE_2D_PX, NOISE_3D_MM = 3.0, 0.1
 @dataclass(frozen=True)
 class ReproduceConfig:
     out_dir: Path
-    epochs: int = 400
+    epochs: int = 600
     ablation_epochs: int = 150
     seed: int = 0
 

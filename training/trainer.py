@@ -55,10 +55,10 @@ UNCERTAINTY_SAMPLES = 240
 class TrainConfig:
     grid: str = "8x6"
     variant: str = "A"
-    epochs: int = 400
+    epochs: int = 600
     batch_size: int = 32
     lr: float = 2e-3
-    weight_decay: float = 1e-4
+    weight_decay: float = 1e-2  # AdamW's own default: keeps the long schedule from overfitting the rig
     hidden: tuple = (256, 128)
     seed: int = 0
     val_fraction: float = 0.15  # of train, held back when the dataset has no val split
@@ -69,7 +69,9 @@ class TrainConfig:
     cluster_share: float = 0.25  # share of frames whose inference points shrink to hand-labelled-like clusters
     cluster_points: tuple = (40, 100)  # how many points those clusters keep, drawn uniformly
     max_label_noise_px: float = 6.0  # per-frame label noise on the clustered points drawn from U(0, max), px
-    patience: int = 80  # epochs without val improvement before stopping
+    # Epochs without val improvement before stopping; by default the whole cosine schedule runs
+    # (stopping at 150 cost one seed 5 points of ipad rho) and the best val epoch is kept.
+    patience: int = 600
     full_share: float = 0.4  # share of frames keeping all their inference points and every cell
 
 
