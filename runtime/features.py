@@ -15,6 +15,7 @@ E X, Y, 1/Z only.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -53,6 +54,11 @@ class FeatureSpec:
     @property
     def channels(self) -> tuple:
         return VARIANTS[self.variant]
+
+    @cached_property
+    def channel_scale(self) -> np.ndarray:
+        """(C,) the per-channel scales in channel order (computed once per spec)."""
+        return np.array([self.scale[c] for c in self.channels])
 
     @property
     def size(self) -> int:
@@ -107,18 +113,6 @@ def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec) -> None:
     pmd -= np.swapaxes(points_2d, 1, 2)
 
 
-_SCALES: dict = {}
-
-
-def _channel_scale(spec: FeatureSpec) -> np.ndarray:
-    """(C,) the spec's per-channel scales in channel order, cached per (variant, scale)."""
-    key = (spec.variant, tuple(sorted(spec.scale.items())))
-    scale = _SCALES.get(key)
-    if scale is None:
-        scale = _SCALES[key] = np.array([spec.scale[c] for c in spec.channels])
-    return scale
-
-
 def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None,
                   return_points: bool = False):
     """The flattened, scaled grid feature of F frames: (F, spec.size) float64.
@@ -165,6 +159,6 @@ def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec
     # Per channel and cell, the sum of its points' values in point order.
     sums = np.bincount(index.ravel(), weights=weights.ravel(), minlength=width * bins).reshape(width, bins)
     means = sums[:-1] / np.maximum(sums[-1], 1.0)
-    means *= _channel_scale(spec)[:, None]
+    means *= spec.channel_scale[:, None]
     feats = means.T.reshape(F, bins // F * (width - 1))
     return (feats, points) if return_points else feats

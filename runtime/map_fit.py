@@ -111,11 +111,11 @@ def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarr
 def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
                 k_bounds: np.ndarray, K_c: np.ndarray, pose=None,
                 start_points: Optional[np.ndarray] = None) -> tuple[MapFit | None, str | None]:
-    """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
-    (``start_points`` its X, Y, 1/Z rows at that pose, see ``map_fit``), checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
-    (the start pose is K_c's, not k_net's optimum, so the caller's own PnP under k_net is
-    better) or the MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then
-    keeps the DIME-Net K."""
+    """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here;
+    ``start_points`` its X, Y, 1/Z rows at that pose, see ``map_fit``), checked: (fit, None),
+    or (None, why) when there is no start pose, no step lowered the cost (the start pose is
+    K_c's, not k_net's optimum, so the caller's own PnP under k_net is better) or the MAP K is
+    not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the DIME-Net K."""
     if pose is None:
         try:
             pose = solve_pnp_start(points_2d, points_3d, K_c)

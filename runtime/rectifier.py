@@ -454,8 +454,8 @@ class Rectifier:
                 stats = input_statistics(feats[pending], points[pending, :2], infer[pending], self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
-            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i, points), pending, dk, K, K_cov, rvec,
-                            tvec, reasons)
+            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i, points), pending, dk, K, K_cov,
+                            rvec, tvec, reasons)
         if refine:
             for b, (x, X) in enumerate(frames):
                 rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
@@ -482,17 +482,17 @@ class Rectifier:
         return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
                                   delta_k=dk, fallback=tuple(reasons), K_cov=K_cov)
 
-    def _map_batch(self, p2, p3, infer, frames, same_poses, poses_c0, pending, dk, K, K_cov, rvec, tvec,
+    def _map_batch(self, p2, p3, infer, frames, same_poses, c0, pending, dk, K, K_cov, rvec, tvec,
                    reasons) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
-        points, their C0 pose and the feature's point rows there: ``poses_c0`` (rvec, tvec, points))
+        points, their C0 pose and the feature's point rows there: ``c0`` (rvec, tvec, points))
         and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
         "map: ..." reason (still pending: the K_c check follows)."""
+        rvec_c0, tvec_c0, points_c0 = c0
         for b in np.flatnonzero(pending):
             m = infer[b]
             fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]),
-                                   start_points=poses_c0[2][b][2:5][:, m])
+                                   self._K_c, pose=(rvec_c0[b], tvec_c0[b]), start_points=points_c0[b][2:5][:, m])
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue
