@@ -90,6 +90,9 @@ def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_
     assert len(val_idx) > 0 and not set(fit_idx) & set(val_idx)
     path = write_dataset(ds, tmp_path / "hd.npz")
     result = train(ds, TrainConfig(epochs=3, grid="4x3"), tmp_path / "run")
+    # With patience, a run whose val error cannot improve (lr 0) stops after that many epochs.
+    stuck = train(ds, TrainConfig(epochs=6, grid="4x3", lr=0.0, patience=1), tmp_path / "stuck")
+    assert stuck.best_epoch == 1 and len(stuck.history) == 2
     pred = load_predictor(result.run_dir)
     assert pred.spec.image_size == (1920, 1080) and pred.spec.features.size == 5 * 12
     K = pred.predict_k(ds.select(ds.frames_in("test")))

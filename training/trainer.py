@@ -69,9 +69,9 @@ class TrainConfig:
     cluster_share: float = 0.25  # share of frames whose inference points shrink to hand-labelled-like clusters
     cluster_points: tuple = (40, 100)  # how many points those clusters keep, drawn uniformly
     max_label_noise_px: float = 6.0  # per-frame label noise on the clustered points drawn from U(0, max), px
-    # Epochs without val improvement before stopping; by default the whole cosine schedule runs
-    # (stopping at 150 cost one seed 5 points of ipad rho) and the best val epoch is kept.
-    patience: int = 600
+    # Epochs without val improvement before stopping; None (default): the whole cosine schedule
+    # runs (stopping at 150 cost one seed 5 points of ipad rho) and the best val epoch is kept.
+    patience: Optional[int] = None
     full_share: float = 0.4  # share of frames keeping all their inference points and every cell
 
 
@@ -284,7 +284,7 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
         history.append({"epoch": epoch, "train_mse_px2": float(np.mean(losses)), "val_e_px": val_e})
         if val_e < best[0]:
             best = (val_e, epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
-        elif epoch - best[1] >= config.patience:
+        elif config.patience is not None and epoch - best[1] >= config.patience:
             break
     model.load_state_dict(best[2])
     spec = ModelSpec(
