@@ -153,6 +153,28 @@ def test_bad_input_is_an_input_error_naming_the_problem(rectifier, frames, messa
         rectifier.rectify(p2, p3)
 
 
+def test_spread_tests_of_one_frame_and_of_a_batch_agree_and_imply_the_exact_check():
+    """The cheap spread test (single frame: OpenCV covariance; batch: numpy) decides the same
+    frames, and every frame it passes also passes check_not_degenerate."""
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(40, 3)) * [300.0, 200.0, 100.0] + [0.0, 0.0, 600.0]
+    direction = np.array([1.0, 0.5, 0.2])
+    frames = [base, base * [1.0, 1.0, 0.0],  # spread; planar (still spread over 2 dimensions)
+              np.linspace(0, 1, 40)[:, None] * direction * 500 + rng.normal(size=(40, 3)) * 1e-3,  # nearly collinear
+              np.outer(np.linspace(0, 1, 40), direction) * 500,  # collinear
+              np.broadcast_to([5.0, 6.0, 7.0], (40, 3)) + rng.normal(size=(40, 3)) * 1e-12]  # coincident
+    points = np.stack(frames)
+    passed = np.ones(len(points), bool)
+    for D in (3, 2):
+        batch = rectifier_module._spread_frames(points[..., :D], None, np.full(len(points), 40))
+        single = [rectifier_module._well_spread(np.ascontiguousarray(f[:, :D])) for f in points]
+        assert batch.tolist() == single
+        assert single[:2] == [True, True] and single[3:] == [False, False]
+        passed &= single
+    for f in points[passed]:
+        rectifier_module.check_not_degenerate(f, f[:, :2])  # raises when the cheap test was wrong
+
+
 def test_bad_frames_of_a_batch_are_named(rectifier, frames, monkeypatch):
     p2, p3, valid = frames.points_2d[:3].copy(), frames.points_3d[:3].copy(), frames.valid[:3]
     first = int(np.argmax(valid[1] & (np.arange(valid.shape[1]) > 10)))
