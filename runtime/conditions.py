@@ -1,4 +1,5 @@
-"""Test conditions of the paper's evaluation: fewer points, noisier points, emptied grid cells.
+"""Test conditions of the paper's evaluation: fewer points, noisier points, emptied grid cells;
+and beyond it, the points of one plane (the planar scene without the rig's board identity).
 
 Each function takes a Dataset and a ``numpy.random.Generator`` and returns a new Dataset
 (the input is never modified). Point dropping and cell emptying act on ``infer_mask`` only
@@ -91,6 +92,32 @@ def empty_cells(ds: Dataset, eta, grid: Grid, rng: np.random.Generator) -> Datas
         k = min(int(math.floor(etas[f] * len(occ) + 0.5)), len(occ) - 1)
         if k > 0:
             infer[f] &= ~np.isin(cells[f], rng.choice(occ, k, replace=False))
+    return replace(ds, infer_mask=infer)
+
+
+PLANE_TOLERANCE = 1e-3  # of the distance between a point and its nearest neighbour: "on the plane"
+
+
+def one_plane(ds: Dataset, rng: np.random.Generator) -> Dataset:
+    """Keep, per frame, the inference points on one plane: that through a uniformly chosen
+    inference point and its three nearest ones (in 3D), within PLANE_TOLERANCE of the distance
+    to the nearest. Frames with fewer than four inference points, or where those four are
+    collinear, keep their points."""
+    _check_generator(rng)
+    infer = ds.infer_mask.copy()
+    for f in range(ds.n_frames):
+        idx = np.flatnonzero(infer[f])
+        if len(idx) < 4:
+            continue
+        X = ds.points_3d[f, idx]
+        distance = np.linalg.norm(X - X[rng.integers(len(idx))], axis=1)
+        near = np.argsort(distance)[:4]
+        centre = X[near].mean(0)
+        _, s, vt = np.linalg.svd(X[near] - centre)
+        if s[1] <= 1e-6 * s[0]:
+            continue
+        on_plane = np.abs((X - centre) @ vt[2]) <= PLANE_TOLERANCE * distance[near[1]]
+        infer[f, idx[~on_plane]] = False
     return replace(ds, infer_mask=infer)
 
 

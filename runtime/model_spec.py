@@ -20,7 +20,8 @@ from .uncertainty import Uncertainty
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version. 1.1: the optional
 # ``uncertainty`` (what MAP mode needs); 1.0 files still load, for mode "dimenet" only.
-VERSION = "1.1.0"
+# 1.2: the uncertainty names its statistics and may use the 3D thickness; 1.1 files still load.
+VERSION = "1.2.0"
 METADATA_KEY = "dimenet_model_spec"
 
 

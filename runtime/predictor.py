@@ -18,7 +18,7 @@ from .errors import ModelError
 from .features import grid_features
 from .geometry import k_matrix, k_params
 from .model_spec import ModelSpec
-from .uncertainty import input_statistics
+from .uncertainty import STATISTICS, input_statistics
 
 # Fewest inference points from which a frame's K is predicted; below, K = K_c.
 MIN_INFER_POINTS = 6
@@ -28,7 +28,7 @@ MIN_INFER_POINTS = 6
 class KPrediction:
     """Per frame of F: K (F, 3, 3) px (K_c where not predicted); predicted (F,) bool, False
     when the frame has too few inference points or the prediction is implausible; stats
-    (F, 3) the uncertainty statistics of the inference points (NaN where not predicted);
+    (F, 4) the uncertainty statistics of the inference points (NaN where not predicted);
     cov (F, 4, 4) px^2 the network's covariance of (fx, fy, cx, cy), None when the spec has
     no uncertainty model (NaN where not predicted)."""
 
@@ -54,7 +54,7 @@ class Predictor:
                              f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}")
         F = frames.n_frames
         K = np.broadcast_to(spec.K_c, (F, 3, 3)).copy()
-        stats = np.full((F, 3), np.nan)
+        stats = np.full((F, len(STATISTICS)), np.nan)
         predicted = np.zeros(F, bool)
         usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
         if usable.any():
@@ -66,7 +66,8 @@ class Predictor:
             ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
             rows = np.flatnonzero(usable)[ok]
             K[rows], predicted[rows] = K_pred[ok], True
-            stats[rows] = input_statistics(feats, points[:, :2], sub.infer_mask, len(spec.features.channels))[ok]
+            stats[rows] = input_statistics(feats, points[:, :2], sub.points_3d, sub.infer_mask,
+                                          len(spec.features.channels))[ok]
         cov = None
         if spec.uncertainty is not None:
             cov = np.full((F, 4, 4), np.nan)

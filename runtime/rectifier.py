@@ -43,7 +43,7 @@ from .geometry import (check_not_degenerate, frame_k_matrix, frame_residuals, k_
 from .map_fit import map_rectify
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
-from .uncertainty import input_statistics, occupied_cells
+from .uncertainty import input_statistics, occupied_cells, point_thickness
 
 MIN_POINTS = 6
 WORSE_RELATIVE = 0.05
@@ -261,10 +261,11 @@ class Rectifier:
     def spec(self) -> ModelSpec:
         return self.model.spec
 
-    def _frame_covariance(self, feats: np.ndarray, n_points: int, pmd_error: float) -> np.ndarray:
-        """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count
-        and mean PMD (px)."""
-        return self._uncertainty.frame_covariance(n_points, occupied_cells(feats, self._n_channels)[0], pmd_error)
+    def _frame_covariance(self, feats: np.ndarray, points_3d: np.ndarray, pmd_error: float) -> np.ndarray:
+        """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, its (N, 3)
+        points (mm) and their mean PMD (px)."""
+        return self._uncertainty.frame_covariance(len(points_3d), occupied_cells(feats, self._n_channels)[0], pmd_error,
+                                                  point_thickness(points_3d))
 
     def _plausible(self, delta_k: np.ndarray) -> np.ndarray:
         """(..., 4) px -> (...,) bool: K = K_c + Delta K is finite and inside K_bounds."""
@@ -335,7 +336,7 @@ class Rectifier:
         pmd_error = _mean_norm(points[0, :2])  # the feature's PMD: the residuals under K_c at the C0 pose
         covariance = e = None
         if reason is None and self._uncertainty is not None:
-            covariance = partial(self._frame_covariance, feats, len(p2), pmd_error)
+            covariance = partial(self._frame_covariance, feats, p3, pmd_error)
         rvec, tvec, dimenet_kept = rvec_c, tvec_c, False  # dimenet_kept: map failed, DIME-Net's K stands
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
@@ -462,7 +463,8 @@ class Rectifier:
         if self._uncertainty is not None:
             K_cov = np.full((B, 4, 4), np.nan)
             if pending.any():
-                stats = input_statistics(feats[pending], points[pending, :2], infer[pending], self._n_channels)
+                stats = input_statistics(feats[pending], points[pending, :2], p3[pending], infer[pending],
+                                         self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
             self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i, points), pending, dk, K, K_cov,

@@ -5,78 +5,114 @@ the network's residuals, fitted after training on the early-stopping frames unde
 training augmentation (fewer points, emptied cells, clustered noisy labels). It keeps the
 network, and f(0) = 0 for the mean, untouched.
 
-Per frame, three statistics of the inference points say how much the input can tell:
-``n`` points, ``m`` occupied grid cells and ``d`` their mean PMD norm under K_c at the C0
-pose (px). With z = [1, log n, log m, log max(d, D_FLOOR_PX)], each parameter's standard
-deviation is sigma_p = exp(coef_p . z) (px), and the covariance is
+Per frame, four statistics of the inference points say how much the input can tell:
+``n`` points, ``m`` occupied grid cells, ``d`` their mean PMD norm under K_c at the C0 pose
+(px) and ``t`` the thickness of their 3D cloud (``point_thickness``: 0 on one plane, 1/3 for an
+isotropic cloud). With z = [1, log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)],
+each parameter's standard deviation is sigma_p = exp(coef_p . z) (px), and the covariance is
 diag(sigma) C diag(sigma) with one correlation matrix C. Fitting: per parameter, the
 Gaussian maximum-likelihood coef on the residuals K - K* (Newton, convex), then its
 intercept rescaled so that 68.27 % of the fitting frames lie within 1 sigma, then C from
-the standardised residuals.
+the standardised residuals. Models of spec 1.1 use the first three statistics only; a model
+names the statistics it uses, and reads those columns of the (B, 4) statistics.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from .errors import InputError
 from .geometry import mean_over
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
-STATISTICS = ("log_points", "log_cells", "log_pmd")
+STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
 D_FLOOR_PX = 0.05  # PMD below this says nothing more: noise-free frames are not infinitely certain
+T_FLOOR = 1e-6  # thickness of a plane to float rounding: log t stays finite on exactly planar points
 ONE_SIGMA = 0.6827  # share of a Gaussian within one standard deviation
+_COVARIANCE_FLAGS = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE  # sample covariance of row points
 RIDGE = 1e-6  # keeps the Newton steps of the fit defined when a statistic does not vary
 
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """coef (4, 4): per parameter (fx, fy, cx, cy), the weights of z = [1, log n, log m, log d];
-    correlation (4, 4): of the standardised residuals."""
+    """coef (4, 1 + S): per parameter (fx, fy, cx, cy), the weights of z = [1, the S statistics
+    named in ``statistics``] (a subsequence of STATISTICS); correlation (4, 4): of the
+    standardised residuals."""
 
     coef: np.ndarray
     correlation: np.ndarray
+    statistics: tuple = STATISTICS
+
+    def __post_init__(self):
+        if not set(self.statistics) <= set(STATISTICS) or len(set(self.statistics)) != len(self.statistics):
+            raise ValueError(f"uncertainty: statistics must be distinct names among {list(STATISTICS)}, "
+                             f"got {list(self.statistics)}")
+        if self.coef.shape != (4, 1 + len(self.statistics)) or self.correlation.shape != (4, 4):
+            raise ValueError(f"uncertainty: coef must be 4x{1 + len(self.statistics)} and correlation 4x4, "
+                             f"got {self.coef.shape} and {self.correlation.shape}")
+        if not (np.all(np.isfinite(self.coef)) and np.all(np.isfinite(self.correlation))):
+            raise ValueError("uncertainty: coef and correlation must be finite")
+        if np.any(np.linalg.eigvalsh((self.correlation + self.correlation.T) / 2) <= 0):
+            raise ValueError("uncertainty: the correlation matrix is not positive definite")
+        object.__setattr__(self, "_columns", [STATISTICS.index(name) for name in self.statistics])
 
     def to_dict(self) -> dict:
-        return {"parameters": list(PARAMETERS), "statistics": ["1", *STATISTICS],
+        return {"parameters": list(PARAMETERS), "statistics": ["1", *self.statistics],
                 "coef": self.coef.tolist(), "correlation": self.correlation.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Uncertainty":
-        coef = np.asarray(d["coef"], dtype=np.float64)
-        corr = np.asarray(d["correlation"], dtype=np.float64)
-        if coef.shape != (4, 4) or corr.shape != (4, 4) or not (np.all(np.isfinite(coef)) and np.all(np.isfinite(corr))):
-            raise ValueError(f"uncertainty: coef and correlation must be finite 4x4, got {coef.shape} and {corr.shape}")
-        if np.any(np.linalg.eigvalsh((corr + corr.T) / 2) <= 0):
-            raise ValueError("uncertainty: the correlation matrix is not positive definite")
-        return cls(coef=coef, correlation=corr)
+        names = d.get("statistics", ["1", *STATISTICS[:3]])  # 1.1 files: the first three
+        if not names or names[0] != "1":
+            raise ValueError(f"uncertainty: statistics must start with the intercept '1', got {names!r}")
+        return cls(coef=np.asarray(d["coef"], dtype=np.float64),
+                   correlation=np.asarray(d["correlation"], dtype=np.float64), statistics=tuple(names[1:]))
 
     def sigma(self, stats: np.ndarray) -> np.ndarray:
-        """(B, 3) frame statistics -> (B, 4) standard deviations of (fx, fy, cx, cy), px."""
-        return np.exp(_design(stats) @ self.coef.T)
+        """(B, 4) frame statistics (``frame_statistics``) -> (B, 4) standard deviations of
+        (fx, fy, cx, cy), px."""
+        stats = np.asarray(stats, dtype=np.float64)[:, self._columns]
+        return np.exp(stats @ self.coef[:, 1:].T + self.coef[:, 0])
 
-    def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float) -> np.ndarray:
-        """``covariance`` of one frame from its three numbers (the runtime's single-frame path)."""
-        z = np.array((1.0, math.log(n_points), math.log(occupied), math.log(max(mean_pmd_px, D_FLOOR_PX))))
-        s = np.exp(self.coef @ z)
+    def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float, thickness: float) -> np.ndarray:
+        """``covariance`` of one frame from its four numbers (the runtime's single-frame path)."""
+        all_z = (math.log(n_points), math.log(occupied), math.log(max(mean_pmd_px, D_FLOOR_PX)),
+                 math.log(max(thickness, T_FLOOR)))
+        s = np.exp(self.coef @ np.array((1.0, *(all_z[c] for c in self._columns))))
         return np.outer(s, s) * self.correlation
 
     def covariance(self, stats: np.ndarray) -> np.ndarray:
-        """(B, 3) frame statistics -> (B, 4, 4) covariance of Delta K, px^2."""
+        """(B, 4) frame statistics -> (B, 4, 4) covariance of Delta K, px^2."""
         s = self.sigma(stats)
         return s[:, :, None] * self.correlation * s[:, None, :]
 
 
-def frame_statistics(n_points, occupied_cells, mean_pmd_px) -> np.ndarray:
-    """(B, 3) [log n, log m, log max(d, D_FLOOR_PX)] from (B,) counts and mean PMD norms (px)."""
+def point_thickness(points_3d: np.ndarray) -> float:
+    """How far 3D points (N, 3) mm, float64 C-contiguous, are from one plane: det(C) tr(C) / e2(C)^2
+    of their covariance C, with e2 the sum of its 2x2 principal minors. Scale free, in [0, 1/3]:
+    0 on one plane (or line), 1/3 for an isotropic cloud; for eigenvalues l1 >= l2 >= l3 about
+    l3 (l1 + l2) / (l1 l2) when l3 is small, the plane's thickness squared over its extent."""
+    (a, d, e), (_, b, f), (_, _, c) = cv2.calcCovarMatrix(points_3d, None, _COVARIANCE_FLAGS)[0].tolist()
+    trace = a + b + c
+    minors = a * b - d * d + a * c - e * e + b * c - f * f
+    det = a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e)
+    # At most 1/3 in exact arithmetic; the clip bounds the rounding of (near-)collinear points.
+    return min(max(det, 0.0) * trace / minors**2, 1 / 3) if minors > 0 else 0.0
+
+
+def frame_statistics(n_points, occupied_cells, mean_pmd_px, point_thickness) -> np.ndarray:
+    """(B, 4) [log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)] from (B,) counts,
+    mean PMD norms (px) and thicknesses."""
     n = np.asarray(n_points, dtype=np.float64)
     m = np.asarray(occupied_cells, dtype=np.float64)
     if np.any(n < 1) or np.any(m < 1):
         raise InputError("uncertainty: a frame needs >= 1 inference point in >= 1 cell")
     d = np.maximum(np.asarray(mean_pmd_px, dtype=np.float64), D_FLOOR_PX)
-    return np.stack([np.log(n), np.log(m), np.log(d)], -1)
+    t = np.maximum(np.asarray(point_thickness, dtype=np.float64), T_FLOOR)
+    return np.stack([np.log(n), np.log(m), np.log(d), np.log(t)], -1)
 
 
 def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
@@ -84,17 +120,15 @@ def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
     return np.count_nonzero(features.reshape(len(features), -1, n_channels).any(-1), axis=-1)
 
 
-def input_statistics(features: np.ndarray, pmd: np.ndarray, mask, n_channels: int) -> np.ndarray:
-    """(B, 3) statistics of B frames' inference points from what the grid feature computes:
+def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarray, mask, n_channels: int) -> np.ndarray:
+    """(B, 4) statistics of B frames' inference points from what the grid feature computes:
     features (B, D), pmd (B, 2, N) px the PMD rows (``grid_features(..., return_points=True)``
-    points[:, :2]), mask (B, N) bool of the inference points or None (all)."""
+    points[:, :2]), points_3d (B, N, 3) mm, mask (B, N) bool of the inference points or None (all)."""
     n = np.full(len(pmd), pmd.shape[2]) if mask is None else np.count_nonzero(mask, axis=1)
-    return frame_statistics(n, occupied_cells(features, n_channels), mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask))
-
-
-def _design(stats: np.ndarray) -> np.ndarray:
-    stats = np.asarray(stats, dtype=np.float64)
-    return np.concatenate([np.ones((len(stats), 1)), stats], axis=1)
+    points_3d = np.asarray(points_3d, dtype=np.float64)
+    t = [point_thickness(np.ascontiguousarray(X if mask is None else X[m]))
+         for X, m in zip(points_3d, [None] * len(points_3d) if mask is None else mask)]
+    return frame_statistics(n, occupied_cells(features, n_channels), mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask), t)
 
 
 def _fit_log_sigma(z: np.ndarray, e: np.ndarray, iterations: int = 50) -> np.ndarray:
@@ -128,14 +162,17 @@ def _fit_log_sigma(z: np.ndarray, e: np.ndarray, iterations: int = 50) -> np.nda
 
 
 def fit_uncertainty(residuals_px: np.ndarray, stats: np.ndarray) -> Uncertainty:
-    """Fit the model to F frames' residuals K - K* (F, 4) px with their statistics (F, 3)."""
+    """Fit the model to F frames' residuals K - K* (F, 4) px with their statistics (F, 4)."""
     residuals_px = np.asarray(residuals_px, dtype=np.float64)
     if residuals_px.ndim != 2 or residuals_px.shape[1] != 4 or len(residuals_px) != len(stats):
         raise InputError(f"uncertainty: residuals must be (F, 4) with F = {len(stats)}, got {residuals_px.shape}")
     if len(residuals_px) < 4 * (len(STATISTICS) + 1) or not np.all(np.isfinite(residuals_px)):
         raise InputError(f"uncertainty: needs >= {4 * (len(STATISTICS) + 1)} frames with finite residuals, "
                          f"got {len(residuals_px)}")
-    z = _design(stats)
+    stats = np.asarray(stats, dtype=np.float64)
+    if stats.shape != (len(residuals_px), len(STATISTICS)):
+        raise InputError(f"uncertainty: statistics must be (F, {len(STATISTICS)}), got {stats.shape}")
+    z = np.c_[np.ones(len(stats)), stats]
     coef = np.stack([_fit_log_sigma(z, residuals_px[:, p]) for p in range(4)])
     u = residuals_px / np.exp(z @ coef.T)
     coef[:, 0] += np.log(np.quantile(np.abs(u), ONE_SIGMA, axis=0))

@@ -20,7 +20,9 @@ from dimenet.runtime.onnx_model import load_onnx_predictor
 from dimenet.runtime.rectifier import Rectifier
 from dimenet.runtime.self_calibration import self_calibrate
 from dimenet.runtime.simulator import simulate
-from dimenet.runtime.uncertainty import Uncertainty, coverage, fit_uncertainty
+from dimenet.runtime.conditions import one_plane
+from dimenet.runtime.uncertainty import (T_FLOOR, Uncertainty, coverage, fit_uncertainty, input_statistics,
+                                         point_thickness)
 from helpers import K_TEST, random_frames
 from test_export import model_spec, random_model_file
 
@@ -28,7 +30,7 @@ K_NET_OFFSET = np.array([6.0, -5.0, 8.0, -7.0])  # px: the "network's" error in 
 
 
 def constant_uncertainty(sigma_px: float) -> Uncertainty:
-    coef = np.zeros((4, 4))
+    coef = np.zeros((4, 5))
     coef[:, 0] = np.log(sigma_px)
     return Uncertainty(coef=coef, correlation=np.eye(4))
 
@@ -36,8 +38,10 @@ def constant_uncertainty(sigma_px: float) -> Uncertainty:
 def test_uncertainty_fit_recovers_a_known_noise_model():
     rng = np.random.default_rng(0)
     n = 4000
-    stats = np.c_[np.log(rng.uniform(60, 320, n)), np.log(rng.uniform(8, 48, n)), np.log(rng.uniform(0.3, 10, n))]
-    true_coef = np.array([[1.0, -0.5, 0.0, 0.3], [0.5, 0.0, -0.2, 0.6], [2.0, -0.3, -0.1, 0.0], [1.5, 0.0, 0.0, 0.4]])
+    stats = np.c_[np.log(rng.uniform(60, 320, n)), np.log(rng.uniform(8, 48, n)), np.log(rng.uniform(0.3, 10, n)),
+                  np.log(rng.uniform(1e-6, 0.3, n))]
+    true_coef = np.array([[1.0, -0.5, 0.0, 0.3, -0.1], [0.5, 0.0, -0.2, 0.6, 0.0], [2.0, -0.3, -0.1, 0.0, -0.2],
+                          [1.5, 0.0, 0.0, 0.4, -0.05]])
     corr = np.array([[1, 0.8, 0, 0], [0.8, 1, 0, 0], [0, 0, 1, -0.3], [0, 0, -0.3, 1.0]])
     sigma = np.exp(np.c_[np.ones(n), stats] @ true_coef.T)
     residuals = (rng.multivariate_normal(np.zeros(4), corr, n)) * sigma
@@ -50,15 +54,53 @@ def test_uncertainty_fit_recovers_a_known_noise_model():
         assert 0.65 < share < 0.71
     again = Uncertainty.from_dict(json.loads(json.dumps(model.to_dict())))
     np.testing.assert_array_equal(again.coef, model.coef)
-    one = model.frame_covariance(100, 20, 2.5)
-    np.testing.assert_allclose(one, model.covariance(np.log([[100, 20, 2.5]]))[0], rtol=1e-12)
+    one = model.frame_covariance(100, 20, 2.5, 0.01)
+    np.testing.assert_allclose(one, model.covariance(np.log([[100, 20, 2.5, 0.01]]))[0], rtol=1e-12)
+
+
+def test_a_spec_1_1_uncertainty_reads_the_first_three_statistics():
+    coef = np.array([[1.0, -0.5, 0.0, 0.3]] * 4)
+    old = Uncertainty.from_dict({"parameters": ["fx", "fy", "cx", "cy"], "statistics": ["1", "log_points", "log_cells",
+                                 "log_pmd"], "coef": coef.tolist(), "correlation": np.eye(4).tolist()})
+    stats = np.log([[100, 20, 2.5, 1e-6], [100, 20, 2.5, 0.3]])  # the thickness does not matter to it
+    np.testing.assert_allclose(old.sigma(stats), np.exp(1.0 - 0.5 * np.log(100) + 0.3 * np.log(2.5)) * np.ones((2, 4)))
+    np.testing.assert_allclose(old.frame_covariance(100, 20, 2.5, 0.3), old.covariance(stats)[1], rtol=1e-12)
+
+
+def test_point_thickness_hand_computed_cases():
+    axes = np.vstack([np.eye(3), -np.eye(3)])  # covariance I/3: an isotropic cloud
+    assert point_thickness(axes) == pytest.approx(1 / 3)
+    box = axes * [2.0, 1.0, 0.1]  # covariance diag(4, 1, 0.01) / 3: det tr / e2^2 = 0.04 * 5.01 / 4.05^2
+    assert point_thickness(box * 250.0) == pytest.approx(0.04 * 5.01 / 4.05**2)  # scale free
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.normal(size=(50, 2)), np.zeros(50)] @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    assert point_thickness(np.ascontiguousarray(plane)) < 1e-12
+    assert point_thickness(np.outer(rng.normal(size=20), [1.0, 2.0, 3.0])) == 0.0  # a line
+    stats = input_statistics(np.ones((2, 6)), np.ones((2, 2, 6)), np.stack([axes, box]),
+                             np.array([[True] * 6, [True] * 3 + [False] * 3]), 2)
+    assert stats[0, 3] == pytest.approx(np.log(1 / 3)) and stats[1, 3] == np.log(T_FLOOR)  # 3 points: a plane
+
+
+def test_one_plane_keeps_the_inference_points_of_one_board(s8_dataset):
+    frames = s8_dataset.select(np.flatnonzero(s8_dataset.scene == "rig")[:6])
+    planes = one_plane(frames, np.random.default_rng(0))
+    for f in range(frames.n_frames):
+        kept = planes.infer_mask[f]
+        assert np.all(frames.infer_mask[f] >= kept) and 4 <= kept.sum() < frames.infer_mask[f].sum()
+        assert point_thickness(np.ascontiguousarray(frames.points_3d[f][kept])) < 1e-9
+        assert point_thickness(np.ascontiguousarray(frames.points_3d[f][frames.infer_mask[f]])) > 1e-3
 
 
 def test_uncertainty_refuses_bad_input():
-    with pytest.raises(InputError, match="needs >= 16 frames"):
-        fit_uncertainty(np.ones((5, 4)), np.ones((5, 3)))
+    with pytest.raises(InputError, match="needs >= 20 frames"):
+        fit_uncertainty(np.ones((5, 4)), np.ones((5, 4)))
+    with pytest.raises(InputError, match=r"statistics must be \(F, 4\)"):
+        fit_uncertainty(np.ones((40, 4)), np.ones((40, 3)))
     with pytest.raises(ValueError, match="not positive definite"):
         Uncertainty.from_dict({"coef": np.zeros((4, 4)).tolist(), "correlation": np.ones((4, 4)).tolist()})
+    with pytest.raises(ValueError, match="distinct names"):
+        Uncertainty.from_dict({"statistics": ["1", "log_points", "log_depth"], "coef": np.zeros((4, 3)).tolist(),
+                               "correlation": np.eye(4).tolist()})
 
 
 def _frame(rng, planar=False, noise_px=0.5, points=120):
