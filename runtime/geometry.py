@@ -110,22 +110,23 @@ def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.nda
     return project_camera(K, to_camera(points_3d, rvec, tvec))
 
 
-def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray,
+def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray,
                     tvec: np.ndarray) -> np.ndarray:
     """One frame's reprojection residuals pi(K, R X + t) - x (N, 2) px, through OpenCV (few calls,
-    for the runtime's hot path): points_2d (N, 2) px, points_3d (N, 3) mm float64, pose {W}->{C}."""
+    for the runtime's hot path): points_2d (N, 2) px, points_3d (N, 3) mm float64, pose {W}->{C}
+    as the rotation matrix R (3, 3) and tvec (3,) mm."""
     P = np.empty((3, 4))
-    np.matmul(K, cv2.Rodrigues(rvec)[0], out=P[:, :3])
+    np.matmul(K, R, out=P[:, :3])
     np.matmul(K, tvec, out=P[:, 3])
     d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), P)).reshape(-1, 2)
     d -= points_2d
     return d
 
 
-def camera_xy_inverse_depth(points_3d: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+def camera_xy_inverse_depth(points_3d: np.ndarray, R: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """One frame's {W} points (N, 3) mm -> (3, N) rows X_C, Y_C (mm) and 1 / Z_C (1/mm) of the
-    {C} points X_C = R X + t (the layout of the grid feature's point rows 2-4)."""
-    Xc = cv2.Rodrigues(rvec)[0] @ points_3d.T
+    {C} points X_C = R X + t, R (3, 3) (the layout of the grid feature's point rows 2-4)."""
+    Xc = R @ points_3d.T
     Xc += tvec.reshape(3, 1)
     np.divide(1.0, Xc[2], out=Xc[2])
     return Xc
@@ -183,10 +184,11 @@ def frame_normal_equations(xy_inv_z: np.ndarray, points_2d: np.ndarray,
     return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10]), r
 
 
-def left_update(rvec: np.ndarray, tvec: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pose {W}->{C} after the left perturbation (w rad, tau mm) of ``frame_normal_equations``."""
+def left_update(R: np.ndarray, tvec: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose {W}->{C}, rotation matrix R (3, 3) and tvec (3,) mm, after the left perturbation
+    (w rad, tau mm) of ``frame_normal_equations``: (exp([w]x) R, exp([w]x) t + tau)."""
     dR = cv2.Rodrigues(w)[0]
-    return cv2.Rodrigues(dR @ cv2.Rodrigues(rvec)[0])[0].ravel(), dR @ tvec + tau
+    return dR @ R, dR @ tvec + tau
 
 
 def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:

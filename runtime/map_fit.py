@@ -7,8 +7,8 @@ Minimises over (rvec, tvec, k = (fx, fy, cx, cy))
 where k_net, Sigma (4x4, px^2) are the network's Delta K mean and covariance (added to K_c)
 and s^2 (px^2) the frame's 2D noise variance: s^2 = RSS / (2N - 10) of the linearised MAP
 residuals (first weighted by the start's own residuals), floored at NOISE_FLOOR_PX^2.
-ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) with the
-analytic normal equations (``geometry.frame_normal_equations``, the pose perturbed on the
+ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) turned to
+k_net's principal point (``turned_to_principal_point``), with the analytic normal equations (``geometry.frame_normal_equations``, the pose perturbed on the
 left); a step that does not lower the cost ends the fit. The posterior covariance of k is
 the K block of the inverse Gauss-Newton Hessian at the last linearisation.
 
@@ -18,7 +18,6 @@ observable even from one planar view, where the data alone cannot fix it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -27,8 +26,10 @@ from .errors import InputError
 from .geometry import (camera_xy_inverse_depth, frame_k_matrix, frame_normal_equations, frame_residuals, left_update,
                        solve_pnp_start)
 
-# Gauss-Newton steps. From k_net and the C0 pose one step lands near the optimum: on galaxy-s8
-# test frames rho agrees with 8 steps to within 0.4 point (rig, 64 points, natural, planar).
+# Gauss-Newton steps. From k_net and the C0 pose turned to k_net's principal point one step
+# lands at the optimum: on 282 fresh galaxy-s8 rig frames its rms K error, 1.1 / 0.6 px (f / c),
+# is that of 4 steps, where one step from the C0 pose itself left 1.6 / 1.1 px and its
+# posterior covered only 52-64 % of the true K (training/METHOD.md, "Calibration on fresh frames").
 ITERATIONS = 1
 NOISE_FLOOR_PX = 0.1
 # The start pose (C0, under K_c) is not the optimum under k_net, so its residuals overstate the
@@ -52,19 +53,18 @@ class MapFit:
 
 
 def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
-            rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS,
-            start_points: Optional[np.ndarray] = None) -> MapFit:
+            rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS, k_start=None) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
-    {W}->{C} near the optimum (e.g. the C0 pose under K_c); iterations >= 1 Gauss-Newton steps
-    at most; start_points (3, N) the points at the start pose as X, Y (mm), 1/Z (1/mm), when
-    the caller has them (the grid feature's point rows 2-4 at the C0 pose), else computed here."""
+    {W}->{C}, the PnP pose under k_start (4,) px (e.g. the C0 pose under K_c), first turned to
+    k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's own);
+    iterations >= 1 Gauss-Newton steps at most."""
     precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
-    k, rvec, tvec = k_net, np.asarray(rvec, dtype=np.float64).ravel(), np.asarray(tvec, dtype=np.float64).ravel()
-    if start_points is None:
-        start_points = camera_xy_inverse_depth(points_3d, rvec, tvec)
-    JJ, Jr, rss, r = frame_normal_equations(start_points, points_2d, k)
+    k, R, tvec = k_net, cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
+    if k_start is not None:
+        R, tvec = turned_to_principal_point(R, tvec, k_start, k_net)
+    JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
     weight = _noise_weight(rss, r.size - 6)
     for _ in range(NOISE_PASSES):
         # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations.
@@ -79,20 +79,32 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
         step = cov @ g
         step *= -1.0
         k_new = k + step[6:]
-        rvec_new, tvec_new = left_update(rvec, tvec, step[:3], step[3:6])
-        res = frame_residuals(points_2d, points_3d, frame_k_matrix(k_new), rvec_new, tvec_new)
+        R_new, tvec_new = left_update(R, tvec, step[:3], step[3:6])
+        res = frame_residuals(points_2d, points_3d, frame_k_matrix(k_new), R_new, tvec_new)
         d = k_new - k_net
         cost_new = weight * float(np.vdot(res, res)) + float(d @ precision @ d)
         if not cost_new <= cost:
             break
-        k, rvec, tvec, cost, residuals, steps = k_new, rvec_new, tvec_new, cost_new, res, steps + 1
+        k, R, tvec, cost, residuals, steps = k_new, R_new, tvec_new, cost_new, res, steps + 1
         if it + 1 < iterations:
-            JJ, Jr, _, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, rvec, tvec), points_2d, k)
+            JJ, Jr, _, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
             cov = _posterior(JJ, precision, weight)
     if residuals is None:
         residuals = np.ascontiguousarray(r.T)
     k_cov = cov[6:, 6:]
-    return MapFit(k=k, rvec=rvec, tvec=tvec, k_cov=(k_cov + k_cov.T) / 2, residuals=residuals, steps=steps)
+    return MapFit(k=k, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=tvec, k_cov=(k_cov + k_cov.T) / 2,
+                  residuals=residuals, steps=steps)
+
+
+def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, k_from, k_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose {W}->{C} (R (3, 3), tvec (3,) mm) turned so that under k_to (4,) px its pixels
+    are, to first order, where they were under k_from (4,) px up to scale: moving the principal
+    point from c_from to c_to shifts the normalised coordinates by d = (c_from - c_to) / f_to,
+    as the rotation by (-d_y, d_x, 0) rad does. (The scale f_from / f_to the step fits alone:
+    moving the depth to match it too changes nothing measurable.)"""
+    fx, fy, cx, cy = k_to.tolist()
+    turn = cv2.Rodrigues(np.array([(cy - k_from[3]) / fy, (k_from[2] - cx) / fx, 0.0]))[0]
+    return turn @ R, turn @ tvec
 
 
 def _noise_weight(rss: float, dof: int) -> float:
@@ -109,19 +121,19 @@ def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarr
 
 
 def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
-                k_bounds: np.ndarray, K_c: np.ndarray, pose=None,
-                start_points: Optional[np.ndarray] = None) -> tuple[MapFit | None, str | None]:
-    """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here;
-    ``start_points`` its X, Y, 1/Z rows at that pose, see ``map_fit``), checked: (fit, None),
-    or (None, why) when there is no start pose, no step lowered the cost (the start pose is
-    K_c's, not k_net's optimum, so the caller's own PnP under k_net is better) or the MAP K is
-    not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the DIME-Net K."""
+                k_bounds: np.ndarray, K_c: np.ndarray, pose=None) -> tuple[MapFit | None, str | None]:
+    """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
+    checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
+    (the turned C0 pose is not k_net's optimum, so the caller's own PnP under k_net is better)
+    or the MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the
+    DIME-Net K."""
     if pose is None:
         try:
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
             return None, "no C0 pose under K_c"
-    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, start_points=start_points)
+    k_c = (float(K_c[0, 0]), float(K_c[1, 1]), float(K_c[0, 2]), float(K_c[1, 2]))
+    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, k_start=k_c)
     if result.steps == 0:
         return None, "the MAP step did not lower the cost"
     # Plain floats: a NaN fails every comparison, so this also refuses a non-finite K.

@@ -182,7 +182,7 @@ def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray
 
 def _mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
     """Mean Euclidean reprojection error (px) of one frame's (N, 2) px / (N, 3) mm points."""
-    return _mean_norm(frame_residuals(points_2d, points_3d, K, rvec, tvec).T)
+    return _mean_norm(frame_residuals(points_2d, points_3d, K, cv2.Rodrigues(rvec)[0], tvec).T)
 
 
 def _mean_norm(residuals: np.ndarray) -> float:
@@ -341,7 +341,7 @@ class Rectifier:
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
             fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
-                                   pose=(rvec_c, tvec_c), start_points=points[0, 2:5])
+                                   pose=(rvec_c, tvec_c))
             if why is None:
                 K, dk, rvec, tvec = frame_k_matrix(fit.k.tolist()), fit.k - self._kc_params, fit.rvec, fit.tvec
                 covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals.T)
@@ -467,7 +467,7 @@ class Rectifier:
                                          self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
-            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i, points), pending, dk, K, K_cov,
+            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov,
                             rvec, tvec, reasons)
         if refine:
             for b, (x, X) in enumerate(frames):
@@ -498,14 +498,13 @@ class Rectifier:
     def _map_batch(self, p2, p3, infer, frames, same_poses, c0, pending, dk, K, K_cov, rvec, tvec,
                    reasons) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
-        points, their C0 pose and the feature's point rows there: ``c0`` (rvec, tvec, points))
-        and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
+        points and their C0 pose ``c0`` (rvec, tvec)) and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
         "map: ..." reason (still pending: the K_c check follows)."""
-        rvec_c0, tvec_c0, points_c0 = c0
+        rvec_c0, tvec_c0 = c0
         for b in np.flatnonzero(pending):
             m = infer[b]
             fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   self._K_c, pose=(rvec_c0[b], tvec_c0[b]), start_points=points_c0[b][2:5][:, m])
+                                   self._K_c, pose=(rvec_c0[b], tvec_c0[b]))
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue

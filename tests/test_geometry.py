@@ -29,10 +29,10 @@ def test_frame_normal_equations_match_finite_differences_of_the_updated_pose():
     x, X, rvec, tvec, k = x[0], X[0], rvec[0], tvec[0], g.k_params(K[0])
 
     def residuals(p):  # p = (w, tau, dk): the pose updated on the left, K + dk; u's then v's
-        r, t = g.left_update(rvec, tvec, p[:3], p[3:6])
-        return (g.project(X, g.k_matrix(k + p[6:]), r, t) - x).T.ravel()
+        R, t = g.left_update(cv2.Rodrigues(rvec)[0], tvec, p[:3], p[3:6])
+        return (g.project(X, g.k_matrix(k + p[6:]), cv2.Rodrigues(R)[0].ravel(), t) - x).T.ravel()
 
-    JJ, Jr, rss, r = g.frame_normal_equations(g.camera_xy_inverse_depth(X, rvec, tvec), x, k)
+    JJ, Jr, rss, r = g.frame_normal_equations(g.camera_xy_inverse_depth(X, cv2.Rodrigues(rvec)[0], tvec), x, k)
     np.testing.assert_allclose(r.ravel(), residuals(np.zeros(10)), atol=1e-9)
     assert rss == pytest.approx(float(residuals(np.zeros(10)) @ residuals(np.zeros(10))), rel=1e-12)
     steps = np.array([1e-7] * 3 + [1e-4] * 3 + [1e-3] * 4)
