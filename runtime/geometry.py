@@ -18,6 +18,7 @@ from .errors import CalibrationError, InputError
 MIN_DEPTH_MM = 1e-6
 # Up to this many poses, rotation_matrices calls cv2.Rodrigues pose by pose.
 FEW_POSES = 8
+_COVARIANCE = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE  # sample covariance of row points
 
 
 def k_params(K: np.ndarray) -> np.ndarray:
@@ -108,6 +109,19 @@ def project_camera(K: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
 def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """{W} points (..., N, 3) in mm -> pixels (..., N, 2) under K and the pose {W}->{C}."""
     return project_camera(K, to_camera(points_3d, rvec, tvec))
+
+
+def covariance_invariants(points: np.ndarray) -> tuple[float, float, float]:
+    """Trace, sum of principal 2x2 minors and determinant of the sample covariance of one
+    frame's (N, D) float64 C-contiguous points, D = 2 or 3 (units^2, ^4, ^(2D); OpenCV's
+    covariance, then floats)."""
+    C = cv2.calcCovarMatrix(points, None, _COVARIANCE)[0].tolist()  # symmetric
+    if len(C) == 2:
+        (a, b), (_, d) = C
+        return a + d, a * d - b * b, a * d - b * b
+    (a, b, c), (_, d, e), (_, _, f) = C
+    det = a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)
+    return a + d + f, a * d - b * b + a * f - c * c + d * f - e * e, det
 
 
 def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray,

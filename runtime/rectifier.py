@@ -15,9 +15,9 @@ stage names of ``timings_us``:
 With a model whose spec carries the uncertainty model (spec >= 1.1), ``K_cov`` is the
 network's 4x4 covariance of (fx, fy, cx, cy) (px^2) for the frame. In ``mode="map"`` a stage
 ``map`` replaces ``pnp_k``: the MAP fusion of that prior with the frame's points
-(``dimenet.runtime.map_fit``, from the C0 pose), whose K, pose and posterior ``K_cov`` are
-returned; when it fails its checks, the DIME-Net solution (``pnp_k`` then runs) stands and
-``fallback`` says why.
+(``dimenet.runtime.map_fit``, from the C0 pose turned to the network's principal point),
+whose K, pose and posterior ``K_cov`` are returned; when it fails its checks, the DIME-Net
+solution (``pnp_k`` then runs) stands and ``fallback`` says why.
 
 Fallback (the result is then K_c's own solution, Delta K = 0, and ``fallback`` says why):
 Delta K not finite; K outside the spec's ``K_bounds``; no pose under K; or
@@ -38,12 +38,12 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import (check_not_degenerate, frame_k_matrix, frame_residuals, k_matrix, k_params, mean_over,
+from .geometry import (check_not_degenerate, covariance_invariants, frame_k_matrix, frame_residuals, k_matrix, k_params, mean_over,
                        mean_reprojection_errors, rotation_matrices, solve_pnp_start)
 from .map_fit import map_rectify
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
-from .uncertainty import input_statistics, occupied_cells, point_thickness
+from .uncertainty import input_statistics, occupied_cells, thickness
 
 MIN_POINTS = 6
 WORSE_RELATIVE = 0.05
@@ -55,7 +55,6 @@ MODES = ("dimenet", "map")
 # than check_not_degenerate's limits, which then decides the frames failing it.
 SPREAD_RATIO = 1e-4
 SPREAD_ABSOLUTE = 1e-10
-_COVARIANCE = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE
 
 
 @dataclass(frozen=True)
@@ -129,23 +128,20 @@ def _clearly_spread(trace, minors, scale, dims: int):
     return (minors > 3 * SPREAD_RATIO * trace**2) & (trace > dims * SPREAD_ABSOLUTE * scale**2)
 
 
-def _well_spread(points: np.ndarray) -> bool:
-    """``_clearly_spread`` of one frame's (N, D) finite points, D = 2 or 3 (OpenCV's covariance,
-    then floats)."""
-    C = cv2.calcCovarMatrix(points, None, _COVARIANCE)[0].tolist()  # symmetric
-    if len(C) == 2:
-        (a, b), (_, d) = C
-        trace, minors = a + d, a * d - b * b
-    else:
-        (a, b, c), (_, d, e), (_, _, f) = C
-        trace, minors = a + d + f, a * d - b * b + a * f - c * c + d * f - e * e
-    return bool(_clearly_spread(trace, minors, max(cv2.norm(points, cv2.NORM_INF), 1.0), len(C)))
+def _well_spread(points: np.ndarray, invariants: tuple) -> bool:
+    """``_clearly_spread`` of one frame's (N, D) finite points, D = 2 or 3, from their
+    ``covariance_invariants``."""
+    trace, minors, _ = invariants
+    return bool(_clearly_spread(trace, minors, max(cv2.norm(points, cv2.NORM_INF), 1.0), points.shape[1]))
 
 
-def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
-    """InputError (from check_not_degenerate) when the points cannot fix a pose."""
-    if not (_well_spread(points_3d) and _well_spread(points_2d)):
+def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple:
+    """InputError (from check_not_degenerate) when the points cannot fix a pose; else the
+    ``covariance_invariants`` of points_3d (the uncertainty's thickness reads them)."""
+    invariants_3d = covariance_invariants(points_3d)
+    if not (_well_spread(points_3d, invariants_3d) and _well_spread(points_2d, covariance_invariants(points_2d))):
         check_not_degenerate(points_3d, points_2d)
+    return invariants_3d
 
 
 def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray], counts: np.ndarray) -> np.ndarray:
@@ -261,11 +257,11 @@ class Rectifier:
     def spec(self) -> ModelSpec:
         return self.model.spec
 
-    def _frame_covariance(self, feats: np.ndarray, points_3d: np.ndarray, pmd_error: float) -> np.ndarray:
-        """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, its (N, 3)
-        points (mm) and their mean PMD (px)."""
-        return self._uncertainty.frame_covariance(len(points_3d), occupied_cells(feats, self._n_channels)[0], pmd_error,
-                                                  point_thickness(points_3d))
+    def _frame_covariance(self, feats: np.ndarray, n_points: int, pmd_error: float, invariants_3d: tuple) -> np.ndarray:
+        """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count,
+        mean PMD (px) and the ``covariance_invariants`` of its 3D points."""
+        return self._uncertainty.frame_covariance(n_points, occupied_cells(feats, self._n_channels)[0], pmd_error,
+                                                  thickness(*invariants_3d))
 
     def _plausible(self, delta_k: np.ndarray) -> np.ndarray:
         """(..., 4) px -> (...,) bool: K = K_c + Delta K is finite and inside K_bounds."""
@@ -297,8 +293,9 @@ class Rectifier:
         raise InputError(f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
                          f"outside the {width}x{height} px image the model was trained for")
 
-    def _validated(self, points_2d, points_3d) -> tuple[np.ndarray, np.ndarray]:
-        """One frame's points as float64 (N, 2) px and (N, 3) mm, or InputError naming the problem."""
+    def _validated(self, points_2d, points_3d) -> tuple[np.ndarray, np.ndarray, tuple]:
+        """One frame's points as float64 (N, 2) px and (N, 3) mm with the ``covariance_invariants``
+        of the 3D points, or InputError naming the problem."""
         p2 = _real_array(points_2d, "points_2d", "(N, 2)", 2, 2)
         p3 = _real_array(points_3d, "points_3d", "(N, 3)", 2, 3)
         n = len(p2)
@@ -308,8 +305,7 @@ class Rectifier:
             raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
         if not self._all_inside(p2, p3):
             self._raise_bad_values(p2, p3, True, "")
-        _check_spread(p2, p3)
-        return p2, p3
+        return p2, p3, _check_spread(p2, p3)
 
     def rectify(self, points_2d, points_3d, *, refine: bool = False) -> Rectification:
         """K and pose of one frame from its correspondences: points_2d (N, 2) px, points_3d (N, 3) mm in {W}.
@@ -319,7 +315,7 @@ class Rectifier:
         """
         clock = time.perf_counter_ns
         t0 = clock()
-        p2, p3 = self._validated(points_2d, points_3d)
+        p2, p3, invariants_3d = self._validated(points_2d, points_3d)
         t1 = clock()
         spec, K_c = self.model.spec, self._K_c
         rvec_c, tvec_c = _sqpnp(p2, p3, K_c)
@@ -336,7 +332,7 @@ class Rectifier:
         pmd_error = _mean_norm(points[0, :2])  # the feature's PMD: the residuals under K_c at the C0 pose
         covariance = e = None
         if reason is None and self._uncertainty is not None:
-            covariance = partial(self._frame_covariance, feats, p3, pmd_error)
+            covariance = partial(self._frame_covariance, feats, len(p2), pmd_error, invariants_3d)
         rvec, tvec, dimenet_kept = rvec_c, tvec_c, False  # dimenet_kept: map failed, DIME-Net's K stands
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.

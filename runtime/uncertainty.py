@@ -21,18 +21,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from .errors import InputError
-from .geometry import mean_over
+from .geometry import covariance_invariants, mean_over
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
 D_FLOOR_PX = 0.05  # PMD below this says nothing more: noise-free frames are not infinitely certain
 T_FLOOR = 1e-6  # thickness of a plane to float rounding: log t stays finite on exactly planar points
 ONE_SIGMA = 0.6827  # share of a Gaussian within one standard deviation
-_COVARIANCE_FLAGS = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE  # sample covariance of row points
 RIDGE = 1e-6  # keeps the Newton steps of the fit defined when a statistic does not vary
 
 
@@ -90,17 +88,19 @@ class Uncertainty:
         return s[:, :, None] * self.correlation * s[:, None, :]
 
 
-def point_thickness(points_3d: np.ndarray) -> float:
-    """How far 3D points (N, 3) mm, float64 C-contiguous, are from one plane: det(C) tr(C) / e2(C)^2
-    of their covariance C, with e2 the sum of its 2x2 principal minors. Scale free, in [0, 1/3]:
-    0 on one plane (or line), 1/3 for an isotropic cloud; for eigenvalues l1 >= l2 >= l3 about
-    l3 (l1 + l2) / (l1 l2) when l3 is small, the plane's thickness squared over its extent."""
-    (a, d, e), (_, b, f), (_, _, c) = cv2.calcCovarMatrix(points_3d, None, _COVARIANCE_FLAGS)[0].tolist()
-    trace = a + b + c
-    minors = a * b - d * d + a * c - e * e + b * c - f * f
-    det = a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e)
+def thickness(trace: float, minors: float, det: float) -> float:
+    """How far 3D points are from one plane, from the invariants of their covariance C
+    (``geometry.covariance_invariants``): det(C) tr(C) / e2(C)^2, with e2 the sum of its 2x2
+    principal minors. Scale free, in [0, 1/3]: 0 on one plane (or line), 1/3 for an isotropic
+    cloud; for eigenvalues l1 >= l2 >= l3 about l3 (l1 + l2) / (l1 l2) when l3 is small, the
+    plane's thickness squared over its extent."""
     # At most 1/3 in exact arithmetic; the clip bounds the rounding of (near-)collinear points.
     return min(max(det, 0.0) * trace / minors**2, 1 / 3) if minors > 0 else 0.0
+
+
+def point_thickness(points_3d: np.ndarray) -> float:
+    """``thickness`` of 3D points (N, 3) mm, float64 C-contiguous."""
+    return thickness(*covariance_invariants(points_3d))
 
 
 def frame_statistics(n_points, occupied_cells, mean_pmd_px, point_thickness) -> np.ndarray:

@@ -81,3 +81,12 @@ def test_degenerate_configurations_are_named(kind):
     x = np.c_[np.arange(8.0), np.arange(8.0) * 2]
     with pytest.raises(InputError, match=kind):
         g.check_not_degenerate(X, x)
+
+
+def test_covariance_invariants_match_numpy():
+    rng = np.random.default_rng(5)
+    for D in (2, 3):
+        points = rng.normal(size=(50, D)) @ rng.normal(size=(D, D)) + 1000.0
+        C = np.cov(points.T, bias=True)
+        minors = sum(np.linalg.det(C[np.ix_([i, j], [i, j])]) for i in range(D) for j in range(i + 1, D))
+        np.testing.assert_allclose(g.covariance_invariants(points), (np.trace(C), minors, np.linalg.det(C)), rtol=1e-9)

@@ -20,7 +20,7 @@ from dimenet.runtime import rectifier as rectifier_module
 from dimenet.runtime.cli import main
 from dimenet.runtime.dataset import write_dataset
 from dimenet.runtime.errors import InputError, ModelError
-from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
 from dimenet.runtime.metrics import reprojection_error_under_k
 from dimenet.runtime.rectifier import Rectifier
 from dimenet.runtime.simulator import simulate
@@ -167,7 +167,8 @@ def test_spread_tests_of_one_frame_and_of_a_batch_agree_and_imply_the_exact_chec
     passed = np.ones(len(points), bool)
     for D in (3, 2):
         batch = rectifier_module._spread_frames(points[..., :D], None, np.full(len(points), 40))
-        single = [rectifier_module._well_spread(np.ascontiguousarray(f[:, :D])) for f in points]
+        single = [rectifier_module._well_spread(f, covariance_invariants(f))
+                  for f in map(np.ascontiguousarray, points[..., :D])]
         assert batch.tolist() == single
         assert single[:2] == [True, True] and single[3:] == [False, False]
         passed &= single
