@@ -117,7 +117,7 @@ def frame_statistics(n_points, occupied_cells, mean_pmd_px, point_thickness) -> 
 
 def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
     """(B, D) grid features -> (B,) number of cells holding points (a zero cell is empty)."""
-    return np.count_nonzero(features.reshape(len(features), -1, n_channels).any(-1), axis=-1)
+    return features.reshape(len(features), -1, n_channels).any(-1).sum(-1)  # count_nonzero(axis) is slower
 
 
 def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarray, mask, n_channels: int) -> np.ndarray:
