@@ -124,6 +124,23 @@ def covariance_invariants(points: np.ndarray) -> tuple[float, float, float]:
     return a + d + f, a * d - b * b + a * f - c * c + d * f - e * e, det
 
 
+def covariance_invariants_batch(points: np.ndarray, mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``covariance_invariants`` of B frames at once (numpy): points (B, P, D) float64, D = 2 or
+    3, mask (B, P) bool of the points to use (>= 1 per frame) or None (all) -> trace, sum of
+    principal 2x2 minors and determinant, (B,) each."""
+    T = np.ascontiguousarray(np.swapaxes(points, 1, 2))  # (B, D, P), coordinate-major
+    if mask is not None:
+        np.copyto(T, 0.0, where=~mask[:, None, :])
+    n = np.full(len(T), T.shape[2], np.float64) if mask is None else mask.sum(1).astype(np.float64)
+    T -= (T.sum(-1) / n[:, None])[:, :, None]
+    if mask is not None:
+        np.copyto(T, 0.0, where=~mask[:, None, :])
+    C = np.matmul(T, np.swapaxes(T, 1, 2)) / n[:, None, None]
+    D = points.shape[-1]
+    minors = sum(C[:, i, i] * C[:, j, j] - C[:, i, j] * C[:, j, i] for i in range(D) for j in range(i + 1, D))
+    return np.trace(C, axis1=1, axis2=2), minors, np.linalg.det(C)
+
+
 def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray,
                     tvec: np.ndarray) -> np.ndarray:
     """One frame's reprojection residuals pi(K, R X + t) - x (N, 2) px, through OpenCV (few calls,

@@ -38,7 +38,7 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import (check_not_degenerate, covariance_invariants, frame_k_matrix, frame_residuals, k_matrix, k_params, mean_over,
+from .geometry import (check_not_degenerate, covariance_invariants, covariance_invariants_batch, frame_k_matrix, frame_residuals, k_matrix, k_params, mean_over,
                        mean_reprojection_errors, rotation_matrices, solve_pnp_start)
 from .map_fit import map_rectify
 from .model_spec import ModelSpec
@@ -144,22 +144,12 @@ def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple:
     return invariants_3d
 
 
-def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray], counts: np.ndarray) -> np.ndarray:
-    """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all), counts (B,)
-    valid points -> (B,) bool: ``_well_spread`` of each frame's valid points, vectorised."""
-    T = np.ascontiguousarray(np.swapaxes(points, 1, 2))  # (B, D, P), coordinate-major
-    if valid is not None:
-        np.copyto(T, 0.0, where=~valid[:, None, :])
-    scale = np.maximum(np.abs(T).max((1, 2)), 1.0)
-    n = counts.astype(np.float64)
-    T -= (T.sum(-1) / n[:, None])[:, :, None]
-    if valid is not None:
-        np.copyto(T, 0.0, where=~valid[:, None, :])
-    C = np.matmul(T, np.swapaxes(T, 1, 2)) / n[:, None, None]
-    D = points.shape[-1]
-    trace = np.trace(C, axis1=1, axis2=2)
-    minors = sum(C[:, i, i] * C[:, j, j] - C[:, i, j] * C[:, j, i] for i in range(D) for j in range(i + 1, D))
-    return _clearly_spread(trace, minors, scale, D)
+def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> np.ndarray:
+    """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all) -> (B,) bool:
+    ``_well_spread`` of each frame's valid points, vectorised."""
+    scale = np.maximum(np.abs(points if valid is None else np.where(valid[..., None], points, 0.0)).max((1, 2)), 1.0)
+    trace, minors, _ = covariance_invariants_batch(points, valid)
+    return _clearly_spread(trace, minors, scale, points.shape[-1])
 
 
 def _sqpnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -395,7 +385,7 @@ class Rectifier:
             for b in np.flatnonzero(np.any(valid & ~self._inside(p2, p3), 1)):
                 self._raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
         frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
-        spread = _spread_frames(p3, mask, counts) & _spread_frames(p2, mask, counts)
+        spread = _spread_frames(p3, mask) & _spread_frames(p2, mask)
         for b in np.flatnonzero(~spread):
             try:
                 _check_spread(*frames[b])

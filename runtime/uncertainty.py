@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .geometry import covariance_invariants, mean_over
+from .geometry import covariance_invariants, covariance_invariants_batch, mean_over
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
@@ -125,9 +125,8 @@ def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarra
     features (B, D), pmd (B, 2, N) px the PMD rows (``grid_features(..., return_points=True)``
     points[:, :2]), points_3d (B, N, 3) mm, mask (B, N) bool of the inference points or None (all)."""
     n = np.full(len(pmd), pmd.shape[2]) if mask is None else np.count_nonzero(mask, axis=1)
-    points_3d = np.asarray(points_3d, dtype=np.float64)
-    t = [point_thickness(np.ascontiguousarray(X if mask is None else X[m]))
-         for X, m in zip(points_3d, [None] * len(points_3d) if mask is None else mask)]
+    invariants = covariance_invariants_batch(np.asarray(points_3d, dtype=np.float64), mask)
+    t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants))]
     return frame_statistics(n, occupied_cells(features, n_channels), mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask), t)
 
 

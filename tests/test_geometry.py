@@ -90,3 +90,12 @@ def test_covariance_invariants_match_numpy():
         C = np.cov(points.T, bias=True)
         minors = sum(np.linalg.det(C[np.ix_([i, j], [i, j])]) for i in range(D) for j in range(i + 1, D))
         np.testing.assert_allclose(g.covariance_invariants(points), (np.trace(C), minors, np.linalg.det(C)), rtol=1e-9)
+        # The batch version over masked frames (NaN where masked out) agrees frame by frame.
+        frames = np.stack([points, points[::-1] * 2.0])
+        mask = np.ones((2, 50), bool)
+        mask[1, :7] = False
+        frames[1, :7] = np.nan
+        batch = np.array(g.covariance_invariants_batch(frames, mask))
+        for b in range(2):
+            np.testing.assert_allclose(batch[:, b], g.covariance_invariants(np.ascontiguousarray(frames[b][mask[b]])),
+                                       rtol=1e-9)
