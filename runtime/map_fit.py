@@ -8,8 +8,9 @@ where k_net, Sigma (4x4, px^2) are the network's Delta K mean and covariance (ad
 and s^2 (px^2) the frame's 2D noise variance: s^2 = RSS / (2N - 10) of the linearised MAP
 residuals (first weighted by the start's own residuals), floored at NOISE_FLOOR_PX^2.
 ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) turned to
-k_net's principal point (``turned_to_principal_point``), with the analytic normal equations (``geometry.frame_normal_equations``, the pose perturbed on the
-left); a step that does not lower the cost ends the fit. The posterior covariance of k is
+k_net's principal point (``turned_to_principal_point``), with the analytic normal equations
+(``geometry.frame_normal_equations``, the pose perturbed on the left); a step that does not
+lower the cost ends the fit. The posterior covariance of k is
 the K block of the inverse Gauss-Newton Hessian at the last linearisation.
 
 One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
@@ -61,7 +62,8 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
     iterations >= 1 Gauss-Newton steps at most."""
     precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
-    k, R, tvec = k_net, cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
+    R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
+    k = k_net
     if k_start is not None:
         R, tvec = turned_to_principal_point(R, tvec, k_start, k_net)
     JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
@@ -96,7 +98,8 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
                   residuals=residuals, steps=steps)
 
 
-def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, k_from, k_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, k_from,
+                              k_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pose {W}->{C} (R (3, 3), tvec (3,) mm) turned so that under k_to (4,) px its pixels
     are, to first order, where they were under k_from (4,) px up to scale: moving the principal
     point from c_from to c_to shifts the normalised coordinates by d = (c_from - c_to) / f_to,

@@ -38,8 +38,9 @@ import numpy as np
 
 from .errors import InputError, ModelError
 from .features import grid_features
-from .geometry import (check_not_degenerate, covariance_invariants, covariance_invariants_batch, frame_k_matrix, frame_residuals, k_matrix, k_params, mean_over,
-                       mean_reprojection_errors, rotation_matrices, solve_pnp_start)
+from .geometry import (check_not_degenerate, covariance_invariants, covariance_invariants_batch, frame_k_matrix,
+                       frame_residuals, k_matrix, k_params, mean_over, mean_reprojection_errors, rotation_matrices,
+                       solve_pnp_start)
 from .map_fit import map_rectify
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
@@ -484,8 +485,9 @@ class Rectifier:
     def _map_batch(self, p2, p3, infer, frames, same_poses, c0, pending, dk, K, K_cov, rvec, tvec,
                    reasons) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
-        points and their C0 pose ``c0`` (rvec, tvec)) and its pose on its valid points; a frame whose MAP fails keeps DIME-Net's K with a
-        "map: ..." reason (still pending: the K_c check follows)."""
+        points and their C0 pose ``c0`` (rvec, tvec)) and its pose on its valid points; a frame
+        whose MAP fails keeps DIME-Net's K with a "map: ..." reason (still pending: the K_c
+        check follows)."""
         rvec_c0, tvec_c0 = c0
         for b in np.flatnonzero(pending):
             m = infer[b]

@@ -7,8 +7,8 @@ network, and f(0) = 0 for the mean, untouched.
 
 Per frame, four statistics of the inference points say how much the input can tell:
 ``n`` points, ``m`` occupied grid cells, ``d`` their mean PMD norm under K_c at the C0 pose
-(px) and ``t`` the thickness of their 3D cloud (``point_thickness``: 0 on one plane, 1/3 for an
-isotropic cloud). With z = [1, log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)],
+(px) and ``t`` the thickness of their 3D cloud (``thickness``: 0 on one plane, 1/3 for
+an isotropic cloud). With z = [1, log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)],
 each parameter's standard deviation is sigma_p = exp(coef_p . z) (px), and the covariance is
 diag(sigma) C diag(sigma) with one correlation matrix C. Fitting: per parameter, the
 Gaussian maximum-likelihood coef on the residuals K - K* (Newton, convex), then its
@@ -75,10 +75,10 @@ class Uncertainty:
         stats = np.asarray(stats, dtype=np.float64)[:, self._columns]
         return np.exp(stats @ self.coef[:, 1:].T + self.coef[:, 0])
 
-    def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float, thickness: float) -> np.ndarray:
+    def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float, thickness_3d: float) -> np.ndarray:
         """``covariance`` of one frame from its four numbers (the runtime's single-frame path)."""
         all_z = (math.log(n_points), math.log(occupied), math.log(max(mean_pmd_px, D_FLOOR_PX)),
-                 math.log(max(thickness, T_FLOOR)))
+                 math.log(max(thickness_3d, T_FLOOR)))
         s = np.exp(self.coef @ np.array((1.0, *(all_z[c] for c in self._columns))))
         return np.outer(s, s) * self.correlation
 
@@ -103,7 +103,7 @@ def point_thickness(points_3d: np.ndarray) -> float:
     return thickness(*covariance_invariants(points_3d))
 
 
-def frame_statistics(n_points, occupied_cells, mean_pmd_px, point_thickness) -> np.ndarray:
+def frame_statistics(n_points, occupied_cells, mean_pmd_px, thicknesses) -> np.ndarray:
     """(B, 4) [log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)] from (B,) counts,
     mean PMD norms (px) and thicknesses."""
     n = np.asarray(n_points, dtype=np.float64)
@@ -111,7 +111,7 @@ def frame_statistics(n_points, occupied_cells, mean_pmd_px, point_thickness) -> 
     if np.any(n < 1) or np.any(m < 1):
         raise InputError("uncertainty: a frame needs >= 1 inference point in >= 1 cell")
     d = np.maximum(np.asarray(mean_pmd_px, dtype=np.float64), D_FLOOR_PX)
-    t = np.maximum(np.asarray(point_thickness, dtype=np.float64), T_FLOOR)
+    t = np.maximum(np.asarray(thicknesses, dtype=np.float64), T_FLOOR)
     return np.stack([np.log(n), np.log(m), np.log(d), np.log(t)], -1)
 
 
@@ -120,14 +120,16 @@ def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
     return features.reshape(len(features), -1, n_channels).any(-1).sum(-1)  # count_nonzero(axis) is slower
 
 
-def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarray, mask, n_channels: int) -> np.ndarray:
+def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarray, mask,
+                     n_channels: int) -> np.ndarray:
     """(B, 4) statistics of B frames' inference points from what the grid feature computes:
     features (B, D), pmd (B, 2, N) px the PMD rows (``grid_features(..., return_points=True)``
     points[:, :2]), points_3d (B, N, 3) mm, mask (B, N) bool of the inference points or None (all)."""
     n = np.full(len(pmd), pmd.shape[2]) if mask is None else np.count_nonzero(mask, axis=1)
     invariants = covariance_invariants_batch(np.asarray(points_3d, dtype=np.float64), mask)
     t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants))]
-    return frame_statistics(n, occupied_cells(features, n_channels), mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask), t)
+    pmd_norms = mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask)
+    return frame_statistics(n, occupied_cells(features, n_channels), pmd_norms, t)
 
 
 def _fit_log_sigma(z: np.ndarray, e: np.ndarray, iterations: int = 50) -> np.ndarray:
