@@ -10,8 +10,8 @@ residuals (first weighted by the start's own residuals), floored at NOISE_FLOOR_
 ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) turned to
 k_net's principal point (``turned_to_principal_point``), with the analytic normal equations
 (``geometry.frame_normal_equations``, the pose perturbed on the left); a step that does not
-lower the cost ends the fit. The posterior covariance of k is
-the K block of the inverse Gauss-Newton Hessian at the last linearisation.
+lower the cost ends the fit. The posterior covariance of k is the K block of the inverse
+Gauss-Newton Hessian at the last linearisation.
 
 One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
 observable even from one planar view, where the data alone cannot fix it.
@@ -33,9 +33,11 @@ from .geometry import (camera_xy_inverse_depth, frame_k_matrix, frame_normal_equ
 # posterior covered only 52-64 % of the true K (training/METHOD.md, "Calibration on fresh frames").
 ITERATIONS = 1
 NOISE_FLOOR_PX = 0.1
-# The start pose (C0, under K_c) is not the optimum under k_net, so its residuals overstate the
-# noise: s^2 is re-estimated this many times from the linearised MAP residuals (2N - 10 dof).
-# galaxy-s8 seed-1 test rho, passes 0 / 1 / 2: natural 72.8 / 89.7 / 89.8, planar 49.8 / 87.5 / 89.0.
+# The start pose (C0, under K_c, turned) is not the optimum under k_net, so its residuals
+# overstate the noise: s^2 is re-estimated this many times from the linearised MAP residuals
+# (2N - 10 dof). galaxy-s8 seed-1 test rho, passes 0 / 1 / 2, measured from the unturned C0
+# pose: natural 72.8 / 89.7 / 89.8, planar 49.8 / 87.5 / 89.0; with the turn, no pass breaks
+# the fit (rig K error 2.9 px against 1.1 px, training/METHOD.md).
 NOISE_PASSES = 1
 
 
@@ -54,18 +56,19 @@ class MapFit:
 
 
 def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
-            rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS, k_start=None) -> MapFit:
+            rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS,
+            K_start: np.ndarray | None = None) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
-    {W}->{C}, the PnP pose under k_start (4,) px (e.g. the C0 pose under K_c), first turned to
-    k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's own);
-    iterations >= 1 Gauss-Newton steps at most."""
+    {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
+    to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
+    own); iterations >= 1 Gauss-Newton steps at most."""
     precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
     R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
     k = k_net
-    if k_start is not None:
-        R, tvec = turned_to_principal_point(R, tvec, k_start, k_net)
+    if K_start is not None:
+        R, tvec = turned_to_principal_point(R, tvec, K_start, k_net)
     JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
     weight = _noise_weight(rss, r.size - 6)
     for _ in range(NOISE_PASSES):
@@ -98,15 +101,15 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
                   residuals=residuals, steps=steps)
 
 
-def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, k_from,
+def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, K_from: np.ndarray,
                               k_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pose {W}->{C} (R (3, 3), tvec (3,) mm) turned so that under k_to (4,) px its pixels
-    are, to first order, where they were under k_from (4,) px up to scale: moving the principal
+    are, to first order, where they were under K_from (3, 3) px up to scale: moving the principal
     point from c_from to c_to shifts the normalised coordinates by d = (c_from - c_to) / f_to,
     as the rotation by (-d_y, d_x, 0) rad does. (The scale f_from / f_to the step fits alone:
     moving the depth to match it too changes nothing measurable.)"""
     fx, fy, cx, cy = k_to.tolist()
-    turn = cv2.Rodrigues(np.array([(cy - k_from[3]) / fy, (k_from[2] - cx) / fx, 0.0]))[0]
+    turn = cv2.Rodrigues(np.array([(cy - K_from[1, 2]) / fy, (K_from[0, 2] - cx) / fx, 0.0]))[0]
     return turn @ R, turn @ tvec
 
 
@@ -135,8 +138,7 @@ def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray,
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
             return None, "no C0 pose under K_c"
-    k_c = (float(K_c[0, 0]), float(K_c[1, 1]), float(K_c[0, 2]), float(K_c[1, 2]))
-    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, k_start=k_c)
+    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, K_start=K_c)
     if result.steps == 0:
         return None, "the MAP step did not lower the cost"
     # Plain floats: a NaN fails every comparison, so this also refuses a non-finite K.

@@ -148,7 +148,8 @@ def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple:
 def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> np.ndarray:
     """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all) -> (B,) bool:
     ``_well_spread`` of each frame's valid points, vectorised."""
-    scale = np.maximum(np.abs(points if valid is None else np.where(valid[..., None], points, 0.0)).max((1, 2)), 1.0)
+    where = True if valid is None else valid[..., None]
+    scale = np.max(np.abs(points), axis=(1, 2), where=where, initial=1.0)
     trace, minors, _ = covariance_invariants_batch(points, valid)
     return _clearly_spread(trace, minors, scale, points.shape[-1])
 
@@ -454,8 +455,8 @@ class Rectifier:
                                          self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
-            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov,
-                            rvec, tvec, reasons)
+            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov, rvec, tvec,
+                            reasons)
         if refine:
             for b, (x, X) in enumerate(frames):
                 rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
@@ -482,17 +483,15 @@ class Rectifier:
         return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
                                   delta_k=dk, fallback=tuple(reasons), K_cov=K_cov)
 
-    def _map_batch(self, p2, p3, infer, frames, same_poses, c0, pending, dk, K, K_cov, rvec, tvec,
+    def _map_batch(self, p2, p3, infer, frames, same_poses, poses_c0, pending, dk, K, K_cov, rvec, tvec,
                    reasons) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
-        points and their C0 pose ``c0`` (rvec, tvec)) and its pose on its valid points; a frame
-        whose MAP fails keeps DIME-Net's K with a "map: ..." reason (still pending: the K_c
-        check follows)."""
-        rvec_c0, tvec_c0 = c0
+        points and their C0 pose ``poses_c0``) and its pose on its valid points; a frame whose MAP
+        fails keeps DIME-Net's K with a "map: ..." reason (still pending: the K_c check follows)."""
         for b in np.flatnonzero(pending):
             m = infer[b]
             fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   self._K_c, pose=(rvec_c0[b], tvec_c0[b]))
+                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]))
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .geometry import covariance_invariants, covariance_invariants_batch, mean_over
+from .geometry import covariance_invariants_batch, mean_over
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
@@ -96,11 +96,6 @@ def thickness(trace: float, minors: float, det: float) -> float:
     plane's thickness squared over its extent."""
     # At most 1/3 in exact arithmetic; the clip bounds the rounding of (near-)collinear points.
     return min(max(det, 0.0) * trace / minors**2, 1 / 3) if minors > 0 else 0.0
-
-
-def point_thickness(points_3d: np.ndarray) -> float:
-    """``thickness`` of 3D points (N, 3) mm, float64 C-contiguous."""
-    return thickness(*covariance_invariants(points_3d))
 
 
 def frame_statistics(n_points, occupied_cells, mean_pmd_px, thicknesses) -> np.ndarray:

@@ -13,7 +13,7 @@ from dimenet.runtime.cli import main
 from dimenet.runtime.dataset import write_dataset
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation import evaluate
-from dimenet.runtime.geometry import k_matrix, k_params, project, solve_pnp_start
+from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params, project, solve_pnp_start
 from dimenet.runtime.least_squares import calibrate
 from dimenet.runtime.map_fit import map_fit, map_rectify, turned_to_principal_point
 from dimenet.runtime.model_spec import ModelSpec
@@ -22,8 +22,7 @@ from dimenet.runtime.rectifier import Rectifier
 from dimenet.runtime.self_calibration import self_calibrate
 from dimenet.runtime.simulator import simulate
 from dimenet.runtime.conditions import one_plane
-from dimenet.runtime.uncertainty import (T_FLOOR, Uncertainty, coverage, fit_uncertainty, input_statistics,
-                                         point_thickness)
+from dimenet.runtime.uncertainty import T_FLOOR, Uncertainty, coverage, fit_uncertainty, input_statistics, thickness
 from helpers import K_TEST, random_frames
 from test_export import model_spec, random_model_file
 
@@ -66,6 +65,10 @@ def test_a_spec_1_1_uncertainty_reads_the_first_three_statistics():
     stats = np.log([[100, 20, 2.5, 1e-6], [100, 20, 2.5, 0.3]])  # the thickness does not matter to it
     np.testing.assert_allclose(old.sigma(stats), np.exp(1.0 - 0.5 * np.log(100) + 0.3 * np.log(2.5)) * np.ones((2, 4)))
     np.testing.assert_allclose(old.frame_covariance(100, 20, 2.5, 0.3), old.covariance(stats)[1], rtol=1e-12)
+
+
+def point_thickness(points_3d: np.ndarray) -> float:
+    return thickness(*covariance_invariants(np.ascontiguousarray(points_3d, dtype=np.float64)))
 
 
 def test_point_thickness_hand_computed_cases():
@@ -124,14 +127,14 @@ def test_one_step_from_the_c0_pose_turned_to_k_net_lands_at_the_optimum():
     x, X, K = _frame(np.random.default_rng(1))
     k_net = k_params(K) + K_NET_OFFSET
     self_k = k_params(calibrate(x[None], X[None], np.ones((1, len(x)))).K[0])
-    k_c = k_net - [10.0, 10.0, 40.0, 30.0]  # the runtime's start: the pose under K_c, f and c off k_net
-    rvec, tvec = solve_pnp_start(x, X, k_matrix(k_c))
-    R, t = turned_to_principal_point(cv2.Rodrigues(rvec)[0], tvec, k_c, k_net)
+    K_c = k_matrix(k_net - [10.0, 10.0, 40.0, 30.0])  # the runtime's start: the pose under K_c, f and c off k_net
+    rvec, tvec = solve_pnp_start(x, X, K_c)
+    R, t = turned_to_principal_point(cv2.Rodrigues(rvec)[0], tvec, K_c, k_net)
     # Turned, the pose images the points under k_net about where they were under K_c (first order).
-    under_k_c = project(X, k_matrix(k_c), rvec, tvec)
+    under_k_c = project(X, K_c, rvec, tvec)
     turned = np.abs(project(X, k_matrix(k_net), cv2.Rodrigues(R)[0].ravel(), t) - under_k_c).max()
     assert turned < 0.25 * np.abs(project(X, k_matrix(k_net), rvec, tvec) - under_k_c).max()
-    one_step = map_fit(x, X, k_net, np.eye(4) * 1e10, rvec, tvec, k_start=k_c).k
+    one_step = map_fit(x, X, k_net, np.eye(4) * 1e10, rvec, tvec, K_start=K_c).k
     unturned = map_fit(x, X, k_net, np.eye(4) * 1e10, rvec, tvec).k
     assert np.abs(one_step - self_k).max() < 0.2 < np.abs(unturned - self_k).max()
 
