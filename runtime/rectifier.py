@@ -315,7 +315,7 @@ class Rectifier:
         feats, points = grid_features(p2[None], p3[None], None, K_c, spec.image_size, spec.features,
                                       poses=(rvec_c[None], tvec_c[None]), return_points=True)
         t3 = clock()
-        dk = self.model.delta_k(feats.astype(np.float32))[0].astype(np.float64)
+        dk = self.model.frame_delta_k(feats)
         t4 = clock()
         timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3}
         K = frame_k_matrix((self._kc_params + dk).tolist())

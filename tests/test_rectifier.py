@@ -20,6 +20,7 @@ from dimenet.runtime import rectifier as rectifier_module
 from dimenet.runtime.cli import main
 from dimenet.runtime.dataset import write_dataset
 from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.features import grid_features
 from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
 from dimenet.runtime.metrics import reprojection_error_under_k
 from dimenet.runtime.rectifier import Rectifier
@@ -64,7 +65,8 @@ def frame_points(frames, b):
 
 def stub_rectifier(spec, delta_k):
     """A Rectifier whose model answers a constant Delta K (px) for every frame."""
-    return Rectifier(SimpleNamespace(spec=spec, delta_k=lambda f: np.tile(np.asarray(delta_k, np.float32), (len(f), 1))))
+    batch = lambda f: np.tile(np.asarray(delta_k, np.float32), (len(f), 1))  # noqa: E731
+    return Rectifier(SimpleNamespace(spec=spec, delta_k=batch, frame_delta_k=lambda f: batch(f)[0].astype(np.float64)))
 
 
 def test_rectify_error_is_the_evaluation_metric(rectifier, frames):
@@ -93,6 +95,20 @@ def test_batch_equals_per_frame(rectifier, frames):
     np.testing.assert_allclose(batch.reprojection_error_px, [s.reprojection_error_px for s in single], atol=1e-6)
     np.testing.assert_allclose(batch.reprojection_error_kc_px, [s.reprojection_error_kc_px for s in single], atol=1e-6)
     assert batch.fallback == tuple(s.fallback for s in single)
+
+
+def test_frame_delta_k_is_the_batch_call_in_every_thread(rectifier, frames):
+    from concurrent.futures import ThreadPoolExecutor
+
+    spec = rectifier.spec
+    feats = grid_features(frames.points_2d, frames.points_3d, frames.infer_mask, spec.K_c, spec.image_size,
+                          spec.features)
+    expected = rectifier.model.delta_k(feats.astype(np.float32)).astype(np.float64)
+    # The IO binding's buffers are per thread: concurrent calls must not see each other's frames.
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda f: rectifier.model.frame_delta_k(f[None]), list(feats) * 8))
+    np.testing.assert_array_equal(np.array(got), np.tile(expected, (8, 1)))
+    assert got[0].dtype == np.float64 and got[0].shape == (4,)
 
 
 def test_batch_infers_k_from_the_infer_mask(rectifier, frames):
