@@ -39,8 +39,8 @@ import numpy as np
 from .errors import InputError, ModelError
 from .features import grid_features
 from .geometry import (check_not_degenerate, covariance_invariants, covariance_invariants_batch, frame_k_matrix,
-                       frame_residuals, k_matrix, k_params, mean_over, mean_reprojection_errors, rotation_matrices,
-                       solve_pnp_start)
+                       frame_residuals, k_matrix, k_params, mean_reprojection_errors, mean_residual_norms,
+                       rotation_matrices, solve_pnp_start)
 from .map_fit import map_rectify
 from .model_spec import ModelSpec
 from .onnx_model import OnnxModel, load_onnx_model, onnx_model_from_bytes
@@ -466,7 +466,7 @@ class Rectifier:
         mask = None if valid.all() else valid
         if same_poses and not refine:
             # The feature's PMD: each point's residual under K_c at the C0 pose (all valid points).
-            e_c = mean_over(np.hypot(points[:, 0], points[:, 1]), mask)
+            e_c = mean_residual_norms(points[:, :2], mask)
         else:
             e_c = mean_reprojection_errors(p2, p3, mask, K_c, rotation_matrices(rvec_c), tvec_c)
         e = e_c.copy()

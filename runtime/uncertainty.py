@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .geometry import covariance_invariants_batch, mean_over
+from .geometry import covariance_invariants_batch, mean_residual_norms
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
@@ -123,7 +123,7 @@ def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarra
     n = np.full(len(pmd), pmd.shape[2]) if mask is None else np.count_nonzero(mask, axis=1)
     invariants = covariance_invariants_batch(np.asarray(points_3d, dtype=np.float64), mask)
     t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants))]
-    pmd_norms = mean_over(np.hypot(pmd[:, 0], pmd[:, 1]), mask)
+    pmd_norms = mean_residual_norms(pmd, mask)
     return frame_statistics(n, occupied_cells(features, n_channels), pmd_norms, t)
 
 

@@ -58,6 +58,20 @@ def test_mean_reprojection_error_hand_computed():
     # A weight-0 point does not count.
     assert g.mean_reprojection_error(x, X, np.array([0.0, 1.0]), K_TEST, np.zeros(3), np.zeros(3)) == pytest.approx(0.0)
 
+    # The batched, coordinate-major version agrees, with and without a mask.
+    x2, X2, R = np.stack([x, x]), np.stack([X, X]), np.stack([np.eye(3)] * 2)
+    np.testing.assert_allclose(g.mean_reprojection_errors(x2, X2, None, K_TEST, R, np.zeros((2, 3))), [2.5, 2.5])
+    mask = np.array([[True, True], [False, True]])
+    np.testing.assert_allclose(g.mean_reprojection_errors(x2, X2, mask, K_TEST, R, np.zeros((2, 3))), [2.5, 0.0],
+                               atol=1e-12)
+
+
+def test_mean_residual_norms_hand_computed():
+    # u, v rows: norms 5, 1 and 0 px.
+    residuals = np.array([[[3.0, 0.0, 0.0], [4.0, -1.0, 0.0]]])
+    assert g.mean_residual_norms(residuals, None) == pytest.approx([2.0])
+    assert g.mean_residual_norms(residuals, np.array([[True, False, True]])) == pytest.approx([2.5])
+
 
 def test_dlt_recovers_exact_camera_from_noise_free_points():
     rng = np.random.default_rng(2)
