@@ -16,7 +16,7 @@ import numpy as np
 from .dataset import Dataset
 from .errors import ModelError
 from .features import grid_features
-from .geometry import k_matrix, k_params
+from .geometry import covariance_invariants_batch, k_matrix, k_params, mean_residual_norms
 from .model_spec import ModelSpec
 from .uncertainty import STATISTICS, input_statistics
 
@@ -66,8 +66,10 @@ class Predictor:
             ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
             rows = np.flatnonzero(usable)[ok]
             K[rows], predicted[rows] = K_pred[ok], True
-            stats[rows] = input_statistics(feats, points[:, :2], sub.points_3d, sub.infer_mask,
-                                          len(spec.features.channels))[ok]
+            mask = sub.infer_mask
+            stats[rows] = input_statistics(feats, mask.sum(1), mean_residual_norms(points[:, :2], mask),
+                                           covariance_invariants_batch(sub.points_3d, mask),
+                                           len(spec.features.channels))[ok]
         cov = None
         if spec.uncertainty is not None:
             cov = np.full((F, 4, 4), np.nan)

@@ -145,13 +145,14 @@ def _check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple:
     return invariants_3d
 
 
-def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> np.ndarray:
-    """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all) -> (B,) bool:
-    ``_well_spread`` of each frame's valid points, vectorised."""
+def _spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> tuple[np.ndarray, tuple]:
+    """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all) -> (B,) bool
+    ``_well_spread`` of each frame's valid points, vectorised, and the
+    ``covariance_invariants_batch`` it read."""
     where = True if valid is None else valid[..., None]
     scale = np.max(np.abs(points), axis=(1, 2), where=where, initial=1.0)
-    trace, minors, _ = covariance_invariants_batch(points, valid)
-    return _clearly_spread(trace, minors, scale, points.shape[-1])
+    invariants = covariance_invariants_batch(points, valid)
+    return _clearly_spread(invariants[0], invariants[1], scale, points.shape[-1]), invariants
 
 
 def _sqpnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -366,7 +367,8 @@ class Rectifier:
                              covariance=covariance)
 
     def _validated_batch(self, points_2d, points_3d, valid, infer_mask):
-        """Float64 arrays and bool masks of B frames, and each frame's valid points ((N_b, 2), (N_b, 3))."""
+        """Float64 arrays and bool masks of B frames, each frame's valid points ((N_b, 2), (N_b, 3))
+        and the ``covariance_invariants_batch`` of the valid 3D points."""
         p2 = _real_array(points_2d, "points_2d", "(B, P, 2)", 3, 2)
         p3 = _real_array(points_3d, "points_3d", "(B, P, 3)", 3, 3)
         if p3.shape[:2] != p2.shape[:2]:
@@ -387,13 +389,14 @@ class Rectifier:
             for b in np.flatnonzero(np.any(valid & ~self._inside(p2, p3), 1)):
                 self._raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
         frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
-        spread = _spread_frames(p3, mask) & _spread_frames(p2, mask)
+        spread_3d, invariants_3d = _spread_frames(p3, mask)
+        spread = spread_3d & _spread_frames(p2, mask)[0]
         for b in np.flatnonzero(~spread):
             try:
                 _check_spread(*frames[b])
             except InputError as exc:
                 raise InputError(f"frame {b}: {exc}") from None
-        return p2, p3, valid, infer, frames
+        return p2, p3, valid, infer, frames, invariants_3d
 
     def _inference_poses(self, p2, p3, infer, rvec_c, tvec_c, reasons):
         """SQPnP poses under K_c from each frame's inference points; frames with too few of
@@ -418,7 +421,7 @@ class Rectifier:
         pose from them, falls back to K_c. Same results as ``rectify`` frame by frame when
         infer_mask is valid. Raises InputError naming the first unusable frame.
         """
-        p2, p3, valid, infer, frames = self._validated_batch(points_2d, points_3d, valid, infer_mask)
+        p2, p3, valid, infer, frames, invariants_3d = self._validated_batch(points_2d, points_3d, valid, infer_mask)
         spec, K_c, B = self.model.spec, self._K_c, len(frames)
         rvec_c, tvec_c = np.empty((B, 3)), np.empty((B, 3))
         for b, (x, X) in enumerate(frames):
@@ -447,12 +450,20 @@ class Rectifier:
                 except InputError:
                     reasons[b] = "no pose under the predicted K"
         pending = np.array([r is None for r in reasons])
+        mask = None if valid.all() else valid
+        # With K inferred from the valid points, the feature's PMD rows are their residuals under K_c
+        # at the C0 pose: their mean norm is e_c, and the uncertainty's PMD statistic.
+        pmd_norms = mean_residual_norms(points[:, :2], mask) if same_poses else None
         K_cov = None
         if self._uncertainty is not None:
             K_cov = np.full((B, 4, 4), np.nan)
             if pending.any():
-                stats = input_statistics(feats[pending], points[pending, :2], p3[pending], infer[pending],
-                                         self._n_channels)
+                if same_poses:  # validation's 3D invariants are those of the inference points
+                    norms, inv = pmd_norms[pending], tuple(a[pending] for a in invariants_3d)
+                else:
+                    norms = mean_residual_norms(points[pending, :2], infer[pending])
+                    inv = covariance_invariants_batch(p3[pending], infer[pending])
+                stats = input_statistics(feats[pending], infer[pending].sum(1), norms, inv, self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
             self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov, rvec, tvec,
@@ -463,10 +474,8 @@ class Rectifier:
                 if pending[b]:
                     rvec[b], tvec[b] = _refine(x, X, K[b], rvec[b], tvec[b])
         K[~pending], rvec[~pending], tvec[~pending] = K_c, rvec_c[~pending], tvec_c[~pending]
-        mask = None if valid.all() else valid
         if same_poses and not refine:
-            # The feature's PMD: each point's residual under K_c at the C0 pose (all valid points).
-            e_c = mean_residual_norms(points[:, :2], mask)
+            e_c = pmd_norms  # the C0 pose and K_c on all valid points
         else:
             e_c = mean_reprojection_errors(p2, p3, mask, K_c, rotation_matrices(rvec_c), tvec_c)
         e = e_c.copy()

@@ -24,7 +24,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .geometry import covariance_invariants_batch, mean_residual_norms
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
@@ -115,16 +114,14 @@ def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
     return features.reshape(len(features), -1, n_channels).any(-1).sum(-1)  # count_nonzero(axis) is slower
 
 
-def input_statistics(features: np.ndarray, pmd: np.ndarray, points_3d: np.ndarray, mask,
+def input_statistics(features: np.ndarray, n_points: np.ndarray, pmd_norms: np.ndarray, invariants_3d: tuple,
                      n_channels: int) -> np.ndarray:
-    """(B, 4) statistics of B frames' inference points from what the grid feature computes:
-    features (B, D), pmd (B, 2, N) px the PMD rows (``grid_features(..., return_points=True)``
-    points[:, :2]), points_3d (B, N, 3) mm, mask (B, N) bool of the inference points or None (all)."""
-    n = np.full(len(pmd), pmd.shape[2]) if mask is None else np.count_nonzero(mask, axis=1)
-    invariants = covariance_invariants_batch(np.asarray(points_3d, dtype=np.float64), mask)
-    t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants))]
-    pmd_norms = mean_residual_norms(pmd, mask)
-    return frame_statistics(n, occupied_cells(features, n_channels), pmd_norms, t)
+    """(B, 4) statistics of B frames' inference points from what the caller has computed anyway:
+    features (B, D) their grid features, n_points (B,) their count, pmd_norms (B,) px their mean
+    PMD norm (``geometry.mean_residual_norms`` of the feature's PMD rows) and invariants_3d the
+    ``geometry.covariance_invariants_batch`` (trace, minors, det, (B,) each) of their 3D points."""
+    t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants_3d))]
+    return frame_statistics(n_points, occupied_cells(features, n_channels), pmd_norms, t)
 
 
 def _fit_log_sigma(z: np.ndarray, e: np.ndarray, iterations: int = 50) -> np.ndarray:

@@ -13,7 +13,8 @@ from dimenet.runtime.cli import main
 from dimenet.runtime.dataset import write_dataset
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation import evaluate
-from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params, project, solve_pnp_start
+from dimenet.runtime.geometry import (covariance_invariants, covariance_invariants_batch, k_matrix, k_params, project,
+                                      solve_pnp_start)
 from dimenet.runtime.least_squares import calibrate
 from dimenet.runtime.map_fit import map_fit, map_rectify, turned_to_principal_point
 from dimenet.runtime.model_spec import ModelSpec
@@ -80,8 +81,9 @@ def test_point_thickness_hand_computed_cases():
     plane = np.c_[rng.normal(size=(50, 2)), np.zeros(50)] @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
     assert point_thickness(np.ascontiguousarray(plane)) < 1e-12
     assert point_thickness(np.outer(rng.normal(size=20), [1.0, 2.0, 3.0])) == 0.0  # a line
-    stats = input_statistics(np.ones((2, 6)), np.ones((2, 2, 6)), np.stack([axes, box]),
-                             np.array([[True] * 6, [True] * 3 + [False] * 3]), 2)
+    mask = np.array([[True] * 6, [True] * 3 + [False] * 3])
+    stats = input_statistics(np.ones((2, 6)), mask.sum(1), np.ones(2),
+                             covariance_invariants_batch(np.stack([axes, box]), mask), 2)
     assert stats[0, 3] == pytest.approx(np.log(1 / 3)) and stats[1, 3] == np.log(T_FLOOR)  # 3 points: a plane
 
 
@@ -223,6 +225,21 @@ def test_rectifier_map_mode_fits_at_least_as_well_and_reports_its_posterior(map_
     one = [fused.rectify(frames.points_2d[b][frames.valid[b]], frames.points_3d[b][frames.valid[b]]) for b in rig]
     np.testing.assert_allclose(batch.K, [o.K for o in one], atol=1e-6)
     np.testing.assert_allclose(batch.K_cov, [o.K_cov for o in one], rtol=1e-6)
+
+
+def test_batch_covariance_is_the_single_frame_covariance_of_the_inference_points(tmp_path, map_model):
+    frames, _ = map_model
+    coef = np.array([[1.0, -0.3, 0.2, 0.5, 0.1]] * 4) * [[1.0], [1.1], [0.9], [1.2]]  # every statistic counts
+    spec = replace(model_spec(frames), uncertainty=Uncertainty(coef=coef, correlation=np.eye(4)))
+    rectifier = Rectifier.load(random_model_file(tmp_path / "stats.onnx", spec))
+    for scene, infer in (("rig", frames.valid), ("natural", frames.infer_mask)):
+        idx = np.flatnonzero(frames.scene == scene)[:3]
+        batch = rectifier.rectify_batch(frames.points_2d[idx], frames.points_3d[idx], frames.valid[idx],
+                                        infer_mask=infer[idx])
+        # K_cov depends on the inference points only: one frame of just those gives the same.
+        one = [rectifier.rectify(frames.points_2d[b][infer[b]], frames.points_3d[b][infer[b]]) for b in idx]
+        assert all(o.fallback is None for o in one) and not any(batch.fallback)
+        np.testing.assert_allclose(batch.K_cov, [o.K_cov for o in one], rtol=1e-9)
 
 
 def test_map_mode_needs_an_uncertainty_model(tmp_path, map_model):

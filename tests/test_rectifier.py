@@ -182,7 +182,7 @@ def test_spread_tests_of_one_frame_and_of_a_batch_agree_and_imply_the_exact_chec
     points = np.stack(frames)
     passed = np.ones(len(points), bool)
     for D in (3, 2):
-        batch = rectifier_module._spread_frames(points[..., :D], None)
+        batch = rectifier_module._spread_frames(points[..., :D], None)[0]
         single = [rectifier_module._well_spread(f, covariance_invariants(f))
                   for f in map(np.ascontiguousarray, points[..., :D])]
         assert batch.tolist() == single
