@@ -146,10 +146,9 @@ def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray,
     """One frame's reprojection residuals pi(K, R X + t) - x (N, 2) px, through OpenCV (few calls,
     for the runtime's hot path): points_2d (N, 2) px, points_3d (N, 3) mm float64, pose {W}->{C}
     as the rotation matrix R (3, 3) and tvec (3,) mm."""
-    P = np.empty((3, 4))
-    np.matmul(K, R, out=P[:, :3])
-    np.matmul(K, tvec, out=P[:, 3])
-    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), P)).reshape(-1, 2)
+    Rt = np.empty((3, 4))
+    Rt[:, :3], Rt[:, 3] = R, tvec
+    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), K @ Rt)).reshape(-1, 2)
     d -= points_2d
     return d
 

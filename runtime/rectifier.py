@@ -220,6 +220,7 @@ class Rectifier:
         self._uncertainty = spec.uncertainty
         self._n_channels = len(spec.features.channels)
         self._kc_params = k_params(spec.K_c)
+        self._kc_list = self._kc_params.tolist()
         # K_bounds as bounds on Delta K (px): a NaN fails them too.
         self._dk_low = spec.K_bounds[:, 0] - self._kc_params
         self._dk_high = spec.K_bounds[:, 1] - self._kc_params
@@ -318,9 +319,11 @@ class Rectifier:
         t3 = clock()
         dk = self.model.frame_delta_k(feats)
         t4 = clock()
-        timings = {"validate": t1 - t0, "pnp_kc": t2 - t1, "features": t3 - t2, "model": t4 - t3}
-        K = frame_k_matrix((self._kc_params + dk).tolist())
-        plausible = all(low <= d <= high for d, (low, high) in zip(dk.tolist(), self._dk_bounds))
+        timings = {"validate": (t1 - t0) / 1e3, "pnp_kc": (t2 - t1) / 1e3, "features": (t3 - t2) / 1e3,
+                   "model": (t4 - t3) / 1e3}  # microseconds
+        dk_list = dk.tolist()
+        K = frame_k_matrix([c + d for c, d in zip(self._kc_list, dk_list)])
+        plausible = all(low <= d <= high for d, (low, high) in zip(dk_list, self._dk_bounds))
         reason = None if plausible else _implausible_reason(dk, K)
         pmd_error = _mean_norm(points[0, :2])  # the feature's PMD: the residuals under K_c at the C0 pose
         covariance = e = None
@@ -337,20 +340,20 @@ class Rectifier:
             else:
                 reason, dimenet_kept = f"map: {why}; DIME-Net's K is returned", True
             t5 = clock()
-            timings["map"], t4 = t5 - t4, t5
+            timings["map"], t4 = (t5 - t4) / 1e3, t5
         if (reason is None and e is None) or dimenet_kept:
             try:
                 rvec, tvec = _sqpnp(p2, p3, K)
             except InputError:
                 reason, dimenet_kept = "no pose under the predicted K", False
             t5 = clock()
-            timings["pnp_k"], t4 = t5 - t4, t5
+            timings["pnp_k"], t4 = (t5 - t4) / 1e3, t5
         if refine:
             rvec_c, tvec_c = _refine(p2, p3, K_c, rvec_c, tvec_c)
             if reason is None and e is None:
                 rvec, tvec = _refine(p2, p3, K, rvec, tvec)
             t5 = clock()
-            timings["refine"], t4 = t5 - t4, t5
+            timings["refine"], t4 = (t5 - t4) / 1e3, t5
             e_c = _mean_error(p2, p3, K_c, rvec_c, tvec_c)
         else:
             e_c = pmd_error
@@ -361,9 +364,9 @@ class Rectifier:
                 dimenet_kept = False
         if reason is not None and not dimenet_kept:
             K, dk, rvec, tvec, e, covariance = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c, None
-        timings["check"] = clock() - t4
+        timings["check"] = (clock() - t4) / 1e3
         return Rectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
-                             delta_k=dk, fallback=reason, timings_us={k: v / 1e3 for k, v in timings.items()},
+                             delta_k=dk, fallback=reason, timings_us=timings,
                              covariance=covariance)
 
     def _validated_batch(self, points_2d, points_3d, valid, infer_mask):
