@@ -186,10 +186,10 @@ def frame_normal_equations(xy_inv_z: np.ndarray, points_2d: np.ndarray,
     """One frame's Gauss-Newton normal equations under the pinhole (fx, fy, cx, cy) px ``k``.
 
     xy_inv_z (3, N): the points in {C} as X, Y (mm) and 1/Z (1/mm) (``camera_xy_inverse_depth``);
-    points_2d (N, 2) px. With r the residuals pi(K, X_C) - x and J (10, 2N) their Jacobian for p = (w (3) rad, tau (3) mm,
-    fx, fy, cx, cy), the pose perturbed on the left (X_C -> exp([w]x) X_C + tau, so
-    R -> exp([w]x) R, t -> exp([w]x) t + tau), returns J J^T (10, 10), J r (10,), r.r (px^2)
-    and r (2, N) px (the u residuals, then the v residuals).
+    points_2d (N, 2) px. With r the residuals pi(K, X_C) - x and J (10, 2N) their Jacobian for
+    p = (w (3) rad, tau (3) mm, fx, fy, cx, cy), the pose perturbed on the left (X_C ->
+    exp([w]x) X_C + tau, so R -> exp([w]x) R, t -> exp([w]x) t + tau), returns J J^T (10, 10),
+    J r (10,), r.r (px^2) and r (2, N) px (the u residuals, then the v residuals).
 
     Every entry of J is a linear combination of nine per-point monomials q (see
     ``_jacobian_basis``), so J J^T = C (q q^T) C^T summed over u and v: one N-long product
