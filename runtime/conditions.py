@@ -1,5 +1,6 @@
 """Test conditions of the paper's evaluation: fewer points, noisier points, emptied grid cells;
-and beyond it, the points of one plane (the planar scene without the rig's board identity).
+and beyond it, the points of one plane (the planar scene without the rig's board identity)
+and those of two objects apart in the image (hand-labelled natural features).
 
 Each function takes a Dataset and a ``numpy.random.Generator`` and returns a new Dataset
 (the input is never modified). Point dropping and cell emptying act on ``infer_mask`` only
@@ -118,6 +119,38 @@ def one_plane(ds: Dataset, rng: np.random.Generator) -> Dataset:
             continue
         on_plane = np.abs((X - centre) @ vt[2]) <= PLANE_TOLERANCE * distance[near[1]]
         infer[f, idx[~on_plane]] = False
+    return replace(ds, infer_mask=infer)
+
+
+def two_objects(ds: Dataset, rng: np.random.Generator, group_points: tuple = (60, 140),
+                n_points: tuple = (40, 100)) -> Dataset:
+    """Keep, per frame, the inference points a user would label on two objects apart in the
+    image (the paper's LEGO test: two buildings): around a uniformly chosen inference point and
+    a second one drawn with probability proportional to its distance (px) from the first, the
+    g ~ U(group_points) inference points nearest (px) to each; of these, n ~ U(n_points) drawn
+    uniformly stay. Both ranges are inclusive. Frames with fewer than two inference points keep
+    them. Label noise is ``add_noise``'s."""
+    _check_generator(rng)
+    for name, (low, high) in (("group_points", group_points), ("n_points", n_points)):
+        if not MIN_POINTS_PER_FRAME <= low <= high:
+            raise InputError(f"{name} must be a range ({MIN_POINTS_PER_FRAME} <= low <= high), got {(low, high)!r}")
+    infer = ds.infer_mask.copy()
+    for f in range(ds.n_frames):
+        idx = np.flatnonzero(infer[f])
+        if len(idx) < 2:
+            continue
+        x = ds.points_2d[f, idx]
+        first = rng.integers(len(idx))
+        distance = np.linalg.norm(x - x[first], axis=1)
+        second = rng.choice(len(idx), p=distance / distance.sum()) if distance.sum() > 0 else first
+        groups = set()
+        for centre in (first, second):
+            nearest = np.argsort(np.linalg.norm(x - x[centre], axis=1), kind="stable")
+            groups.update(nearest[:rng.integers(group_points[0], group_points[1] + 1)].tolist())
+        groups = np.array(sorted(groups))
+        keep = rng.choice(groups, min(len(groups), int(rng.integers(n_points[0], n_points[1] + 1))), replace=False)
+        infer[f] = False
+        infer[f, idx[keep]] = True
     return replace(ds, infer_mask=infer)
 
 

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, occupancy
+from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, occupancy, two_objects
 from dimenet.runtime.dataset import Dataset
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.grid import Grid
@@ -109,6 +109,7 @@ def test_conditions_do_not_modify_their_input():
     add_noise(ds, 1.0, 1.0, rng)
     drop_inference_points(ds, 6, rng)
     empty_cells(ds, 0.5, Grid.parse("4x3"), rng)
+    two_objects(ds, rng)
     np.testing.assert_array_equal(ds.points_2d, p2)
     np.testing.assert_array_equal(ds.infer_mask, infer)
 
@@ -127,6 +128,9 @@ def test_conditions_do_not_modify_their_input():
     lambda ds, rng: empty_cells(ds, float("nan"), GRID_8X6, rng),
     lambda ds, rng: empty_cells(ds, 0.5, "8x6", rng),
     lambda ds, rng: occupancy(ds, "8x6"),
+    lambda ds, rng: two_objects(ds, 0),
+    lambda ds, rng: two_objects(ds, rng, group_points=(5, 10)),
+    lambda ds, rng: two_objects(ds, rng, n_points=(40, 20)),
 ])
 def test_bad_arguments_raise_input_error(call):
     with pytest.raises(InputError):
@@ -148,3 +152,53 @@ def test_per_frame_values(s8_dataset):
     assert emptied.infer_mask[1::2].sum() < s8_dataset.infer_mask[1::2].sum()
     with pytest.raises(InputError):
         drop_inference_points(s8_dataset, np.full(F + 1, 64), np.random.default_rng(0))
+
+
+def _uncovered_by_every_pair(points: np.ndarray, kept: np.ndarray, group: int) -> bool:
+    """True when no two of ``points`` (n, 2) have ``kept`` (k, 2) all among their ``group``
+    nearest points (ties broken as a stable sort does)."""
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    rank = np.argsort(np.argsort(d, axis=1, kind="stable"), axis=1, kind="stable")  # rank[c, i]
+    where = [int(np.flatnonzero((points == x).all(1))[0]) for x in kept]
+    outside = (rank[:, where] >= group).astype(int)  # (n, k): kept point not in c's group
+    return not np.any(outside @ outside.T == 0)
+
+
+def test_two_objects_keeps_a_subset_of_two_groups_around_far_apart_centres(s8_dataset):
+    rig = s8_dataset.select(s8_dataset.scene == "rig")
+    out = two_objects(rig, np.random.default_rng(0))
+    np.testing.assert_array_equal(out.valid, rig.valid)
+    np.testing.assert_array_equal(out.points_2d, rig.points_2d)  # label noise is add_noise's
+    n = out.infer_mask.sum(1)
+    assert np.all(out.infer_mask <= rig.infer_mask) and np.all((40 <= n) & (n <= 100))
+    for f in range(0, rig.n_frames, 23):
+        x = rig.points_2d[f][rig.infer_mask[f]]
+        assert not _uncovered_by_every_pair(x, rig.points_2d[f][out.infer_mask[f]], 140)
+    # One group of 6 around each centre: the second centre is drawn by distance from the first,
+    # so the groups lie further apart (1.22x here) than around two uniformly drawn centres (1.0x).
+    pairs = two_objects(rig, np.random.default_rng(1), group_points=(6, 6), n_points=(12, 12))
+    rng = np.random.default_rng(2)
+    extent = lambda x: np.linalg.norm(x[:, None] - x[None], axis=-1).max()  # noqa: E731
+    apart, uniform = [], []
+    for f in range(rig.n_frames):
+        x = rig.points_2d[f][pairs.infer_mask[f]]
+        assert 6 <= len(x) <= 12  # fewer where the groups overlap
+        apart.append(extent(x))
+        points = rig.points_2d[f][rig.infer_mask[f]]
+        for _ in range(10):
+            near = [np.argsort(np.linalg.norm(points - points[c], axis=1))[:6] for c in rng.integers(len(points), size=2)]
+            uniform.append(extent(points[np.union1d(*near)]))
+    assert np.mean(apart) > 1.12 * np.mean(uniform)
+    again = two_objects(rig, np.random.default_rng(0))
+    np.testing.assert_array_equal(again.infer_mask, out.infer_mask)
+
+
+def test_two_objects_keeps_frames_with_too_few_points():
+    ds = tiny_dataset()
+    one = ds.infer_mask.copy()
+    one[1] = False
+    one[1, 0] = True
+    out = two_objects(Dataset(**{**ds.__dict__, "infer_mask": one}), np.random.default_rng(0),
+                      group_points=(6, 6), n_points=(6, 6))
+    np.testing.assert_array_equal(out.infer_mask[1], one[1])  # one point: unchanged
+    np.testing.assert_array_equal(out.infer_mask[0], ds.infer_mask[0])  # 4 points, all in both groups
