@@ -2,7 +2,11 @@
 
 Per step: grid features (the runtime's numpy code) from each frame's inference points ->
 MLP -> K = K_c + Delta K -> pose by the BPnP layer under K on all valid points -> loss =
-mean squared reprojection error (px^2) over those points (paper eq. L_rep).
+mean squared reprojection error (px^2) over those points (paper eq. L_rep), plus a focal term
+beyond the paper: focal_weight times the mean squared error (px^2) of (fx, fy) against the
+frame's K*. L_rep is nearly flat along f (the pose's depth absorbs it), so without that term
+the net never learns focus breathing and its f drifts by up to +7 px on clustered or planar
+inputs (training/METHOD.md).
 
 Robust by construction: every epoch each training frame is re-drawn with a random number of
 inference points (min_points..all) and a random fraction (0..max_eta) of its occupied grid
@@ -75,6 +79,7 @@ class TrainConfig:
     # runs (stopping at 150 cost one seed 5 points of ipad rho) and the best val epoch is kept.
     patience: Optional[int] = None
     full_share: float = 0.4  # share of frames keeping all their inference points and every cell
+    focal_weight: float = 0.03  # weight of the focal term: squared error (px^2) of (fx, fy) against K*
 
 
 @dataclass(frozen=True)
@@ -210,6 +215,12 @@ def _tensors(frames: Dataset):
     return p2, p3, w
 
 
+def focal_loss(delta_k: torch.Tensor, delta_f_star: torch.Tensor) -> torch.Tensor:
+    """Mean squared error (px^2) of the predicted (dfx, dfy) against the frames' K* focal
+    lengths minus K_c's (B, 2) px."""
+    return ((delta_k[:, :2].double() - delta_f_star) ** 2).mean()
+
+
 def reprojection_loss(delta_k: torch.Tensor, K_c: torch.Tensor, p2, p3, w) -> tuple[torch.Tensor, torch.Tensor]:
     """(mean squared error px^2 over frames, per-frame mean Euclidean error px) under K = K_c + delta_k."""
     # An untrained net may emit a wild Delta K under which PnP has no solution; the clamp is
@@ -257,6 +268,8 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
     fit_idx, val_idx = split_train_val(dataset, config)
     train_frames, val_frames = dataset.select(fit_idx), dataset.select(val_idx)
     truth = frame_truth(train_frames, cal.K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx])
+    # Re-imaging keeps a frame's own focal length, so its K* f stays the target of every draw.
+    delta_f_star = torch.from_numpy(k_params(truth.K_star)[:, :2] - k_params(K_c)[:2])
     val_sets = [val_frames, drop_inference_points(val_frames, config.min_points, np.random.default_rng(config.seed + 1))]
     image_size = dataset.image_size
     feats_of = lambda fr: torch.from_numpy(  # noqa: E731
@@ -278,11 +291,13 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
         losses = []
         for i in range(0, len(order), config.batch_size):
             b = order[i:i + config.batch_size]
-            loss, _ = reprojection_loss(model(feats[b]), K_c_t, p2[b], p3[b], w[b])
+            delta_k = model(feats[b])
+            mse = reprojection_loss(delta_k, K_c_t, p2[b], p3[b], w[b])[0]
+            loss = mse + config.focal_weight * focal_loss(delta_k, delta_f_star[b])
             opt.zero_grad()
             loss.backward()
             opt.step()
-            losses.append(loss.item())
+            losses.append(mse.item())
         sched.step()
         model.eval()
         with torch.no_grad():
