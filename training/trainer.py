@@ -14,8 +14,8 @@ cells emptied, so one model serves 320 down to 64 points and eta up to 80%; a sh
 frames keeps only clustered, noisily labelled inference points, like natural-object labels.
 Early stopping on the val split, or on a held-back part of train when there is no val.
 Then the uncertainty model of Delta K (runtime/uncertainty.py) is fitted on those same
-frames, clean, reduced to 64 points, under several draws of the augmentation and with the
-points of one plane.
+frames, clean, reduced to 64 points, under several draws of the augmentation, with the
+points of one plane and with those of two objects under label noise.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ import torch
 
 from dimenet.runtime import __version__
 from dimenet.runtime.calibration import calibrate_dataset
-from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, one_plane
+from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
 from dimenet.runtime.dataset import Dataset
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.features import FeatureSpec, grid_features
@@ -53,8 +53,11 @@ DELTA_K_LIMIT_PX = 300.0
 K_BOUNDS_MARGIN = 1.0
 # The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames
 # clean, at 64 points, and under as many augmentation draws as it takes (at least 8), plus
-# a third as many one-plane draws.
+# a third as many one-plane draws and as many two-object draws.
 UNCERTAINTY_SAMPLES = 240
+# Per-axis std range (px) of the label noise on the two-object draws: hand labels of natural
+# features are a few px off (the paper's LEGO test; the simulator's natural scene: 4.9 px).
+OBJECT_LABEL_NOISE_PX = (2.0, 8.0)
 
 
 @dataclass(frozen=True)
@@ -189,15 +192,19 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
 def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, K_star: np.ndarray,
                             config: TrainConfig, rng: np.random.Generator) -> tuple[Uncertainty, dict]:
     """The uncertainty model of the trained network's K - K* on ``frames`` (with their K*
-    (F, 3, 3)) under the test-like conditions of ``augment`` and with the points of one plane
+    (F, 3, 3)) under the test-like conditions of ``augment``, with the points of one plane
     (a third as many draws: a single view of a plane leaves K partly unobservable, and only
-    such inputs teach the model how little the network then knows); and its 1-sigma
+    such inputs teach the model how little the network then knows) and with those of two
+    objects under label noise (as many draws: hand-labelled natural features, whose sparse
+    and noisy spread the augmentation's compact clusters do not show); and its 1-sigma
     coverage there."""
     predictor = torch_predictor(model, spec, "training")
     draws = max(8, -(-UNCERTAINTY_SAMPLES // frames.n_frames))
     conditions = [frames, drop_inference_points(frames, config.min_points, rng)]
     conditions += [augment(frames, config, spec.features.grid, rng) for _ in range(draws)]
     conditions += [one_plane(frames, rng) for _ in range(-(-draws // 3))]
+    conditions += [add_noise(two_objects(frames, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, frames.n_frames), 0.0, rng)
+                   for _ in range(draws)]
     residuals, stats = [], []
     for condition in conditions:
         pred = predictor.predict(condition)
