@@ -85,6 +85,36 @@ def test_focal_term_teaches_the_net_focus_breathing(small, tmp_path):
     assert errors[with_term] < 0.5 * errors[0.0] and corr[with_term] > 0.5 > corr[0.0]
 
 
+def test_uncertainty_is_fitted_on_two_object_draws_too(small, tmp_path, monkeypatch):
+    """As many two-object draws (hand-labelled natural features) as augmentation draws, each
+    of all the early-stopping frames, with a 2-8 px label noise on each."""
+    from dimenet.training import trainer
+
+    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path / "run").run_dir
+    model, spec = load_run(run)
+    _, val_idx = split_train_val(small, TrainConfig())
+    val = small.select(val_idx)
+    drawn, noise = [], {}  # the two-object draws; the 2D noise std added to each dataset, by id
+    two_objects, add_noise = trainer.two_objects, trainer.add_noise
+
+    def drawing(ds, rng):
+        drawn.append(two_objects(ds, rng))
+        return drawn[-1]
+
+    def noising(ds, sigma_2d_px, sigma_3d_mm, rng):
+        noise[id(ds)] = sigma_2d_px
+        return add_noise(ds, sigma_2d_px, sigma_3d_mm, rng)
+
+    monkeypatch.setattr(trainer, "two_objects", drawing)
+    monkeypatch.setattr(trainer, "add_noise", noising)
+    trainer.fit_network_uncertainty(model, spec, val, calibrate_dataset(small).K_star[val_idx], TrainConfig(),
+                                    np.random.default_rng(0))
+    assert len(drawn) == max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
+    for ds in drawn:
+        assert ds.n_frames == val.n_frames and np.all(ds.infer_mask.sum(1) <= 100)
+        assert np.all((2.0 <= noise[id(ds)]) & (noise[id(ds)] <= 8.0))
+
+
 def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principal_point(small):
     cal = calibrate_dataset(small)
     idx = np.flatnonzero(small.frames_in("train"))
