@@ -144,8 +144,8 @@ def two_objects(ds: Dataset, rng: np.random.Generator, group_points: tuple = (60
         distance = np.linalg.norm(x - x[first], axis=1)
         second = rng.choice(len(idx), p=distance / distance.sum()) if distance.sum() > 0 else first
         groups = set()
-        for centre in (first, second):
-            nearest = np.argsort(np.linalg.norm(x - x[centre], axis=1), kind="stable")
+        for to_centre in (distance, np.linalg.norm(x - x[second], axis=1)):
+            nearest = np.argsort(to_centre, kind="stable")
             groups.update(nearest[:rng.integers(group_points[0], group_points[1] + 1)].tolist())
         groups = np.array(sorted(groups))
         keep = rng.choice(groups, min(len(groups), int(rng.integers(n_points[0], n_points[1] + 1))), replace=False)
