@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -180,3 +182,19 @@ def test_clustered_inference_points_are_compact_noisy_candidates_and_spare_other
         r_out = np.minimum(d_out[:, :, None], d_out[:, None, :]).min(0)
         assert np.any(r_kept <= r_out)
     assert out.valid is small.valid or np.array_equal(out.valid, small.valid)
+
+
+def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small, tmp_path):
+    from dimenet.runtime.cli import main
+    from dimenet.training.commands import TRAIN_DEFAULT_FOCAL_WEIGHT
+
+    assert TRAIN_DEFAULT_FOCAL_WEIGHT == TrainConfig().focal_weight  # --help states the trainer's default
+    data = write_dataset(small, tmp_path / "small.npz")
+    assert main(["train", str(data), "--out", str(tmp_path / "run"), "--epochs", "1", "--focal-weight", "0"]) == 0
+    spec = json.loads((tmp_path / "run" / "spec.json").read_text())
+    assert spec["provenance"]["config"]["focal_weight"] == 0.0
+    for bad in ("-1", "nan", "inf"):
+        res = subprocess.run([sys.executable, "-m", "dimenet.runtime.cli", "train", str(data), "--out",
+                              str(tmp_path / "bad"), "--focal-weight", bad], capture_output=True, text=True, timeout=120)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and "--focal-weight" in lines[0], res.stderr

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 
 from dimenet.runtime.cli import Command
 
+# TrainConfig's default, repeated here so that `dimenet train --help` needs no torch.
+TRAIN_DEFAULT_FOCAL_WEIGHT = 0.03
 
 
 def _add_train(p: argparse.ArgumentParser) -> None:
@@ -16,6 +19,9 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", default="A", choices="ABCDE", help="feature variant of paper Table 3 (default A)")
     p.add_argument("--epochs", type=int, default=600, help="epochs (default 600; the best val epoch is kept)")
     p.add_argument("--seed", type=int, default=0, help="seed: same seed, same model (default 0)")
+    p.add_argument("--focal-weight", type=float, default=TRAIN_DEFAULT_FOCAL_WEIGHT, metavar="W",
+                   help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
+                        f"each frame's K* (default {TRAIN_DEFAULT_FOCAL_WEIGHT}; 0: the paper's loss alone)")
 
 
 def _run_train(args: argparse.Namespace) -> int:
@@ -26,8 +32,11 @@ def _run_train(args: argparse.Namespace) -> int:
 
     if args.epochs < 1:
         raise InputError(f"--epochs must be >= 1, got {args.epochs}")
+    if not 0.0 <= args.focal_weight < math.inf:
+        raise InputError(f"--focal-weight must be a finite number >= 0, got {args.focal_weight}")
     ds = read_dataset(args.data)
-    config = TrainConfig(grid=args.grid, variant=args.features, epochs=args.epochs, seed=args.seed)
+    config = TrainConfig(grid=args.grid, variant=args.features, epochs=args.epochs, seed=args.seed,
+                         focal_weight=args.focal_weight)
     result = train(ds, config, args.out, dataset_sha256=file_sha256(args.data),
                    command="dimenet " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
     print(f"trained {result.best_epoch} epochs (best), val Avg(e) {result.best_val_e:.3f} px, "
@@ -37,7 +46,8 @@ def _run_train(args: argparse.Namespace) -> int:
 
 TRAIN = Command(
     name="train",
-    summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer).",
+    summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, "
+            "plus a focal term).",
     example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0",
     add_arguments=_add_train,
     run=_run_train,
