@@ -5,7 +5,7 @@ MLP -> K = K_c + Delta K -> pose by the BPnP layer under K on all valid points -
 mean squared reprojection error (px^2) over those points (paper eq. L_rep), plus a focal term
 beyond the paper: focal_weight times the mean squared error (px^2) of (fx, fy) against the
 frame's K*. L_rep is nearly flat along f (the pose's depth absorbs it), so without that term
-the net never learns focus breathing and its f drifts by up to +7 px on clustered or planar
+the net barely learns focus breathing and its f drifts by up to +7 px on clustered or planar
 inputs (training/METHOD.md).
 
 Robust by construction: every epoch each training frame is re-drawn with a random number of
