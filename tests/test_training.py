@@ -109,8 +109,9 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(small, tmp_path, monkeypa
 
     monkeypatch.setattr(trainer, "two_objects", drawing)
     monkeypatch.setattr(trainer, "add_noise", noising)
-    trainer.fit_network_uncertainty(model, spec, val, calibrate_dataset(small).K_star[val_idx], TrainConfig(),
-                                    np.random.default_rng(0))
+    cal = calibrate_dataset(small)
+    truth = frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
     assert len(drawn) == max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
     for ds in drawn:
         assert ds.n_frames == val.n_frames and np.all(ds.infer_mask.sum(1) <= 100)
@@ -122,9 +123,10 @@ def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principa
     idx = np.flatnonzero(small.frames_in("train"))
     frames = small.select(idx)
     truth = frame_truth(frames, cal.K_star[idx], cal.rvec[idx], cal.tvec[idx])
-    same = resynthesise(frames, truth, np.random.default_rng(0), share=0.0)
+    same, K_same = resynthesise(frames, truth, np.random.default_rng(0), share=0.0)
     np.testing.assert_allclose(same.points_2d[frames.valid], frames.points_2d[frames.valid], atol=1e-9)
-    moved = resynthesise(frames, truth, np.random.default_rng(0), share=1.0)
+    np.testing.assert_array_equal(K_same, cal.K_star[idx])
+    moved, K_moved = resynthesise(frames, truth, np.random.default_rng(0), share=1.0)
     # Re-calibrating a re-imaged frame finds its own focal length and another frame's principal point.
     K_new = calibrate_dataset(dataclasses.replace(moved, split=np.full(moved.n_frames, "train"))).K_star
     p_old, p_new = k_params(cal.K_star[idx]), k_params(K_new)
@@ -132,6 +134,37 @@ def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principa
     candidates = p_old[:, 2:]
     dist = np.abs(p_new[:, None, 2:] - candidates[None]).max(-1).min(-1)
     assert np.all(dist < 1e-4)  # px: LM convergence, far below the ~50 px spread of principal points
+    np.testing.assert_allclose(k_params(K_moved), p_new, atol=1e-4)  # the K it returns is the one imaged under
+
+
+def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(small, tmp_path, monkeypatch):
+    """Every draw is made on the early-stopping frames re-imaged under other principal points,
+    and its residuals are taken against the K each frame is then imaged under: a re-imaging
+    whose K is off by 1000 px in cx makes the fitted sigma of cx about that large."""
+    from dimenet.training import trainer
+
+    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path / "run").run_dir
+    model, spec = load_run(run)
+    _, val_idx = split_train_val(small, TrainConfig())
+    val = small.select(val_idx)
+    cal = calibrate_dataset(small)
+    truth = frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    calls = []
+
+    def shifted(frames, frame_truth_, rng, share):
+        calls.append(share)
+        reimaged, K = resynthesise(frames, frame_truth_, rng, share)
+        K = K.copy()
+        K[:, 0, 2] += 1000.0
+        return reimaged, K
+
+    monkeypatch.setattr(trainer, "resynthesise", shifted)
+    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
+    draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
+    assert calls == [1.0] * (2 * draws + 3 * -(-draws // 3))  # one re-imaging of all frames per draw
+    pred = load_predictor(str(run)).predict(val)
+    sigma = uncertainty.sigma(pred.stats[pred.predicted])
+    assert np.all(sigma[:, 2] > 300.0) and np.all(sigma[:, [0, 1, 3]] < 300.0)
 
 
 def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_path):

@@ -51,9 +51,9 @@ from .run_dir import write_run
 DELTA_K_LIMIT_PX = 300.0
 # Plausible K: the train frames' K* range widened by this many times its span on each side.
 K_BOUNDS_MARGIN = 1.0
-# The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames
-# clean, at 64 points, and under as many augmentation draws as it takes (at least 8), plus
-# a third as many one-plane draws and as many two-object draws.
+# The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames,
+# re-imaged, under as many augmentation draws as it takes (at least 8), plus a third as many
+# draws each clean, at 64 points and of one plane, and as many two-object draws.
 UNCERTAINTY_SAMPLES = 240
 # Per-axis std range (px) of the label noise on the two-object draws: hand labels of natural
 # features are a few px off (the paper's LEGO test; the simulator's natural scene: 4.9 px).
@@ -134,18 +134,20 @@ def frame_truth(frames: Dataset, cal_K, cal_rvec, cal_tvec) -> FrameTruth:
     return FrameTruth(cal_K, cal_rvec, cal_tvec, np.where(frames.valid[..., None], residual, 0.0))
 
 
-def resynthesise(frames: Dataset, truth: FrameTruth, rng: np.random.Generator, share: float) -> Dataset:
+def resynthesise(frames: Dataset, truth: FrameTruth, rng: np.random.Generator,
+                 share: float) -> tuple[Dataset, np.ndarray]:
     """K-resynthesis augmentation: frame i re-imaged under the principal point of a random
-    train frame j (its own focal length kept, so focus breathing stays tied to distance):
-    x' = pi(K', pose*_i) + residual_i. The OIS state is independent of the hand-held pose,
-    so this is a draw from the same joint distribution, with frame i's real noise.
-    A random ``share`` of the frames is re-imaged; the others stay as captured."""
+    frame j of ``frames`` (its own focal length kept, so focus breathing stays tied to
+    distance): x' = pi(K', pose*_i) + residual_i. The OIS state is independent of the
+    hand-held pose, so this is a draw from the same joint distribution, with frame i's real
+    noise. A random ``share`` of the frames is re-imaged; the others stay as captured.
+    Returns the frames and the K' (F, 3, 3) px each is now imaged under (K*_i if not re-imaged)."""
     j = rng.integers(0, frames.n_frames, frames.n_frames)
     j = np.where(rng.random(frames.n_frames) < share, j, np.arange(frames.n_frames))
     K_new = truth.K_star.copy()
     K_new[:, :2, 2] = truth.K_star[j, :2, 2]
     x_new = project(frames.points_3d, K_new, truth.rvec, truth.tvec) + truth.residual
-    return replace(frames, points_2d=np.where(frames.valid[..., None], x_new, np.nan))
+    return replace(frames, points_2d=np.where(frames.valid[..., None], x_new, np.nan)), K_new
 
 
 def cluster_inference_points(frames: Dataset, candidates: np.ndarray, share: float, n_points: tuple,
@@ -189,26 +191,31 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
                                     config.max_label_noise_px, rng)
 
 
-def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, K_star: np.ndarray,
+def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, truth: FrameTruth,
                             config: TrainConfig, rng: np.random.Generator) -> tuple[Uncertainty, dict]:
-    """The uncertainty model of the trained network's K - K* on ``frames`` (with their K*
-    (F, 3, 3)) under the test-like conditions of ``augment``, with the points of one plane
-    (a third as many draws: a single view of a plane leaves K partly unobservable, and only
-    such inputs teach the model how little the network then knows) and with those of two
-    objects under label noise (as many draws: hand-labelled natural features, whose sparse
-    and noisy spread the augmentation's compact clusters do not show); and its 1-sigma
-    coverage there."""
+    """The uncertainty model of the trained network's K - K' on ``frames`` (the early-stopping
+    frames, ``truth`` their calibration), each draw on the frames re-imaged by ``resynthesise``
+    (every frame under another's principal point; K' the K it is then imaged under): so the
+    fit sees many pairings of pose and OIS state, not only the few frames' own. The draws:
+    clean, at 64 points and with the points of one plane (a third as many each as there are
+    augmentation draws; a single view of a plane leaves K partly unobservable, and only such
+    inputs teach the model how little the network then knows), under ``augment``'s test-like
+    conditions, and with the points of two objects under label noise (as many: hand-labelled
+    natural features, whose sparse and noisy spread the augmentation's compact clusters do not
+    show). Returns the model and its 1-sigma coverage there."""
     predictor = torch_predictor(model, spec, "training")
     draws = max(8, -(-UNCERTAINTY_SAMPLES // frames.n_frames))
-    conditions = [frames, drop_inference_points(frames, config.min_points, rng)]
-    conditions += [augment(frames, config, spec.features.grid, rng) for _ in range(draws)]
-    conditions += [one_plane(frames, rng) for _ in range(-(-draws // 3))]
-    conditions += [add_noise(two_objects(frames, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, frames.n_frames), 0.0, rng)
-                   for _ in range(draws)]
+    few = -(-draws // 3)
+    conditions = [lambda ds: ds] * few + [lambda ds: drop_inference_points(ds, config.min_points, rng)] * few
+    conditions += [lambda ds: augment(ds, config, spec.features.grid, rng)] * draws
+    conditions += [lambda ds: one_plane(ds, rng)] * few
+    conditions += [lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0,
+                                        rng)] * draws
     residuals, stats = [], []
     for condition in conditions:
-        pred = predictor.predict(condition)
-        residuals.append((k_params(pred.K) - k_params(K_star))[pred.predicted])
+        reimaged, K_reimaged = resynthesise(frames, truth, rng, 1.0)
+        pred = predictor.predict(condition(reimaged))
+        residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
         stats.append(pred.stats[pred.predicted])
     residuals, stats = np.concatenate(residuals), np.concatenate(stats)
     uncertainty = fit_uncertainty(residuals, stats)
@@ -290,7 +297,7 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
     best = (np.inf, 0, None)
     history = []
     for epoch in progress(range(1, config.epochs + 1), desc="train"):
-        frames = augment(resynthesise(train_frames, truth, rng, config.resynthesis), config, spec_features.grid, rng)
+        frames = augment(resynthesise(train_frames, truth, rng, config.resynthesis)[0], config, spec_features.grid, rng)
         feats = feats_of(frames)
         p2, p3, w = _tensors(frames)
         order = torch.from_numpy(rng.permutation(frames.n_frames))
@@ -322,7 +329,8 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
                     "torch_version": torch.__version__, "config": asdict(config), "command": command,
                     "best_epoch": best[1], "best_val_e_px": best[0]},
     )
-    uncertainty, val_coverage = fit_network_uncertainty(model, spec, val_frames, cal.K_star[val_idx], config,
+    val_truth = frame_truth(val_frames, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    uncertainty, val_coverage = fit_network_uncertainty(model, spec, val_frames, val_truth, config,
                                                         np.random.default_rng(config.seed + 2))
     spec = replace(spec, uncertainty=uncertainty,
                    provenance={**spec.provenance, "uncertainty_val_coverage": val_coverage})
