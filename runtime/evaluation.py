@@ -118,13 +118,13 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
     """The map method: per frame, ``map_rectify`` on its inference points from the network's
     K and covariance (``prediction``, the predictor's on these frames); frames the network
     does not predict keep K_c, failed fits its K."""
-    predictor.spec.map_uncertainty(predictor.source)
+    uncertainty = predictor.spec.map_uncertainty(predictor.source)
     K, cov = prediction.K.copy(), prediction.cov.copy()
     fallbacks = int((~prediction.predicted).sum())
     for f in np.flatnonzero(prediction.predicted):
         m = frames.infer_mask[f]
         fit, reason = map_rectify(frames.points_2d[f][m], frames.points_3d[f][m], k_params(K[f]), cov[f],
-                                  predictor.spec.K_bounds, predictor.spec.K_c)
+                                  predictor.spec.K_bounds, predictor.spec.K_c, uncertainty=uncertainty)
         if reason is None:
             K[f], cov[f] = k_matrix(fit.k), fit.k_cov
         else:

@@ -11,7 +11,9 @@ ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c
 k_net's principal point (``turned_to_principal_point``), with the analytic normal equations
 (``geometry.frame_normal_equations``, the pose perturbed on the left); a step that does not
 lower the cost ends the fit. The posterior covariance of k is the K block of the inverse
-Gauss-Newton Hessian at the last linearisation.
+Gauss-Newton Hessian at the last linearisation, widened per parameter for the network's
+correlation with the data on noisy points when the uncertainty model has one (spec >= 1.3,
+``Uncertainty.posterior_scale``).
 
 One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
 observable even from one planar view, where the data alone cannot fix it.
@@ -24,6 +26,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .uncertainty import Uncertainty
 from .geometry import (camera_xy_inverse_depth, frame_k_matrix, frame_normal_equations, frame_residuals, left_update,
                        solve_pnp_start)
 
@@ -45,7 +48,8 @@ NOISE_PASSES = 1
 class MapFit:
     """k (4,) px (fx, fy, cx, cy); rvec (3,) rad, tvec (3,) mm {W}->{C}; k_cov (4, 4) px^2 the
     posterior covariance; residuals (N, 2) px at the result; steps: the Gauss-Newton steps
-    taken (0: the first step would have raised the cost, the result is the start)."""
+    taken (0: the first step would have raised the cost, the result is the start); noise_px:
+    the frame's 2D noise std s the data term was weighted with."""
 
     k: np.ndarray
     rvec: np.ndarray
@@ -53,16 +57,18 @@ class MapFit:
     k_cov: np.ndarray
     residuals: np.ndarray
     steps: int
+    noise_px: float
 
 
 def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
             rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS,
-            K_start: np.ndarray | None = None) -> MapFit:
+            K_start: np.ndarray | None = None, uncertainty: Uncertainty | None = None) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
     {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
     to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
-    own); iterations >= 1 Gauss-Newton steps at most."""
+    own); iterations >= 1 Gauss-Newton steps at most; uncertainty: the network's, whose
+    ``posterior_scale`` widens k_cov (None: the independent-errors posterior)."""
     precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
     R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
@@ -96,9 +102,13 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
             cov = _posterior(JJ, precision, weight)
     if residuals is None:
         residuals = np.ascontiguousarray(r.T)
-    k_cov = cov[6:, 6:]
-    return MapFit(k=k, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=tvec, k_cov=(k_cov + k_cov.T) / 2,
-                  residuals=residuals, steps=steps)
+    k_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
+    noise_px = weight ** -0.5
+    if uncertainty is not None:
+        scale = np.array(uncertainty.posterior_scale((np.diag(k_cov) / np.diag(cov_net)).tolist(), noise_px))
+        k_cov = k_cov * np.outer(scale, scale)
+    return MapFit(k=k, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=tvec, k_cov=k_cov, residuals=residuals, steps=steps,
+                  noise_px=noise_px)
 
 
 def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, K_from: np.ndarray,
@@ -127,18 +137,19 @@ def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarr
 
 
 def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
-                k_bounds: np.ndarray, K_c: np.ndarray, pose=None) -> tuple[MapFit | None, str | None]:
+                k_bounds: np.ndarray, K_c: np.ndarray, pose=None,
+                uncertainty: Uncertainty | None = None) -> tuple[MapFit | None, str | None]:
     """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
     checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
     (the turned C0 pose is not k_net's optimum, so the caller's own PnP under k_net is better)
     or the MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the
-    DIME-Net K."""
+    DIME-Net K. ``uncertainty``: as ``map_fit``'s."""
     if pose is None:
         try:
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
             return None, "no C0 pose under K_c"
-    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, K_start=K_c)
+    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
     if result.steps == 0:
         return None, "the MAP step did not lower the cost"
     # Plain floats: a NaN fails every comparison, so this also refuses a non-finite K.

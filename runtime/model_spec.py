@@ -21,7 +21,9 @@ FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version. 1.1: the optional
 # ``uncertainty`` (what MAP mode needs); 1.0 files still load, for mode "dimenet" only.
 # 1.2: the uncertainty names its statistics and may use the 3D thickness; 1.1 files still load.
-VERSION = "1.2.0"
+# 1.3: the uncertainty's data_correlation and noise_scale_px, by which mode map widens its
+# posterior on noisy points; 1.1 and 1.2 files still load (no widening).
+VERSION = "1.3.0"
 METADATA_KEY = "dimenet_model_spec"
 
 

@@ -333,7 +333,7 @@ class Rectifier:
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
             fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
-                                   pose=(rvec_c, tvec_c))
+                                   pose=(rvec_c, tvec_c), uncertainty=self._uncertainty)
             if why is None:
                 K, dk, rvec, tvec = frame_k_matrix(fit.k.tolist()), fit.k - self._kc_params, fit.rvec, fit.tvec
                 covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals.T)
@@ -503,7 +503,7 @@ class Rectifier:
         for b in np.flatnonzero(pending):
             m = infer[b]
             fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]))
+                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]), uncertainty=self._uncertainty)
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue

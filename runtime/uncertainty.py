@@ -15,11 +15,20 @@ Gaussian maximum-likelihood coef on the residuals K - K* (Newton, convex), then 
 intercept rescaled so that 68.27 % of the fitting frames lie within 1 sigma, then C from
 the standardised residuals. Models of spec 1.1 use the first three statistics only; a model
 names the statistics it uses, and reads those columns of the (B, 4) statistics.
+
+The network reads the same points as the MAP data term, so on noisy points their errors are
+correlated, which the MAP posterior (independent prior and data) does not know. Spec 1.3 adds
+per parameter a correlation rho_p, fitted on noisy fitting frames (``fit_data_correlation``),
+by which mode map widens its posterior: for an estimate weighting prior and data as w = r and
+1 - r (r the posterior over the prior variance), errors of correlation rho add
+2 rho sqrt(r (1 - r)) times the posterior variance. The correlation comes from the noise, so it
+is scaled by w(s) = s^2 / (s^2 + s0^2) with s the frame's 2D noise (px, the MAP fit's) and
+s0 = NOISE_SCALE_PX: at corner-level noise (0.4 px) the two read independent information.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,17 +40,26 @@ D_FLOOR_PX = 0.05  # PMD below this says nothing more: noise-free frames are not
 T_FLOOR = 1e-6  # thickness of a plane to float rounding: log t stays finite on exactly planar points
 ONE_SIGMA = 0.6827  # share of a Gaussian within one standard deviation
 RIDGE = 1e-6  # keeps the Newton steps of the fit defined when a statistic does not vary
+# 2D noise (px) at which half of the prior-data correlation applies. galaxy-s8, 690 fresh
+# frames: s0 = 0 (rho for any noise) over-covers single planar views (cx 79 %), 4 px needs
+# rho_cx > 1; 2 px calibrates noisy rig frames and leaves clean ones as they are
+# (training/METHOD.md, "Calibration on fresh frames").
+NOISE_SCALE_PX = 2.0
 
 
 @dataclass(frozen=True)
 class Uncertainty:
     """coef (4, 1 + S): per parameter (fx, fy, cx, cy), the weights of z = [1, the S statistics
     named in ``statistics``] (a subsequence of STATISTICS); correlation (4, 4): of the
-    standardised residuals."""
+    standardised residuals; data_correlation (4,): rho_p of the network's errors with the MAP
+    data term's on noisy points, in [0, 1] (zeros: independent, as models before spec 1.3);
+    noise_scale_px: the s0 (px) of the noise weight w(s)."""
 
     coef: np.ndarray
     correlation: np.ndarray
     statistics: tuple = STATISTICS
+    data_correlation: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    noise_scale_px: float = NOISE_SCALE_PX
 
     def __post_init__(self):
         if not set(self.statistics) <= set(STATISTICS) or len(set(self.statistics)) != len(self.statistics):
@@ -54,11 +72,18 @@ class Uncertainty:
             raise ValueError("uncertainty: coef and correlation must be finite")
         if np.any(np.linalg.eigvalsh((self.correlation + self.correlation.T) / 2) <= 0):
             raise ValueError("uncertainty: the correlation matrix is not positive definite")
+        rho = np.asarray(self.data_correlation, dtype=np.float64)
+        if rho.shape != (4,) or not np.all((rho >= 0) & (rho <= 1)):
+            raise ValueError(f"uncertainty: data_correlation must be 4 values in [0, 1], got {self.data_correlation!r}")
+        if not (math.isfinite(self.noise_scale_px) and self.noise_scale_px > 0):
+            raise ValueError(f"uncertainty: noise_scale_px must be a positive number, got {self.noise_scale_px!r}")
+        object.__setattr__(self, "data_correlation", rho)
         object.__setattr__(self, "_columns", [STATISTICS.index(name) for name in self.statistics])
 
     def to_dict(self) -> dict:
         return {"parameters": list(PARAMETERS), "statistics": ["1", *self.statistics],
-                "coef": self.coef.tolist(), "correlation": self.correlation.tolist()}
+                "coef": self.coef.tolist(), "correlation": self.correlation.tolist(),
+                "data_correlation": self.data_correlation.tolist(), "noise_scale_px": self.noise_scale_px}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Uncertainty":
@@ -66,7 +91,18 @@ class Uncertainty:
         if not names or names[0] != "1":
             raise ValueError(f"uncertainty: statistics must start with the intercept '1', got {names!r}")
         return cls(coef=np.asarray(d["coef"], dtype=np.float64),
-                   correlation=np.asarray(d["correlation"], dtype=np.float64), statistics=tuple(names[1:]))
+                   correlation=np.asarray(d["correlation"], dtype=np.float64), statistics=tuple(names[1:]),
+                   data_correlation=np.asarray(d.get("data_correlation", np.zeros(4)), dtype=np.float64),
+                   noise_scale_px=float(d.get("noise_scale_px", NOISE_SCALE_PX)))
+
+    def posterior_scale(self, variance_ratio, noise_px: float) -> list:
+        """Per parameter, the factor on the MAP posterior's standard deviation for the network's
+        correlation with the data: sqrt(1 + 2 rho_p w(s) sqrt(r_p (1 - r_p))), with r_p
+        (sequence of 4) the posterior over the prior variance and s = noise_px the frame's 2D
+        noise. Plain floats: one frame's four numbers."""
+        w = noise_px * noise_px / (noise_px * noise_px + self.noise_scale_px ** 2)
+        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(min(max(r * (1.0 - r), 0.0), 0.25)))
+                for rho, r in zip(self.data_correlation.tolist(), variance_ratio)]
 
     def sigma(self, stats: np.ndarray) -> np.ndarray:
         """(B, 4) frame statistics (``frame_statistics``) -> (B, 4) standard deviations of
@@ -173,6 +209,43 @@ def fit_uncertainty(residuals_px: np.ndarray, stats: np.ndarray) -> Uncertainty:
     second = u.T @ u / len(u)
     scale = np.sqrt(np.diag(second))
     return Uncertainty(coef=coef, correlation=second / np.outer(scale, scale))
+
+
+def fit_data_correlation(errors_px: np.ndarray, sigma_px: np.ndarray, variance_ratio: np.ndarray,
+                         noise_px: np.ndarray, noise_scale_px: float = NOISE_SCALE_PX) -> np.ndarray:
+    """Per parameter, the rho in [0, 1] with which 68.27 % of F MAP estimates lie within their
+    widened 1 sigma (``Uncertainty.posterior_scale``): errors_px (F, 4) against a reference
+    independent of the frames' noise, sigma_px (F, 4) the MAP posterior's standard deviations,
+    variance_ratio (F, 4) its variances over the prior's, noise_px (F,) the frames' 2D noise.
+    0 where the posterior already covers 68.27 %, 1 where even rho = 1 does not (the widening
+    grows with rho, so bisection finds it)."""
+    errors_px, sigma_px, variance_ratio, noise_px = (np.asarray(a, dtype=np.float64)
+                                                     for a in (errors_px, sigma_px, variance_ratio, noise_px))
+    F = len(errors_px)
+    if F < 1 or any(a.shape != (F, 4) for a in (errors_px, sigma_px, variance_ratio)) or noise_px.shape != (F,):
+        raise InputError(f"data correlation: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
+                         f"got {errors_px.shape}, {sigma_px.shape}, {variance_ratio.shape}, {noise_px.shape}")
+    if not all(np.all(np.isfinite(a)) for a in (errors_px, sigma_px, variance_ratio, noise_px)):
+        raise InputError("data correlation: every input must be finite")
+    w = noise_px**2 / (noise_px**2 + noise_scale_px**2)
+    g = np.sqrt(np.clip(variance_ratio * (1.0 - variance_ratio), 0.0, 0.25))
+
+    def covered(p, rho):
+        return np.mean(np.abs(errors_px[:, p]) <= sigma_px[:, p] * np.sqrt(1.0 + 2.0 * rho * w * g[:, p]))
+
+    rho = np.zeros(4)
+    for p in range(4):
+        low, high = 0.0, 1.0
+        if covered(p, low) >= ONE_SIGMA:
+            continue
+        if covered(p, high) < ONE_SIGMA:
+            rho[p] = high
+            continue
+        for _ in range(40):
+            mid = (low + high) / 2
+            low, high = (mid, high) if covered(p, mid) < ONE_SIGMA else (low, mid)
+        rho[p] = high
+    return rho
 
 
 def coverage(estimate_px: np.ndarray, truth_px: np.ndarray, covariance: np.ndarray) -> dict:

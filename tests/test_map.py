@@ -23,7 +23,8 @@ from dimenet.runtime.rectifier import Rectifier
 from dimenet.runtime.self_calibration import self_calibrate
 from dimenet.runtime.simulator import simulate
 from dimenet.runtime.conditions import one_plane
-from dimenet.runtime.uncertainty import T_FLOOR, Uncertainty, coverage, fit_uncertainty, input_statistics, thickness
+from dimenet.runtime.uncertainty import (NOISE_SCALE_PX, T_FLOOR, Uncertainty, coverage, fit_data_correlation,
+                                         fit_uncertainty, input_statistics, thickness)
 from helpers import K_TEST, random_frames
 from test_export import model_spec, random_model_file
 
@@ -107,6 +108,56 @@ def test_uncertainty_refuses_bad_input():
     with pytest.raises(ValueError, match="distinct names"):
         Uncertainty.from_dict({"statistics": ["1", "log_points", "log_depth"], "coef": np.zeros((4, 3)).tolist(),
                                "correlation": np.eye(4).tolist()})
+
+
+def test_posterior_scale_hand_computed():
+    u = replace(constant_uncertainty(1.0), data_correlation=np.array([0.0, 0.2, 0.5, 1.0]))
+    # s = s0: half the correlation applies (w = 1/2); r = 1/2: sqrt(r (1 - r)) = 1/2.
+    np.testing.assert_allclose(u.posterior_scale([0.5] * 4, NOISE_SCALE_PX),
+                               np.sqrt([1.0, 1.1, 1.25, 1.5]), rtol=1e-12)
+    # A posterior equal to the prior (r = 1) or set by the data alone (r = 0) is not widened,
+    # nor is a noise-free frame.
+    assert u.posterior_scale([1.0, 0.0, 1.0, 0.0], 5.0) == [1.0] * 4
+    assert u.posterior_scale([0.5] * 4, 0.0) == [1.0] * 4
+
+
+def test_data_correlation_fit_recovers_a_known_correlation():
+    rng = np.random.default_rng(0)
+    n = 20000
+    sigma = rng.uniform(0.5, 5.0, (n, 4))
+    ratio = rng.uniform(0.05, 0.95, (n, 4))
+    noise = rng.uniform(0.3, 8.0, n)
+    rho = np.array([0.0, 0.3, 0.8, 0.0])
+    w = noise**2 / (noise**2 + NOISE_SCALE_PX**2)
+    widened = sigma * np.sqrt(1 + 2 * rho * w[:, None] * np.sqrt(ratio * (1 - ratio)))
+    errors = rng.normal(size=(n, 4)) * widened
+    errors[:, 0] *= 0.8  # over-covered already: no correlation to add
+    errors[:, 3] *= 3.0  # beyond any correlation: the largest, 1
+    np.testing.assert_allclose(fit_data_correlation(errors, sigma, ratio, noise), [0.0, 0.3, 0.8, 1.0], atol=0.05)
+    with pytest.raises(InputError, match=r"\(F, 4\)"):
+        fit_data_correlation(errors[:, :3], sigma, ratio, noise)
+    with pytest.raises(InputError, match="finite"):
+        fit_data_correlation(errors, sigma * np.nan, ratio, noise)
+    with pytest.raises(ValueError, match=r"data_correlation must be 4 values in \[0, 1\]"):
+        replace(constant_uncertainty(1.0), data_correlation=np.array([0.0, 0.0, 1.5, 0.0]))
+
+
+def test_map_fit_widens_its_posterior_by_the_data_correlation():
+    x, X, K = _frame(np.random.default_rng(1), noise_px=3.0)
+    k_net = k_params(K) + K_NET_OFFSET
+    start = solve_pnp_start(x, X, k_matrix(k_net))
+    prior = np.diag([4.0, 4.0, 100.0, 100.0])
+    plain = map_fit(x, X, k_net, prior, *start)
+    independent = map_fit(x, X, k_net, prior, *start, uncertainty=constant_uncertainty(1.0))
+    np.testing.assert_array_equal(independent.k_cov, plain.k_cov)  # rho = 0: nothing to widen
+    u = replace(constant_uncertainty(1.0), data_correlation=np.array([0.0, 0.4, 0.6, 1.0]))
+    widened = map_fit(x, X, k_net, prior, *start, uncertainty=u)
+    np.testing.assert_array_equal(widened.k, plain.k)  # the estimate itself does not change
+    assert 2.0 < plain.noise_px < 4.0  # the frame's 3 px noise, estimated
+    scale = np.sqrt(1 + 2 * u.data_correlation * plain.noise_px**2 / (plain.noise_px**2 + NOISE_SCALE_PX**2)
+                    * np.sqrt((r := np.diag(plain.k_cov) / np.diag(prior)) * (1 - r)))
+    np.testing.assert_allclose(widened.k_cov, plain.k_cov * np.outer(scale, scale), rtol=1e-12)
+    assert scale[0] == 1.0 and np.all(scale[1:] > 1.0)
 
 
 def _frame(rng, planar=False, noise_px=0.5, points=120):
@@ -260,6 +311,15 @@ def test_spec_round_trips_its_uncertainty_and_still_reads_1_0(map_model):
     old = json.loads(model_spec(frames).to_json())
     old["version"] = "1.0.0"
     assert ModelSpec.from_dict(old).uncertainty is None
+    correlated = replace(spec, uncertainty=replace(spec.uncertainty, data_correlation=np.array([0, 0, 0.7, 0.5]),
+                                                   noise_scale_px=1.5))
+    back = ModelSpec.from_json(correlated.to_json()).uncertainty
+    np.testing.assert_array_equal(back.data_correlation, [0, 0, 0.7, 0.5])
+    assert back.noise_scale_px == 1.5
+    v12 = json.loads(spec.to_json())  # spec 1.2: no data correlation, the posterior is not widened
+    v12["version"] = "1.2.0"
+    del v12["uncertainty"]["data_correlation"], v12["uncertainty"]["noise_scale_px"]
+    np.testing.assert_array_equal(ModelSpec.from_dict(v12).uncertainty.data_correlation, np.zeros(4))
 
 
 def test_evaluate_methods_json_and_table(map_model, tmp_path, capsys):
