@@ -118,6 +118,33 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(small, tmp_path, monkeypa
         assert np.all((2.0 <= noise[id(ds)]) & (noise[id(ds)] <= 8.0))
 
 
+def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(small, tmp_path, monkeypatch):
+    """Only the augmentation and two-object draws, whose added noise their reference K' does
+    not know, enter the fit; its result is what the model carries."""
+    from dimenet.training import trainer
+
+    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path / "run").run_dir
+    model, spec = load_run(run)
+    _, val_idx = split_train_val(small, TrainConfig())
+    val = small.select(val_idx)
+    cal = calibrate_dataset(small)
+    truth = frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    seen = {}
+
+    def fitting(errors, sigma, ratio, noise):
+        seen.update(errors=errors, sigma=sigma, ratio=ratio, noise=noise)
+        return np.array([0.0, 0.1, 0.2, 0.3])
+
+    monkeypatch.setattr(trainer, "fit_data_correlation", fitting)
+    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
+    np.testing.assert_array_equal(uncertainty.data_correlation, [0.0, 0.1, 0.2, 0.3])
+    draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
+    assert 0.9 * 2 * draws * val.n_frames <= len(seen["noise"]) <= 2 * draws * val.n_frames
+    # The clean frames' noise is the corners' 0.36 px; the noisy draws add 0-3 and 2-8 px.
+    assert np.median(seen["noise"]) > 1.5
+    assert np.all((seen["ratio"] > 0) & (seen["ratio"] <= 1 + 1e-9)) and np.all(seen["sigma"] > 0)
+
+
 def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principal_point(small):
     cal = calibrate_dataset(small)
     idx = np.flatnonzero(small.frames_in("train"))

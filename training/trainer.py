@@ -37,10 +37,11 @@ from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.features import FeatureSpec, grid_features
 from dimenet.runtime.geometry import k_params, project
 from dimenet.runtime.grid import Grid
+from dimenet.runtime.map_fit import map_rectify
 from dimenet.runtime.model_spec import ModelSpec
 from dimenet.runtime.predictor import MIN_INFER_POINTS
 from dimenet.runtime.progress import progress
-from dimenet.runtime.uncertainty import Uncertainty, coverage, fit_uncertainty
+from dimenet.runtime.uncertainty import Uncertainty, coverage, fit_data_correlation, fit_uncertainty
 
 from . import bpnp
 from .model import DimeNet
@@ -202,24 +203,51 @@ def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, tr
     inputs teach the model how little the network then knows), under ``augment``'s test-like
     conditions, and with the points of two objects under label noise (as many: hand-labelled
     natural features, whose sparse and noisy spread the augmentation's compact clusters do not
-    show). Returns the model and its 1-sigma coverage there."""
+    show). Its data correlation is fitted on the MAP estimates of the draws with added noise
+    (the augmentation's and the two-object ones: their K' does not know that noise, while the
+    other draws' K' was fitted to the very points MAP reads). Returns the model and its
+    1-sigma coverage there."""
     predictor = torch_predictor(model, spec, "training")
     draws = max(8, -(-UNCERTAINTY_SAMPLES // frames.n_frames))
     few = -(-draws // 3)
-    conditions = [lambda ds: ds] * few + [lambda ds: drop_inference_points(ds, config.min_points, rng)] * few
-    conditions += [lambda ds: augment(ds, config, spec.features.grid, rng)] * draws
-    conditions += [lambda ds: one_plane(ds, rng)] * few
-    conditions += [lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0,
-                                        rng)] * draws
-    residuals, stats = [], []
-    for condition in conditions:
+    conditions = [(False, lambda ds: ds)] * few
+    conditions += [(False, lambda ds: drop_inference_points(ds, config.min_points, rng))] * few
+    conditions += [(True, lambda ds: augment(ds, config, spec.features.grid, rng))] * draws
+    conditions += [(False, lambda ds: one_plane(ds, rng))] * few
+    conditions += [(True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames),
+                                               0.0, rng))] * draws
+    residuals, stats, noisy = [], [], []
+    for added_noise, condition in conditions:
         reimaged, K_reimaged = resynthesise(frames, truth, rng, 1.0)
-        pred = predictor.predict(condition(reimaged))
+        drawn = condition(reimaged)
+        pred = predictor.predict(drawn)
         residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
         stats.append(pred.stats[pred.predicted])
+        if added_noise:
+            noisy.append((drawn, pred, K_reimaged))
     residuals, stats = np.concatenate(residuals), np.concatenate(stats)
     uncertainty = fit_uncertainty(residuals, stats)
+    uncertainty = replace(uncertainty, data_correlation=fit_data_correlation(*_map_errors(noisy, uncertainty, spec)))
     return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
+
+
+def _map_errors(draws: list, uncertainty: Uncertainty, spec: ModelSpec) -> tuple:
+    """Over the frames of ``draws`` [(frames, prediction, K' (F, 3, 3))] that MAP rectifies under
+    ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4) px, its posterior
+    standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames' 2D noise (F,) px."""
+    errors, sigma, ratio, noise = [], [], [], []
+    for frames, pred, K_ref in draws:
+        cov = uncertainty.covariance(pred.stats)
+        for f in np.flatnonzero(pred.predicted):
+            m = frames.infer_mask[f]
+            fit, _ = map_rectify(frames.points_2d[f][m], frames.points_3d[f][m], k_params(pred.K[f]), cov[f],
+                                 spec.K_bounds, spec.K_c)
+            if fit is not None:
+                errors.append(fit.k - k_params(K_ref[f]))
+                sigma.append(np.sqrt(np.diag(fit.k_cov)))
+                ratio.append(np.diag(fit.k_cov) / np.diag(cov[f]))
+                noise.append(fit.noise_px)
+    return tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio)) + (np.array(noise),)
 
 
 def _tensors(frames: Dataset):
