@@ -87,15 +87,24 @@ def test_focal_term_teaches_the_net_focus_breathing(small, tmp_path):
     assert errors[with_term] < 0.5 * errors[0.0] and corr[with_term] > 0.5 > corr[0.0]
 
 
-def test_uncertainty_is_fitted_on_two_object_draws_too(small, tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def fitting(small, tmp_path_factory):
+    """A briefly trained run on ``small`` and what its uncertainty fit reads: (run dir, model,
+    spec, early-stopping frames, their calibration)."""
+    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path_factory.mktemp("fitting") / "run").run_dir
+    model, spec = load_run(run)
+    _, val_idx = split_train_val(small, TrainConfig())
+    val = small.select(val_idx)
+    cal = calibrate_dataset(small)
+    return run, model, spec, val, frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+
+
+def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
     """As many two-object draws (hand-labelled natural features) as augmentation draws, each
     of all the early-stopping frames, with a 2-8 px label noise on each."""
     from dimenet.training import trainer
 
-    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path / "run").run_dir
-    model, spec = load_run(run)
-    _, val_idx = split_train_val(small, TrainConfig())
-    val = small.select(val_idx)
+    _, model, spec, val, truth = fitting
     drawn, noise = [], {}  # the two-object draws; the 2D noise std added to each dataset, by id
     two_objects, add_noise = trainer.two_objects, trainer.add_noise
 
@@ -109,8 +118,6 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(small, tmp_path, monkeypa
 
     monkeypatch.setattr(trainer, "two_objects", drawing)
     monkeypatch.setattr(trainer, "add_noise", noising)
-    cal = calibrate_dataset(small)
-    truth = frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
     trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
     assert len(drawn) == max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
     for ds in drawn:
@@ -118,24 +125,19 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(small, tmp_path, monkeypa
         assert np.all((2.0 <= noise[id(ds)]) & (noise[id(ds)] <= 8.0))
 
 
-def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(small, tmp_path, monkeypatch):
+def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(fitting, monkeypatch):
     """Only the augmentation and two-object draws, whose added noise their reference K' does
     not know, enter the fit; its result is what the model carries."""
     from dimenet.training import trainer
 
-    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path / "run").run_dir
-    model, spec = load_run(run)
-    _, val_idx = split_train_val(small, TrainConfig())
-    val = small.select(val_idx)
-    cal = calibrate_dataset(small)
-    truth = frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    _, model, spec, val, truth = fitting
     seen = {}
 
-    def fitting(errors, sigma, ratio, noise):
+    def spy(errors, sigma, ratio, noise):
         seen.update(errors=errors, sigma=sigma, ratio=ratio, noise=noise)
         return np.array([0.0, 0.1, 0.2, 0.3])
 
-    monkeypatch.setattr(trainer, "fit_data_correlation", fitting)
+    monkeypatch.setattr(trainer, "fit_data_correlation", spy)
     uncertainty, _ = trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
     np.testing.assert_array_equal(uncertainty.data_correlation, [0.0, 0.1, 0.2, 0.3])
     draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
@@ -164,18 +166,13 @@ def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principa
     np.testing.assert_allclose(k_params(K_moved), p_new, atol=1e-4)  # the K it returns is the one imaged under
 
 
-def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(small, tmp_path, monkeypatch):
+def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(fitting, monkeypatch):
     """Every draw is made on the early-stopping frames re-imaged under other principal points,
     and its residuals are taken against the K each frame is then imaged under: a re-imaging
     whose K is off by 1000 px in cx makes the fitted sigma of cx about that large."""
     from dimenet.training import trainer
 
-    run = train(small, TrainConfig(epochs=2, seed=5), tmp_path / "run").run_dir
-    model, spec = load_run(run)
-    _, val_idx = split_train_val(small, TrainConfig())
-    val = small.select(val_idx)
-    cal = calibrate_dataset(small)
-    truth = frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    run, model, spec, val, truth = fitting
     calls = []
 
     def shifted(frames, frame_truth_, rng, share):
