@@ -104,9 +104,9 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
         residuals = np.ascontiguousarray(r.T)
     k_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
     noise_px = weight ** -0.5
-    if uncertainty is not None:
-        scale = np.array(uncertainty.posterior_scale((np.diag(k_cov) / np.diag(cov_net)).tolist(), noise_px))
-        k_cov = k_cov * np.outer(scale, scale)
+    if uncertainty is not None and uncertainty.widens:
+        scale = np.array(uncertainty.posterior_scale((k_cov.diagonal() / cov_net.diagonal()).tolist(), noise_px))
+        k_cov = k_cov * (scale[:, None] * scale)
     return MapFit(k=k, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=tvec, k_cov=k_cov, residuals=residuals, steps=steps,
                   noise_px=noise_px)
 

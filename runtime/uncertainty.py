@@ -79,6 +79,12 @@ class Uncertainty:
             raise ValueError(f"uncertainty: noise_scale_px must be a positive number, got {self.noise_scale_px!r}")
         object.__setattr__(self, "data_correlation", rho)
         object.__setattr__(self, "_columns", [STATISTICS.index(name) for name in self.statistics])
+        object.__setattr__(self, "_rho", rho.tolist())  # plain floats for the per-frame widening
+
+    @property
+    def widens(self) -> bool:
+        """Whether ``posterior_scale`` can differ from 1 (some rho_p > 0)."""
+        return any(self._rho)
 
     def to_dict(self) -> dict:
         return {"parameters": list(PARAMETERS), "statistics": ["1", *self.statistics],
@@ -101,8 +107,8 @@ class Uncertainty:
         (sequence of 4) the posterior over the prior variance and s = noise_px the frame's 2D
         noise. Plain floats: one frame's four numbers."""
         w = noise_px * noise_px / (noise_px * noise_px + self.noise_scale_px ** 2)
-        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(min(max(r * (1.0 - r), 0.0), 0.25)))
-                for rho, r in zip(self.data_correlation.tolist(), variance_ratio)]
+        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(min(max(r * (1.0 - r), 0.0), 0.25))) if rho else 1.0
+                for rho, r in zip(self._rho, variance_ratio)]
 
     def sigma(self, stats: np.ndarray) -> np.ndarray:
         """(B, 4) frame statistics (``frame_statistics``) -> (B, 4) standard deviations of
