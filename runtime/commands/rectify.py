@@ -16,7 +16,7 @@ from ..cli import CliError, Command
 from ..dataset import Dataset, read_dataset
 from ..errors import ModelError
 from ..geometry import k_params
-from ..rectifier import BatchRectification, Rectifier
+from ..rectifier import MODES, BatchRectification, Rectifier
 
 EXAMPLE_DATA = "example_frames.npz"
 
@@ -26,17 +26,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--example", action="store_true",
                    help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)")
     p.add_argument("--model", help="a .onnx from `dimenet export` (default: the bundled model)")
-    p.add_argument("--out", metavar="RESULT.npz", help="write K, rvec, tvec, e, e_c, delta_k, fallback per frame")
+    p.add_argument("--mode", choices=MODES, default="dimenet",
+                   help="dimenet (default): the network's K; map: the network's K as a prior fused with the frame's "
+                        "points (needs a model with an uncertainty model, spec >= 1.1)")
+    p.add_argument("--out", metavar="RESULT.npz",
+                   help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov "
+                        "per frame")
     p.add_argument("--refine", action="store_true", help="polish poses with cv2.solvePnPRefineLM (e as in evaluate)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
 def result_arrays(frames: Dataset, res: BatchRectification) -> dict:
-    """The RESULT.npz arrays (plain dtypes, no pickle): fallback '' where K is the model's."""
+    """The RESULT.npz arrays (plain dtypes, no pickle): fallback '' where K is the model's; K_cov
+    (F, 4, 4) px^2, NaN where K is K_c's, only when the model has an uncertainty model."""
     frame_id = frames.frame_id if frames.frame_id is not None else np.arange(frames.n_frames).astype(str)
-    return {"frame_id": np.asarray(frame_id), "K": res.K, "rvec": res.rvec, "tvec": res.tvec,
-            "e": res.reprojection_error_px, "e_c": res.reprojection_error_kc_px, "delta_k": res.delta_k,
-            "fallback": np.array([r or "" for r in res.fallback])}
+    arrays = {"frame_id": np.asarray(frame_id), "K": res.K, "rvec": res.rvec, "tvec": res.tvec,
+              "e": res.reprojection_error_px, "e_c": res.reprojection_error_kc_px, "delta_k": res.delta_k,
+              "fallback": np.array([r or "" for r in res.fallback])}
+    if res.K_cov is not None:
+        arrays["K_cov"] = res.K_cov
+    return arrays
+
+
+def _k_sigma(arrays: dict, i: int) -> list | None:
+    """Frame i's standard deviations of (fx, fy, cx, cy) px, or None (no uncertainty model, or K_c)."""
+    if "K_cov" not in arrays or not np.all(np.isfinite(arrays["K_cov"][i])):
+        return None
+    return np.sqrt(np.diag(arrays["K_cov"][i])).tolist()
 
 
 def _summary(arrays: dict) -> dict:
@@ -72,7 +88,7 @@ def _frames(args: argparse.Namespace) -> Dataset:
 
 def run(args: argparse.Namespace) -> int:
     frames = _frames(args)
-    rectifier = Rectifier.load(args.model)
+    rectifier = Rectifier.load(args.model, mode=args.mode)
     size = tuple(int(v) for v in frames.image_size)
     if size != tuple(rectifier.spec.image_size):
         raise ModelError(f"{rectifier.model.source}: trained for {rectifier.spec.image_size[0]}x"
@@ -85,12 +101,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         per_frame = [{"frame_id": str(arrays["frame_id"][i]), "scene": str(frames.scene[i]),
                       "e_c_px": float(arrays["e_c"][i]), "e_px": float(arrays["e"][i]),
-                      "K": k_params(arrays["K"][i]).tolist(), "fallback": arrays["fallback"][i] or None}
+                      "K": k_params(arrays["K"][i]).tolist(), "K_sigma_px": _k_sigma(arrays, i),
+                      "fallback": arrays["fallback"][i] or None}
                      for i in range(frames.n_frames)]
         print(json.dumps({"model": rectifier.model.source, "model_sha256": rectifier.model.sha256,
-                          "refine": args.refine, "frames": per_frame, "summary": _summary(arrays)}))
+                          "mode": args.mode, "refine": args.refine, "frames": per_frame, "summary": _summary(arrays)}))
     else:
-        print(_table(frames, arrays, rectifier.model.source))
+        print(_table(frames, arrays, f"{rectifier.model.source}, mode {args.mode}"))
         if args.out:
             print(f"-> {args.out}")
     return 0
@@ -99,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="rectify",
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
-    example="dimenet rectify s8.npz --model s8.onnx --out s8-rectified.npz   (or: dimenet rectify --example)",
+    example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz   "
+            "(or: dimenet rectify --example)",
     add_arguments=add_arguments,
     run=run,
 )
