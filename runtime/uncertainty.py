@@ -107,7 +107,7 @@ class Uncertainty:
         (sequence of 4) the posterior over the prior variance and s = noise_px the frame's 2D
         noise. Plain floats: one frame's four numbers."""
         w = noise_px * noise_px / (noise_px * noise_px + self.noise_scale_px ** 2)
-        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(min(max(r * (1.0 - r), 0.0), 0.25))) if rho else 1.0
+        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(max(r * (1.0 - r), 0.0))) if rho else 1.0
                 for rho, r in zip(self._rho, variance_ratio)]
 
     def sigma(self, stats: np.ndarray) -> np.ndarray:
@@ -234,7 +234,7 @@ def fit_data_correlation(errors_px: np.ndarray, sigma_px: np.ndarray, variance_r
     if not all(np.all(np.isfinite(a)) for a in (errors_px, sigma_px, variance_ratio, noise_px)):
         raise InputError("data correlation: every input must be finite")
     w = noise_px**2 / (noise_px**2 + noise_scale_px**2)
-    g = np.sqrt(np.clip(variance_ratio * (1.0 - variance_ratio), 0.0, 0.25))
+    g = np.sqrt(np.maximum(variance_ratio * (1.0 - variance_ratio), 0.0))
 
     def covered(p, rho):
         return np.mean(np.abs(errors_px[:, p]) <= sigma_px[:, p] * np.sqrt(1.0 + 2.0 * rho * w * g[:, p]))
