@@ -5,7 +5,7 @@ import argparse
 import hashlib
 from pathlib import Path
 
-from dimenet.runtime.cli import Command
+from dimenet.runtime.cli.main import Command
 
 DEFAULT_OPSET = 17
 # Erf (exact GELU) needs opset 9; 20 is the TorchScript exporter's newest.

@@ -16,10 +16,10 @@ import numpy as np
 import onnx
 import torch
 
-from dimenet.runtime.atomic import atomic_write
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.model_spec import METADATA_KEY, ModelSpec
-from dimenet.runtime.onnx_model import INPUT_NAME, OUTPUT_NAME, onnx_model_from_bytes
+from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.rectify.model import INPUT_NAME, OUTPUT_NAME, onnx_model_from_bytes
+from dimenet.runtime.rectify.spec import METADATA_KEY, ModelSpec
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 

@@ -15,8 +15,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
 
-from dimenet.runtime.calibration import calibrate_dataset  # noqa: E402
-from dimenet.runtime.simulator import simulate  # noqa: E402
+from dimenet.runtime.evaluation.calibration import calibrate_dataset  # noqa: E402
+from dimenet.runtime.sim.simulator import simulate  # noqa: E402
 
 NATURAL_FRAMES = 34  # the paper's LEGO test set size
 

@@ -5,11 +5,11 @@ import json
 
 import numpy as np
 import pytest
-
-from dimenet.runtime.bench import bench_frames, percentiles_us
-from dimenet.runtime.cli import main
-from dimenet.runtime.errors import InputError
 from test_rectifier import frames, model_path  # noqa: F401  (module fixtures)
+
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.evaluation.latency import bench_frames, percentiles_us
 
 
 def test_bench_json_reports_every_key(model_path, capsys):  # noqa: F811

@@ -7,10 +7,11 @@ import pytest
 
 torch = pytest.importorskip("torch")  # the base-only install has no torch: skip, not fail
 
+from helpers import random_frames
+
 from dimenet.runtime import geometry as g
 from dimenet.runtime.errors import InputError
 from dimenet.training import bpnp
-from helpers import random_frames
 
 K_PHONE = np.array([[3000.0, 0.0, 2016.0], [0.0, 3000.0, 1512.0], [0.0, 0.0, 1.0]])
 # Bound on the relative error of an implicit gradient vs finite differences of the re-solved PnP.

@@ -8,15 +8,15 @@ import sys
 import numpy as np
 import pytest
 
-from dimenet.runtime.cli import build_parser, main
-from dimenet.runtime.evaluation import evaluate
-from dimenet.runtime.metrics import reduction_ratio
+from dimenet.runtime.cli.main import build_parser, main
+from dimenet.runtime.evaluation.methods import evaluate
+from dimenet.runtime.evaluation.metrics import reduction_ratio
 
 COMMANDS = ["simulate", "calibrate", "evaluate", "train", "reproduce", "export", "rectify", "bench", "render", "ingest"]
 
 
 def dimenet(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", "import sys; from dimenet.runtime.cli import main; sys.exit(main())", *args],
+    return subprocess.run([sys.executable, "-c", "import sys; from dimenet.runtime.cli.main import main; sys.exit(main())", *args],
                           capture_output=True, text=True, timeout=120)
 
 
@@ -54,7 +54,7 @@ def test_non_conforming_dataset_is_named(tmp_path):
 
 
 def test_simulate_calibrate_evaluate_json(tmp_path, s8_dataset, s8_calibration):
-    from dimenet.runtime.dataset import write_dataset
+    from dimenet.runtime.formats.dataset import write_dataset
 
     data = write_dataset(s8_dataset, tmp_path / "s8.npz")
     assert main(["calibrate", str(data), "--out", str(tmp_path / "cal.npz")]) == 0

@@ -3,10 +3,10 @@ import json
 import numpy as np
 import pytest
 
-from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, occupancy, two_objects
-from dimenet.runtime.dataset import Dataset
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.grid import Grid
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy, two_objects
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.rectify.grid import Grid
 
 GRID_8X6 = Grid.parse("8x6")
 

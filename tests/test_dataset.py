@@ -2,10 +2,10 @@ import json
 
 import numpy as np
 import pytest
-
-from dimenet.runtime.dataset import Dataset, read_dataset, validate_arrays, write_dataset
-from dimenet.runtime.errors import DatasetError
 from helpers import random_frames
+
+from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.formats.dataset import Dataset, read_dataset, validate_arrays, write_dataset
 
 
 def make_arrays(frames=3, points=10, seed=0):

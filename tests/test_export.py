@@ -11,14 +11,14 @@ import os
 import numpy as np
 import pytest
 
-from dimenet.runtime.cli import main
+from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.features import FeatureSpec, grid_features
+from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.geometry import k_matrix, k_params
-from dimenet.runtime.model_spec import FORMAT, METADATA_KEY, ModelSpec
-from dimenet.runtime.onnx_model import INPUT_NAME, OUTPUT_NAME, load_onnx_model
-from dimenet.runtime.predictor import load_predictor
-from dimenet.runtime.simulator import simulate
+from dimenet.runtime.rectify.features import FeatureSpec, grid_features
+from dimenet.runtime.rectify.model import INPUT_NAME, OUTPUT_NAME, load_onnx_model
+from dimenet.runtime.rectify.spec import FORMAT, METADATA_KEY, ModelSpec
+from dimenet.runtime.sim.simulator import simulate
 
 
 def model_spec(dataset, *, bounds_margin: float = 1.0) -> ModelSpec:
@@ -187,7 +187,7 @@ def test_failed_export_leaves_the_previous_file_intact(exported, run_dir, tmp_pa
     def disk_full(fd):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("dimenet.runtime.atomic.os.fsync", disk_full)
+    monkeypatch.setattr("dimenet.runtime.formats.atomic.os.fsync", disk_full)
     with pytest.raises(OSError, match="No space"):
         export_run(run_dir, out)
     assert out.read_bytes() == before

@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
+from helpers import K_TEST, random_frames
 
 from dimenet.runtime import geometry as g
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.features import CHANNELS, DEFAULT_SCALE, FeatureSpec, grid_features
-from dimenet.runtime.grid import Grid
-from helpers import K_TEST, random_frames
+from dimenet.runtime.rectify.features import CHANNELS, DEFAULT_SCALE, FeatureSpec, grid_features
+from dimenet.runtime.rectify.grid import Grid
 
 IMAGE = (4032, 3024)
 

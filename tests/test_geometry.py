@@ -1,10 +1,10 @@
 import cv2
 import numpy as np
 import pytest
+from helpers import K_TEST, random_frames
 
 from dimenet.runtime import geometry as g
 from dimenet.runtime.errors import CalibrationError, InputError
-from helpers import K_TEST, random_frames
 
 
 def test_rodrigues_matches_opencv_and_round_trips():

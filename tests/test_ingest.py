@@ -1,7 +1,7 @@
 """Photos -> dataset: rendered photos of the rig go through `ingest` and are scored against the renderer's truth.
 
 The photos are rendered at 1/3 of the Galaxy S8's 4032x3024 px (same field of view) to keep the
-suite fast; the 12 MP figures come from ``python -m dimenet.runtime.ingest_bench``.
+suite fast; the 12 MP figures come from ``python -m dimenet.runtime.ingest.bench``.
 """
 from __future__ import annotations
 
@@ -12,20 +12,20 @@ import cv2
 import numpy as np
 import pytest
 
-from dimenet.runtime.board_detection import Detection, detect_boards
-from dimenet.runtime.board_identity import identify, rough_k
-from dimenet.runtime.calibration import calibrate_dataset, read_calibration
-from dimenet.runtime.cli import main
-from dimenet.runtime.dataset import read_dataset
+from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import IdentificationError, IngestError, LabelsError, PhotoError
+from dimenet.runtime.evaluation.calibration import calibrate_dataset, read_calibration
+from dimenet.runtime.formats.dataset import read_dataset
+from dimenet.runtime.formats.natural_labels import read_labels, read_object
+from dimenet.runtime.formats.rig import Aruco, Board, Rig, paper_rig
 from dimenet.runtime.geometry import k_params, matrix_to_rvec, project, rvec_to_matrix
-from dimenet.runtime.ingest import auto_split, ingest, report
-from dimenet.runtime.natural_labels import read_labels, read_object
-from dimenet.runtime.photo import exif_orientation, read_photo
-from dimenet.runtime.render import TRUTH_FILE, scaled_profile, write_render
-from dimenet.runtime.render_truth import read_truth, score
-from dimenet.runtime.rig import Aruco, Board, Rig, paper_rig
-from dimenet.runtime.simulator import get_profile
+from dimenet.runtime.ingest.detection import Detection, detect_boards
+from dimenet.runtime.ingest.identity import identify, rough_k
+from dimenet.runtime.ingest.photo import exif_orientation, read_photo
+from dimenet.runtime.ingest.pipeline import auto_split, ingest, report
+from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
+from dimenet.runtime.sim.render_truth import read_truth, score
+from dimenet.runtime.sim.simulator import get_profile
 
 SCALE = 3.0  # 1344 x 1008 px photos
 N_PHOTOS = 10  # photos 1 and 6 upside down, 3 and 8 with a board covered

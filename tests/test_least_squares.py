@@ -1,9 +1,9 @@
 import cv2
 import numpy as np
+from helpers import random_frames
 
 from dimenet.runtime import geometry as g
-from dimenet.runtime import least_squares as ls
-from helpers import random_frames
+from dimenet.runtime.geometry import least_squares as ls
 
 
 def test_pose_optimum_matches_opencv_lm():

@@ -8,25 +8,31 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-
-from dimenet.runtime.cli import main
-from dimenet.runtime.dataset import write_dataset
-from dimenet.runtime.errors import InputError, ModelError
-from dimenet.runtime.evaluation import evaluate
-from dimenet.runtime.geometry import (covariance_invariants, covariance_invariants_batch, k_matrix, k_params, project,
-                                      solve_pnp_start)
-from dimenet.runtime.least_squares import calibrate
-from dimenet.runtime.map_fit import map_fit, map_rectify, turned_to_principal_point
-from dimenet.runtime.model_spec import ModelSpec
-from dimenet.runtime.onnx_model import load_onnx_predictor
-from dimenet.runtime.rectifier import Rectifier
-from dimenet.runtime.self_calibration import self_calibrate
-from dimenet.runtime.simulator import simulate
-from dimenet.runtime.conditions import one_plane
-from dimenet.runtime.uncertainty import (NOISE_SCALE_PX, T_FLOOR, Uncertainty, coverage, fit_data_correlation,
-                                         fit_uncertainty, input_statistics, thickness)
 from helpers import K_TEST, random_frames
 from test_export import model_spec, random_model_file
+
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.evaluation.conditions import one_plane
+from dimenet.runtime.evaluation.methods import evaluate
+from dimenet.runtime.evaluation.predictor import load_onnx_predictor
+from dimenet.runtime.evaluation.self_calibration import self_calibrate
+from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.geometry import (
+    covariance_invariants,
+    covariance_invariants_batch,
+    k_matrix,
+    k_params,
+    project,
+    solve_pnp_start,
+)
+from dimenet.runtime.geometry.least_squares import calibrate
+from dimenet.runtime.rectify.map_fit import map_fit, map_rectify, turned_to_principal_point
+from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.uncertainty import NOISE_SCALE_PX, T_FLOOR, Uncertainty, input_statistics, thickness
+from dimenet.runtime.sim.simulator import simulate
 
 K_NET_OFFSET = np.array([6.0, -5.0, 8.0, -7.0])  # px: the "network's" error in the MAP tests
 

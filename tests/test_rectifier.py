@@ -9,23 +9,24 @@ import json
 import subprocess
 import sys
 from dataclasses import replace
-from importlib import import_module, resources
+from importlib import import_module
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
-
-from dimenet.runtime import rectifier as rectifier_module
-from dimenet.runtime.cli import main
-from dimenet.runtime.dataset import write_dataset
-from dimenet.runtime.errors import InputError, ModelError
-from dimenet.runtime.features import grid_features
-from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
-from dimenet.runtime.metrics import reprojection_error_under_k
-from dimenet.runtime.rectifier import Rectifier
-from dimenet.runtime.simulator import simulate
 from test_export import model_spec, random_model_file
+
+from dimenet.runtime.assets import asset
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
+from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
+from dimenet.runtime.rectify import rectifier as rectifier_module
+from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.sim.simulator import simulate
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,7 @@ def model_path(tmp_path_factory, frames):
     """A random-init model exported for these frames, else None (the bundled default model)."""
     if importable("torch", "onnx"):
         return random_model_file(tmp_path_factory.mktemp("model") / "random.onnx", model_spec(frames))
-    if not (resources.files("dimenet.runtime") / "data" / rectifier_module.DEFAULT_MODEL).is_file():
+    if not asset(rectifier_module.DEFAULT_MODEL).is_file():
         pytest.skip("needs torch and onnx to export a test model, or the bundled default model")
     return None
 
@@ -204,7 +205,7 @@ def test_bad_frames_of_a_batch_are_named(rectifier, frames, monkeypatch):
         rectifier.rectify_batch(frames.points_2d[:3], p3, few)
     with pytest.raises(InputError, match="valid: expected a bool array of shape \\(3, "):
         rectifier.rectify_batch(frames.points_2d[:3], p3, valid[:2])
-    monkeypatch.setattr("dimenet.runtime.geometry.cv2.solvePnP", lambda *a, **k: (False, np.zeros(3), np.zeros(3)))
+    monkeypatch.setattr("dimenet.runtime.geometry.pnp.cv2.solvePnP", lambda *a, **k: (False, np.zeros(3), np.zeros(3)))
     with pytest.raises(InputError, match="frame 0: PnP failed"):
         rectifier.rectify_batch(frames.points_2d[:3], p3, valid)
     with pytest.raises(InputError, match="PnP failed"):
@@ -254,8 +255,8 @@ def test_missing_bundled_model_is_a_model_error(monkeypatch):
 def test_runtime_and_its_commands_never_import_torch_or_onnx():
     code = (
         "import sys\n"
-        "import dimenet.runtime, dimenet.runtime.rectifier, dimenet.runtime.onnx_model, dimenet.runtime.bench\n"
-        "from dimenet.runtime.cli import main\n"
+        "import dimenet.runtime, dimenet.runtime.rectify.rectifier, dimenet.runtime.rectify.model, dimenet.runtime.evaluation.latency\n"
+        "from dimenet.runtime.cli.main import main\n"
         "for cmd in ('rectify', 'bench'):\n"
         "    try:\n"
         "        main([cmd, '--help'])\n"

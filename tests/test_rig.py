@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from dimenet.runtime.errors import RigError
-from dimenet.runtime.rig import Board, load_rig, paper_rig, rig_from_dict, rig_to_dict
-from dimenet.runtime.simulator import board_surface
+from dimenet.runtime.formats.rig import Board, load_rig, paper_rig, rig_from_dict, rig_to_dict
+from dimenet.runtime.sim.simulator import board_surface
 
 
 def test_paper_rig_is_four_10x8_boards_of_22mm():

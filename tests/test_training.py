@@ -11,16 +11,23 @@ import pytest
 
 torch = pytest.importorskip("torch")  # the base-only install has no torch: skip, not fail
 
-from dimenet.runtime.calibration import calibrate_dataset  # noqa: E402
-from dimenet.runtime.dataset import write_dataset  # noqa: E402
-from dimenet.runtime.evaluation import evaluate  # noqa: E402
+from dimenet.runtime.evaluation.calibration import calibrate_dataset  # noqa: E402
+from dimenet.runtime.evaluation.methods import evaluate  # noqa: E402
+from dimenet.runtime.evaluation.predictor import load_predictor  # noqa: E402
+from dimenet.runtime.formats.dataset import write_dataset  # noqa: E402
 from dimenet.runtime.geometry import k_params  # noqa: E402
-from dimenet.runtime.predictor import load_predictor  # noqa: E402
-from dimenet.runtime.simulator import PROFILES, simulate  # noqa: E402
+from dimenet.runtime.sim.simulator import PROFILES, simulate  # noqa: E402
 from dimenet.training.model import DimeNet  # noqa: E402
 from dimenet.training.run_dir import load_run  # noqa: E402
-from dimenet.training.trainer import (TrainConfig, cluster_inference_points, focal_loss, frame_truth,  # noqa: E402
-                                      resynthesise, split_train_val, train)
+from dimenet.training.trainer import (  # noqa: E402
+    TrainConfig,
+    cluster_inference_points,
+    focal_loss,
+    frame_truth,
+    resynthesise,
+    split_train_val,
+    train,
+)
 
 SMALL = dataclasses.replace(PROFILES["galaxy-s8"], name="small-s8", n_train=30, n_test=8)
 
@@ -242,7 +249,7 @@ def test_clustered_inference_points_are_compact_noisy_candidates_and_spare_other
 
 
 def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small, tmp_path):
-    from dimenet.runtime.cli import main
+    from dimenet.runtime.cli.main import main
     from dimenet.training.commands import TRAIN_DEFAULT_FOCAL_WEIGHT
 
     assert TRAIN_DEFAULT_FOCAL_WEIGHT == TrainConfig().focal_weight  # --help states the trainer's default
@@ -251,7 +258,7 @@ def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small,
     spec = json.loads((tmp_path / "run" / "spec.json").read_text())
     assert spec["provenance"]["config"]["focal_weight"] == 0.0
     for bad in ("-1", "nan", "inf"):
-        res = subprocess.run([sys.executable, "-m", "dimenet.runtime.cli", "train", str(data), "--out",
+        res = subprocess.run([sys.executable, "-m", "dimenet.runtime.cli.main", "train", str(data), "--out",
                               str(tmp_path / "bad"), "--focal-weight", bad], capture_output=True, text=True, timeout=120)
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 2 and len(lines) == 1 and "--focal-weight" in lines[0], res.stderr

@@ -6,7 +6,7 @@ import math
 import shlex
 import sys
 
-from dimenet.runtime.cli import Command
+from dimenet.runtime.cli.main import Command
 
 # TrainConfig's default, repeated here so that `dimenet train --help` needs no torch.
 TRAIN_DEFAULT_FOCAL_WEIGHT = 0.03
@@ -25,8 +25,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from dimenet.runtime.dataset import read_dataset
     from dimenet.runtime.errors import InputError
+    from dimenet.runtime.formats.dataset import read_dataset
 
     from .trainer import TrainConfig, file_sha256, train
 

@@ -1,4 +1,4 @@
-"""Torch backend of dimenet.runtime.predictor: a RUN_DIR as a Predictor (entry point `run_dir`)."""
+"""Torch backend of dimenet.runtime.evaluation.predictor: a RUN_DIR as a Predictor (entry point `run_dir`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dimenet.runtime.model_spec import ModelSpec
-from dimenet.runtime.predictor import Predictor
+from dimenet.runtime.evaluation.predictor import Predictor
+from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import DimeNet
 from .run_dir import load_run

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dimenet.runtime.atomic import atomic_write, atomic_write_text
-from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, occupancy
-from dimenet.runtime.dataset import Dataset
-from dimenet.runtime.evaluation import METHODS, evaluate
-from dimenet.runtime.grid import Grid
-from dimenet.runtime.predictor import load_predictor
-from dimenet.runtime.progress import progress
-from dimenet.runtime.simulator import simulate
+from dimenet.runtime.cli.progress import progress
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
+from dimenet.runtime.evaluation.methods import METHODS, evaluate
+from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.sim.simulator import simulate
 
 from .trainer import TrainConfig, train
 

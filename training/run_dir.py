@@ -6,13 +6,12 @@ import io
 import json
 from pathlib import Path
 
-import torch
 from safetensors.torch import load as load_safetensors
 from safetensors.torch import save as save_safetensors
 
-from dimenet.runtime.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.model_spec import ModelSpec
+from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
+from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import DimeNet
 

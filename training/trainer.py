@@ -30,18 +30,19 @@ import numpy as np
 import torch
 
 from dimenet.runtime import __version__
-from dimenet.runtime.calibration import calibrate_dataset
-from dimenet.runtime.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
-from dimenet.runtime.dataset import Dataset
+from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DatasetError
-from dimenet.runtime.features import FeatureSpec, grid_features
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
+from dimenet.runtime.evaluation.predictor import MIN_INFER_POINTS
+from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_params, project
-from dimenet.runtime.grid import Grid
-from dimenet.runtime.map_fit import map_rectify
-from dimenet.runtime.model_spec import ModelSpec
-from dimenet.runtime.predictor import MIN_INFER_POINTS
-from dimenet.runtime.progress import progress
-from dimenet.runtime.uncertainty import Uncertainty, coverage, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.rectify.features import FeatureSpec, grid_features
+from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.rectify.map_fit import map_rectify
+from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.uncertainty import Uncertainty
 
 from . import bpnp
 from .model import DimeNet

@@ -1,0 +1,1 @@
+"""The ``dimenet`` command line: the parser core (main), argument types, progress, commands/."""

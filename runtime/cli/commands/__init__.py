@@ -1,0 +1,1 @@
+"""The runtime's subcommands, each a ``Command`` registered under ``dimenet.commands``."""

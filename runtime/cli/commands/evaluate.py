@@ -1,0 +1,74 @@
+"""`dimenet evaluate`: e_c, e* (and e, rho with a model) per scene on one split; with
+``--methods``, one row per method (kc, self, dimenet, map, oracle) and scene."""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from dimenet.runtime.cli.main import CliError, Command, positive_float
+from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
+from dimenet.runtime.evaluation.methods import METHODS, MODEL_METHODS, evaluate, format_table
+from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.formats.dataset import SPLITS, read_dataset
+from dimenet.runtime.rectify.grid import Grid
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz)")
+    p.add_argument("--model", help="trained model: a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`")
+    p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")
+    p.add_argument("--drop", type=int, metavar="N", help="keep N uniformly drawn inference points per frame")
+    p.add_argument("--noise-2d", type=positive_float, default=0.0, metavar="PX", help="extra 2D Gaussian noise, px")
+    p.add_argument("--noise-3d", type=positive_float, default=0.0, metavar="MM", help="extra 3D Gaussian noise, mm")
+    p.add_argument("--eta", type=positive_float, default=0.0, metavar="FRACTION",
+                   help="empty this fraction of the occupied grid cells (paper Table 2)")
+    p.add_argument("--grid", help="grid (columns x rows) for --eta (default: the model's, else 8x6)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the test conditions (default 0)")
+    p.add_argument("--methods", type=_methods, default=(), metavar="M1,M2",
+                   help=f"compare methods, comma-separated from {','.join(METHODS)} (dimenet and map need --model): "
+                        "rho per method and scene, and the 1-sigma coverage of K's uncertainty")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+
+
+def _methods(text: str) -> tuple:
+    names = tuple(m.strip() for m in text.split(",") if m.strip())
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(METHODS)})")
+    return names
+
+
+def run(args: argparse.Namespace) -> int:
+    needs_model = [m for m in args.methods if m in MODEL_METHODS]
+    if needs_model and not args.model:
+        raise CliError(f"--methods {needs_model[0]} needs --model")
+    ds = read_dataset(args.data)
+    predictor = load_predictor(args.model) if args.model else None
+    K_c = predictor.spec.K_c if predictor else calibrate_dataset(ds).K_c
+    grid = Grid.parse(args.grid) if args.grid else (predictor.spec.features.grid if predictor else Grid(8, 6))
+    frames = ds.select(ds.frames_in(args.split))
+    if frames.n_frames == 0:
+        raise DatasetError(f"split: the dataset has no {args.split!r} frames")
+    rng = np.random.default_rng(args.seed)
+    if args.noise_2d or args.noise_3d:
+        frames = add_noise(frames, args.noise_2d, args.noise_3d, rng)
+    if args.drop is not None:
+        frames = drop_inference_points(frames, args.drop, rng)
+    if args.eta:
+        frames = empty_cells(frames, args.eta, grid, rng)
+    ev = evaluate(frames, K_c, predictor, split=args.split, methods=args.methods)
+    print(json.dumps(ev.to_json()) if args.json else format_table(ev))
+    return 0
+
+
+COMMAND = Command(
+    name="evaluate",
+    summary="Report Avg(e_c) and Avg(e*) per scene (and Avg(e), rho with a model) on one split, in px.",
+    example="dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --methods kc,self,dimenet,map,oracle --json",
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -1,1 +1,0 @@
-"""Subcommands of the `dimenet` command line that live in the runtime."""

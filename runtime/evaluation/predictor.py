@@ -1,0 +1,103 @@
+"""From a trained model to per-frame K: the part shared by every model backend.
+
+A backend (the ONNX session in the runtime, or a torch RUN_DIR from dimenet.training,
+registered under the ``dimenet.predictors`` entry-point group) only maps features to
+Delta K; building the features and turning Delta K into K lives here once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from dimenet.runtime.errors import ModelError
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.geometry import covariance_invariants_batch, k_matrix, k_params, mean_residual_norms
+from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.rectify.model import load_onnx_model
+from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.uncertainty import STATISTICS, input_statistics
+
+# Fewest inference points from which a frame's K is predicted; below, K = K_c.
+MIN_INFER_POINTS = 6
+
+
+@dataclass(frozen=True)
+class KPrediction:
+    """Per frame of F: K (F, 3, 3) px (K_c where not predicted); predicted (F,) bool, False
+    when the frame has too few inference points or the prediction is implausible; stats
+    (F, 4) the uncertainty statistics of the inference points (NaN where not predicted);
+    cov (F, 4, 4) px^2 the network's covariance of (fx, fy, cx, cy), None when the spec has
+    no uncertainty model (NaN where not predicted)."""
+
+    K: np.ndarray
+    predicted: np.ndarray
+    stats: np.ndarray
+    cov: Optional[np.ndarray]
+
+
+@dataclass(frozen=True)
+class Predictor:
+    """spec: the model's dimenet-model/1 spec; delta_k: features (B, D) float32 -> (B, 4) px."""
+
+    spec: ModelSpec
+    delta_k: Callable[[np.ndarray], np.ndarray]
+    source: str
+
+    def predict(self, frames: Dataset) -> KPrediction:
+        """K and, with an uncertainty model, its covariance per frame from its inference points."""
+        spec = self.spec
+        if tuple(frames.image_size.tolist()) != tuple(spec.image_size):
+            raise ModelError(f"{self.source}: trained for {spec.image_size[0]}x{spec.image_size[1]} px images, "
+                             f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}")
+        F = frames.n_frames
+        K = np.broadcast_to(spec.K_c, (F, 3, 3)).copy()
+        stats = np.full((F, len(STATISTICS)), np.nan)
+        predicted = np.zeros(F, bool)
+        usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
+        if usable.any():
+            sub = frames.select(usable)
+            feats, points = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size,
+                                          spec.features, return_points=True)
+            dk = np.asarray(self.delta_k(feats.astype(np.float32)), dtype=np.float64)
+            K_pred = k_matrix(k_params(spec.K_c) + dk)
+            ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
+            rows = np.flatnonzero(usable)[ok]
+            K[rows], predicted[rows] = K_pred[ok], True
+            mask = sub.infer_mask
+            stats[rows] = input_statistics(feats, mask.sum(1), mean_residual_norms(points[:, :2], mask),
+                                           covariance_invariants_batch(sub.points_3d, mask),
+                                           len(spec.features.channels))[ok]
+        cov = None
+        if spec.uncertainty is not None:
+            cov = np.full((F, 4, 4), np.nan)
+            cov[predicted] = spec.uncertainty.covariance(stats[predicted])
+        return KPrediction(K=K, predicted=predicted, stats=stats, cov=cov)
+
+    def predict_k(self, frames: Dataset) -> np.ndarray:
+        """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few
+        inference points or the prediction is outside the spec's plausible bounds."""
+        return self.predict(frames).K
+
+
+def load_predictor(path: str | Path) -> Predictor:
+    """A predictor from a model path: a RUN_DIR (needs the train extra) or an exported .onnx."""
+    path = Path(path)
+    if not path.exists():
+        raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")
+    kind = "run_dir" if path.is_dir() else path.suffix.lstrip(".").lower()
+    eps = metadata.entry_points()
+    group = eps.select(group="dimenet.predictors") if hasattr(eps, "select") else eps.get("dimenet.predictors", [])
+    loaders = {ep.name: ep for ep in group}
+    if kind not in loaders:
+        raise ModelError(f"{path}: not a model this installation can load (known kinds: {', '.join(sorted(loaders))})")
+    return loaders[kind].load()(path)
+
+
+def load_onnx_predictor(path: str | Path) -> Predictor:
+    """Entry point ``onnx`` of ``dimenet.predictors``: a .onnx file as a Predictor."""
+    model = load_onnx_model(path)
+    return Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)

@@ -1,0 +1,66 @@
+"""The ``self`` baseline: each frame's K from its own inference points alone (joint K + pose).
+
+What a user could do without any model: per-frame calibration (DLT start, then LM over
+(fx, fy, cx, cy) and the pose; least_squares.calibrate) on the points K is inferred from.
+Where K is not observable from the frame, it says so and falls back to K_c instead of
+returning garbage: fewer than 6 inference points, (nearly) coplanar 3D points (one planar
+view cannot fix K), a fit that fails, or a K that is not a camera of this image (focal
+lengths not positive, principal point outside the image).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dimenet.runtime.errors import CalibrationError
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry.least_squares import dlt_starts, fit
+
+MIN_POINTS = 6
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """K (F, 3, 3) px per frame (K_c where it fell back); fallback: per frame None or why."""
+
+    K: np.ndarray
+    fallback: tuple
+
+
+def _implausible(K: np.ndarray, image_size) -> str | None:
+    fx, fy, cx, cy = k_params(K)
+    width, height = image_size
+    if not np.all(np.isfinite([fx, fy, cx, cy])):
+        return "the fit diverged (K not finite)"
+    if fx <= 0 or fy <= 0 or not (0 <= cx <= width and 0 <= cy <= height):
+        return (f"the fit gives no camera of this image (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, "
+                f"cy={cy:.1f} px)")
+    return None
+
+
+def self_calibrate(frames: Dataset, K_c: np.ndarray) -> SelfCalibration:
+    """Per-frame joint (K, pose) on each frame's inference points; K_c where that is ill-posed."""
+    F = frames.n_frames
+    K = np.broadcast_to(np.asarray(K_c, dtype=np.float64), (F, 3, 3)).copy()
+    reasons: list = [None] * F
+    counts = frames.infer_mask.sum(1)
+    enough = counts >= MIN_POINTS
+    for f in np.flatnonzero(~enough):
+        reasons[f] = f"{int(counts[f])} inference points: K from one frame needs >= {MIN_POINTS}"
+    idx = np.flatnonzero(enough)
+    starts = dlt_starts(frames.points_2d[idx], frames.points_3d[idx], frames.infer_mask[idx])
+    ok = [i for i, s in enumerate(starts) if not isinstance(s, CalibrationError)]
+    for i, s in enumerate(starts):
+        if isinstance(s, CalibrationError):
+            reasons[idx[i]] = f"ill-posed: {s}"
+    if ok:
+        sub = idx[ok]
+        K0, rvec, tvec = (np.array(a) for a in zip(*(starts[i] for i in ok)))
+        res = fit(frames.points_2d[sub], frames.points_3d[sub], frames.infer_mask[sub], K0, rvec, tvec, fit_k=True)
+        for f, K_f in zip(sub, res.K):
+            reasons[f] = _implausible(K_f, frames.image_size)
+            if reasons[f] is None:
+                K[f] = K_f
+    return SelfCalibration(K=K, fallback=tuple(reasons))

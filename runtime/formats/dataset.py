@@ -1,0 +1,182 @@
+"""Dataset format ``dimenet-dataset/1``: the one reader, validator and writer.
+
+The format is specified in ``models_spec/dataset-v1.md``. A dataset is one ``.npz``
+file, read with ``allow_pickle=False``. Frames are F images, each with up to P
+correspondences (NaN-padded); 2D points are pixels (x right, y down), 3D points are
+millimetres in that frame's world frame {W}.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.formats.atomic import atomic_write
+
+FORMAT = "dimenet-dataset/1"
+SPLITS = ("train", "val", "test")
+MIN_POINTS_PER_FRAME = 6
+REQUIRED_KEYS = ("format", "image_size", "points_2d", "points_3d", "valid", "infer_mask", "split", "scene", "meta")
+OPTIONAL_KEYS = ("K_true", "frame_id")
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A validated dataset held in memory (see models_spec/dataset-v1.md)."""
+
+    image_size: np.ndarray  # (2,) int64: width, height in px
+    points_2d: np.ndarray  # (F, P, 2) float64 px, NaN where absent
+    points_3d: np.ndarray  # (F, P, 3) float64 mm in {W}
+    valid: np.ndarray  # (F, P) bool
+    infer_mask: np.ndarray  # (F, P) bool, subset of valid
+    split: np.ndarray  # (F,) str
+    scene: np.ndarray  # (F,) str
+    meta: dict = field(default_factory=dict)
+    K_true: Optional[np.ndarray] = None  # (F, 3, 3) float64 px
+    frame_id: Optional[np.ndarray] = None  # (F,) str
+
+    def __post_init__(self) -> None:
+        validate_arrays(self.to_arrays())
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.points_2d.shape[0])
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points_2d.shape[1])
+
+    def select(self, frames: np.ndarray) -> "Dataset":
+        """The dataset restricted to ``frames`` (a boolean mask or index array over F)."""
+        idx = np.arange(self.n_frames)[frames]
+        take = lambda a: None if a is None else a[idx]  # noqa: E731
+        return replace(self, points_2d=self.points_2d[idx], points_3d=self.points_3d[idx],
+                       valid=self.valid[idx], infer_mask=self.infer_mask[idx], split=self.split[idx],
+                       scene=self.scene[idx], K_true=take(self.K_true), frame_id=take(self.frame_id))
+
+    def frames_in(self, split: str) -> np.ndarray:
+        """Boolean mask of the frames in ``split``."""
+        return self.split == split
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        arrays = {
+            "format": np.array(FORMAT),
+            "image_size": np.asarray(self.image_size),
+            "points_2d": self.points_2d,
+            "points_3d": self.points_3d,
+            "valid": self.valid,
+            "infer_mask": self.infer_mask,
+            "split": np.asarray(self.split),
+            "scene": np.asarray(self.scene),
+            "meta": np.array(json.dumps(self.meta, sort_keys=True)),
+        }
+        if self.K_true is not None:
+            arrays["K_true"] = self.K_true
+        if self.frame_id is not None:
+            arrays["frame_id"] = np.asarray(self.frame_id)
+        return arrays
+
+
+def _require(cond: bool, key: str, problem: str) -> None:
+    if not cond:
+        raise DatasetError(f"{key}: {problem}")
+
+
+def _string_array(arrays: Mapping[str, Any], key: str, shape: tuple) -> np.ndarray:
+    a = np.asarray(arrays[key])
+    _require(a.dtype.kind == "U", key, f"must be a string array, got dtype {a.dtype}")
+    _require(a.shape == shape, key, f"must have shape {shape}, got {a.shape}")
+    return a
+
+
+def _float_array(arrays: Mapping[str, Any], key: str, shape: tuple) -> np.ndarray:
+    a = np.asarray(arrays[key])
+    _require(a.dtype.kind == "f", key, f"must be a float array, got dtype {a.dtype}")
+    _require(a.shape == shape, key, f"must have shape {shape}, got {a.shape}")
+    return a.astype(np.float64, copy=False)
+
+
+def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
+    """Check a mapping of arrays against ``dimenet-dataset/1``; return normalised fields.
+
+    Raises DatasetError naming the key and the problem.
+    """
+    keys = set(arrays)
+    missing = [k for k in REQUIRED_KEYS if k not in keys]
+    _require(not missing, missing[0] if missing else "", "missing required key")
+    unknown = sorted(keys - set(REQUIRED_KEYS) - set(OPTIONAL_KEYS))
+    _require(not unknown, unknown[0] if unknown else "", "unknown key (format dimenet-dataset/1 does not define it)")
+    fmt = np.asarray(arrays["format"])
+    _require(fmt.shape == () and fmt.dtype.kind == "U" and str(fmt) == FORMAT, "format",
+             f"must be exactly {FORMAT!r}, got {fmt!r}")
+    size = np.asarray(arrays["image_size"])
+    _require(size.dtype.kind in "iu" and size.shape == (2,), "image_size", "must be 2 integers (width, height) px")
+    _require(bool(np.all(size > 0)), "image_size", f"must be positive, got {size.tolist()}")
+    p2 = np.asarray(arrays["points_2d"])
+    _require(p2.ndim == 3 and p2.shape[2] == 2, "points_2d", f"must have shape (F, P, 2), got {p2.shape}")
+    F, P = p2.shape[:2]
+    _require(F > 0, "points_2d", "the dataset has no frames")
+    p2 = _float_array(arrays, "points_2d", (F, P, 2))
+    p3 = _float_array(arrays, "points_3d", (F, P, 3))
+    valid = np.asarray(arrays["valid"])
+    _require(valid.dtype == bool and valid.shape == (F, P), "valid", f"must be bool of shape {(F, P)}, got {valid.dtype} {valid.shape}")
+    infer = np.asarray(arrays["infer_mask"])
+    _require(infer.dtype == bool and infer.shape == (F, P), "infer_mask", f"must be bool of shape {(F, P)}, got {infer.dtype} {infer.shape}")
+    _require(not np.any(infer & ~valid), "infer_mask", "must be a subset of valid (a point to infer from is not valid)")
+    bad = valid & ~(np.isfinite(p2).all(-1) & np.isfinite(p3).all(-1))
+    _require(not bad.any(), "points_2d/points_3d",
+             f"valid point has a non-finite coordinate (frame {np.argwhere(bad)[0][0] if bad.any() else 0})")
+    counts = valid.sum(1)
+    _require(bool(np.all(counts >= MIN_POINTS_PER_FRAME)), "valid",
+             f"frame {int(np.argmin(counts))} has {int(counts.min())} valid points, needs >= {MIN_POINTS_PER_FRAME}")
+    split = _string_array(arrays, "split", (F,))
+    unknown_split = sorted(set(split.tolist()) - set(SPLITS))
+    _require(not unknown_split, "split", f"unknown split {unknown_split[0] if unknown_split else ''!r}; allowed: {', '.join(SPLITS)}")
+    scene = _string_array(arrays, "scene", (F,))
+    _require(bool(np.all(np.char.str_len(scene) > 0)), "scene", "empty scene name")
+    meta_raw = np.asarray(arrays["meta"])
+    _require(meta_raw.shape == () and meta_raw.dtype.kind == "U", "meta", "must be a JSON string")
+    try:
+        meta = json.loads(str(meta_raw))
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"meta: not valid JSON ({exc.msg})") from None
+    _require(isinstance(meta, dict), "meta", "must be a JSON object")
+    out: dict[str, Any] = dict(image_size=size.astype(np.int64), points_2d=p2, points_3d=p3, valid=valid,
+                               infer_mask=infer, split=split, scene=scene, meta=meta)
+    if "K_true" in arrays:
+        K = _float_array(arrays, "K_true", (F, 3, 3))
+        _require(bool(np.all(np.isfinite(K))), "K_true", "has non-finite entries")
+        _require(bool(np.all(K[:, 0, 0] > 0) and np.all(K[:, 1, 1] > 0) and np.allclose(K[:, 2], [0, 0, 1])),
+                 "K_true", "must be intrinsic matrices (positive focal lengths, last row 0 0 1)")
+        out["K_true"] = K
+    if "frame_id" in arrays:
+        out["frame_id"] = _string_array(arrays, "frame_id", (F,))
+    return out
+
+
+def read_dataset(path: str | Path) -> Dataset:
+    """Read and validate a ``dimenet-dataset/1`` file. Raises DatasetError (never pickle-loads)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: no such dataset file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except ValueError as exc:
+        raise DatasetError(f"{path}: holds object arrays, which format dimenet-dataset/1 forbids ({exc})") from None
+    except (OSError, EOFError, KeyError) as exc:
+        raise DatasetError(f"{path}: not a readable .npz file ({exc})") from None
+    try:
+        return Dataset(**validate_arrays(arrays))
+    except DatasetError as exc:
+        raise DatasetError(f"{path}: {exc}") from None
+
+
+def write_dataset(dataset: Dataset, path: str | Path) -> Path:
+    """Write atomically (temp file + rename): a failure leaves any previous file intact."""
+    arrays = dataset.to_arrays()
+    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))

@@ -1,0 +1,134 @@
+"""The pinhole camera: K as (fx, fy, cx, cy), projection {W} -> {C} -> pixels, reprojection residuals and errors."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from dimenet.runtime.geometry.rotation import rvec_to_matrix
+
+# Smallest depth (mm) a point may have in front of the camera and still be projected.
+MIN_DEPTH_MM = 1e-6
+
+
+def k_params(K: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) intrinsic matrices -> (..., 4) as (fx, fy, cx, cy) in pixels."""
+    K = np.asarray(K, dtype=np.float64)
+    return np.stack([K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]], axis=-1)
+
+
+def k_matrix(params: np.ndarray) -> np.ndarray:
+    """(..., 4) (fx, fy, cx, cy) in pixels -> (..., 3, 3) zero-skew intrinsic matrices."""
+    params = np.asarray(params, dtype=np.float64)
+    K = np.zeros(params.shape[:-1] + (3, 3))
+    K[..., 0, 0] = params[..., 0]
+    K[..., 1, 1] = params[..., 1]
+    K[..., 0, 2] = params[..., 2]
+    K[..., 1, 2] = params[..., 3]
+    K[..., 2, 2] = 1.0
+    return K
+
+
+def frame_k_matrix(params) -> np.ndarray:
+    """``k_matrix`` of one frame's (fx, fy, cx, cy) px in one numpy call (the runtime's hot path)."""
+    fx, fy, cx, cy = params
+    return np.array(((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0)))
+
+
+def to_camera(points_3d: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """{W} points (..., N, 3) in mm -> {C} points (..., N, 3) in mm for poses (..., 3)."""
+    R = rvec_to_matrix(rvec)
+    return np.einsum("...ij,...nj->...ni", R, points_3d) + np.asarray(tvec)[..., None, :]
+
+
+def project_camera(K: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
+    """{C} points (..., N, 3) in mm -> pixels (..., N, 2) under K (..., 3, 3)."""
+    p = k_params(K)[..., None, :]
+    z = points_cam[..., 2]
+    return np.stack(
+        [p[..., 0] * points_cam[..., 0] / z + p[..., 2], p[..., 1] * points_cam[..., 1] / z + p[..., 3]],
+        axis=-1,
+    )
+
+
+def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """{W} points (..., N, 3) in mm -> pixels (..., N, 2) under K and the pose {W}->{C}."""
+    return project_camera(K, to_camera(points_3d, rvec, tvec))
+
+
+def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray,
+                    tvec: np.ndarray) -> np.ndarray:
+    """One frame's reprojection residuals pi(K, R X + t) - x (N, 2) px, through OpenCV (few calls,
+    for the runtime's hot path): points_2d (N, 2) px, points_3d (N, 3) mm float64, pose {W}->{C}
+    as the rotation matrix R (3, 3) and tvec (3,) mm."""
+    Rt = np.empty((3, 4))
+    Rt[:, :3], Rt[:, 3] = R, tvec
+    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), K @ Rt)).reshape(-1, 2)
+    d -= points_2d
+    return d
+
+
+def camera_xy_inverse_depth(points_3d: np.ndarray, R: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """One frame's {W} points (N, 3) mm -> (3, N) rows X_C, Y_C (mm) and 1 / Z_C (1/mm) of the
+    {C} points X_C = R X + t, R (3, 3) (the layout of the grid feature's point rows 2-4)."""
+    Xc = R @ points_3d.T
+    Xc += tvec.reshape(3, 1)
+    np.divide(1.0, Xc[2], out=Xc[2])
+    return Xc
+
+
+def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:
+    """Euclidean reprojection error (px) of each correspondence, shape (..., N)."""
+    return np.linalg.norm(project(points_3d, K, rvec, tvec) - points_2d, axis=-1)
+
+
+def mean_reprojection_error(points_2d, points_3d, weights, K, rvec, tvec) -> np.ndarray:
+    """Mean Euclidean reprojection error (px) over the points with weight > 0, shape (...)."""
+    valid = np.asarray(weights) > 0
+    err = reprojection_errors(np.where(valid[..., None], points_2d, 0.0),
+                              np.where(valid[..., None], points_3d, 1.0), K, rvec, tvec)
+    return mean_over(err, valid)
+
+
+def mean_over(values: np.ndarray, valid) -> np.ndarray:
+    """(..., N) values -> (...,) their mean over the ``valid`` (..., N) bool entries, or over all
+    entries when valid is None."""
+    if valid is None:
+        return values.sum(-1) / values.shape[-1]
+    return np.where(valid, values, 0.0).sum(-1) / valid.sum(-1)
+
+
+def mean_residual_norms(residuals: np.ndarray, valid) -> np.ndarray:
+    """(B, 2, N) px residual rows (u, then v) of B frames -> (B,) their mean Euclidean norm (px)
+    over the ``valid`` (B, N) bool points (None: all). As sqrt(u^2 + v^2), a third of np.hypot's
+    time; hypot's guard against overflow is moot for pixel residuals."""
+    u, v = residuals[:, 0], residuals[:, 1]
+    return mean_over(np.sqrt(u * u + v * v), valid)
+
+
+def mean_reprojection_errors(points_2d, points_3d, valid, K, R, tvec) -> np.ndarray:
+    """``mean_reprojection_error`` of B frames (same values to float rounding), computed
+    coordinate-major for speed: points_2d (B, N, 2) px, points_3d (B, N, 3) mm, valid (B, N)
+    bool or None for all points, K (3, 3) or (B, 3, 3), R (B, 3, 3) rotations and tvec (B, 3)
+    mm of the poses {W}->{C}. Returns (B,) px."""
+    if valid is not None:
+        points_2d = np.where(valid[..., None], points_2d, 0.0)
+        points_3d = np.where(valid[..., None], points_3d, 1.0)
+    K = np.asarray(K, dtype=np.float64).reshape(-1, 3, 3)
+    Xc = np.matmul(R, np.swapaxes(points_3d, 1, 2))  # (B, 3, N)
+    Xc += np.asarray(tvec, dtype=np.float64)[:, :, None]
+    # fx X / Z + cx - x and fy Y / Z + cy - y, in the order of operations of project().
+    d = np.multiply(Xc[:, :2], np.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, :, None])
+    d /= Xc[:, 2:]
+    d += K[:, :2, 2:]
+    d -= np.swapaxes(points_2d, 1, 2)
+    return mean_residual_norms(d, valid)
+
+
+def camera_centre(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """(3,) camera centre in {W} (mm) of the pose {W}->{C}."""
+    return -rvec_to_matrix(rvec).T @ tvec
+
+
+def facing(points_mm: np.ndarray, normals: np.ndarray, camera_mm: np.ndarray) -> np.ndarray:
+    """(N,) whether each surface point's outward normal points towards the camera."""
+    return np.einsum("ni,ni->n", camera_mm - points_mm, normals) > 0

@@ -1,0 +1,158 @@
+"""Batched Levenberg-Marquardt on the reprojection error, over the pose or the pose and K.
+
+One solver for every frame-wise fit in dimenet: the PnP optimum under a fixed K (the
+metric e(K)), and the joint (K*, pose) calibration (the oracle e*). Frames are solved
+together with analytic Jacobians and batched 6x6 or 10x10 normal equations; each frame
+keeps its own damping. Points with weight 0 have no effect (their values are ignored).
+
+Parameters: rotation as a left perturbation R <- exp(d) R, translation in mm, and K as
+(fx, fy, cx, cy) in px. Cost: sum_i w_i ||pi(K, R X_i + t) - x_i||^2 (px^2).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dimenet.runtime.errors import CalibrationError
+from dimenet.runtime.geometry.camera import MIN_DEPTH_MM, k_matrix, k_params
+from dimenet.runtime.geometry.pnp import dlt_camera, solve_pnp_start
+from dimenet.runtime.geometry.rotation import matrix_to_rvec, rvec_to_matrix
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Result of a batched fit over B frames."""
+
+    K: np.ndarray  # (B, 3, 3) px
+    rvec: np.ndarray  # (B, 3) rad, {W}->{C}
+    tvec: np.ndarray  # (B, 3) mm, {W}->{C}
+    cost: np.ndarray  # (B,) weighted sum of squared residuals, px^2
+    iterations: int
+
+
+def _residuals(points_2d, points_3d, sqrt_w, kp, R, t):
+    Xc = np.einsum("bij,bnj->bni", R, points_3d) + t[:, None, :]
+    z = np.maximum(Xc[..., 2], MIN_DEPTH_MM)
+    xn, yn = Xc[..., 0] / z, Xc[..., 1] / z
+    u = kp[:, None, 0] * xn + kp[:, None, 2]
+    v = kp[:, None, 1] * yn + kp[:, None, 3]
+    r = np.stack([u - points_2d[..., 0], v - points_2d[..., 1]], axis=-1) * sqrt_w[..., None]
+    return r, Xc, z, xn, yn
+
+
+def _jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
+    """(B, N, 2, 6 or 10) Jacobian of the weighted residuals: [rotation, translation, (K)]."""
+    B, N = z.shape
+    fx, fy = kp[:, None, 0], kp[:, None, 1]
+    dp_dX = np.zeros((B, N, 2, 3))
+    dp_dX[..., 0, 0] = fx / z
+    dp_dX[..., 0, 2] = -fx * xn / z
+    dp_dX[..., 1, 1] = fy / z
+    dp_dX[..., 1, 2] = -fy * yn / z
+    a = Xc - t[:, None, :]  # R X, the rotated point before translation
+    # d(exp(d) a)/dd at d=0 is -skew(a): columns are e_k x a negated.
+    dX_dd = np.zeros((B, N, 3, 3))
+    dX_dd[..., 0, 1], dX_dd[..., 0, 2] = a[..., 2], -a[..., 1]
+    dX_dd[..., 1, 0], dX_dd[..., 1, 2] = -a[..., 2], a[..., 0]
+    dX_dd[..., 2, 0], dX_dd[..., 2, 1] = a[..., 1], -a[..., 0]
+    cols = [dp_dX @ dX_dd, dp_dX]
+    if fit_k:
+        dk = np.zeros((B, N, 2, 4))
+        dk[..., 0, 0], dk[..., 0, 2] = xn, 1.0
+        dk[..., 1, 1], dk[..., 1, 3] = yn, 1.0
+        cols.append(dk)
+    return np.concatenate(cols, axis=-1) * sqrt_w[..., None, None]
+
+
+def fit(points_2d, points_3d, weights, K, rvec, tvec, *, fit_k: bool,
+        max_iterations: int = 50, tolerance: float = 1e-12) -> FitResult:
+    """Minimise the reprojection error of B frames from the given start.
+
+    points_2d (B, N, 2) px; points_3d (B, N, 3) mm in {W}; weights (B, N) >= 0;
+    K (B, 3, 3) start (kept fixed unless fit_k); rvec, tvec (B, 3) start pose {W}->{C}.
+    Stops when every frame's relative cost decrease falls below ``tolerance``.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    use = w > 0
+    sqrt_w = np.sqrt(np.where(use, w, 0.0))
+    p2 = np.where(use[..., None], points_2d, 0.0)
+    p3 = np.where(use[..., None], points_3d, 0.0)
+    kp = k_params(K).copy()
+    R = rvec_to_matrix(rvec)
+    t = np.array(tvec, dtype=np.float64)
+    B = len(p2)
+    n_par = 10 if fit_k else 6
+    lam = np.full(B, 1e-3)
+    r, Xc, z, xn, yn = _residuals(p2, p3, sqrt_w, kp, R, t)
+    cost = (r**2).sum((1, 2))
+    active = np.ones(B, bool)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        J = _jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
+        H = np.einsum("bki,bkj->bij", J, J)
+        g = np.einsum("bki,bk->bi", J, r.reshape(B, -1))
+        diag = np.einsum("bii->bi", H)
+        Hd = H + (lam[:, None] * np.maximum(diag, 1e-12))[..., None] * np.eye(n_par)
+        step = -np.linalg.solve(Hd, g[..., None])[..., 0]
+        step[~active] = 0.0
+        R_new = rvec_to_matrix(step[:, :3]) @ R
+        t_new = t + step[:, 3:6]
+        kp_new = kp + step[:, 6:10] if fit_k else kp
+        r_new, Xc_new, z_new, xn_new, yn_new = _residuals(p2, p3, sqrt_w, kp_new, R_new, t_new)
+        cost_new = (r_new**2).sum((1, 2))
+        better = (cost_new < cost) & active
+        rel_gain = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
+        R[better], t[better], kp[better] = R_new[better], t_new[better], kp_new[better]
+        r[better], Xc[better], z[better] = r_new[better], Xc_new[better], z_new[better]
+        xn[better], yn[better] = xn_new[better], yn_new[better]
+        cost = np.where(better, cost_new, cost)
+        lam = np.where(better, lam / 10.0, lam * 10.0)
+        done = (better & (rel_gain < tolerance)) | (lam > 1e12)
+        active &= ~done
+        if not active.any():
+            break
+    return FitResult(K=k_matrix(kp), rvec=matrix_to_rvec(R), tvec=t, cost=cost, iterations=it)
+
+
+def _weighted_points(points_2d, points_3d, weights, b):
+    use = np.asarray(weights[b]) > 0
+    return points_2d[b][use], points_3d[b][use]
+
+
+def solve_pnp(points_2d, points_3d, weights, K) -> FitResult:
+    """The least-squares PnP optimum of B frames under fixed K (B, 3, 3).
+
+    Start: SQPnP per frame on the weighted points; then batched LM on the pose only.
+    Raises InputError when a frame has no pose.
+    """
+    starts = [solve_pnp_start(*_weighted_points(points_2d, points_3d, weights, b), K[b]) for b in range(len(K))]
+    rvec, tvec = (np.array(a) for a in zip(*starts))
+    return fit(points_2d, points_3d, weights, K, rvec, tvec, fit_k=False)
+
+
+def dlt_starts(points_2d, points_3d, weights) -> list:
+    """Per frame of B, the closed-form (K, rvec, tvec) start from its weighted points (DLT + RQ),
+    or the CalibrationError saying why K is not observable from that frame."""
+    starts = []
+    for b in range(len(points_2d)):
+        try:
+            starts.append(dlt_camera(*_weighted_points(points_2d, points_3d, weights, b)))
+        except CalibrationError as exc:
+            starts.append(exc)
+    return starts
+
+
+def calibrate(points_2d, points_3d, weights) -> FitResult:
+    """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames.
+
+    Start: DLT + RQ per frame (closed form, needs non-coplanar points); then batched LM
+    over the 10 parameters. Raises CalibrationError naming the frame when K is not
+    observable from it.
+    """
+    starts = dlt_starts(points_2d, points_3d, weights)
+    for b, start in enumerate(starts):
+        if isinstance(start, CalibrationError):
+            raise CalibrationError(f"frame {b}: {start}")
+    K0, rvec, tvec = (np.array(a) for a in zip(*starts))
+    return fit(points_2d, points_3d, weights, K0, rvec, tvec, fit_k=True)

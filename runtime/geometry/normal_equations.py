@@ -1,0 +1,56 @@
+"""One frame's Gauss-Newton normal equations over (pose, K), in closed form."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _jacobian_basis() -> np.ndarray:
+    """(3, 20, 9): the rows of ``frame_normal_equations``'s coefficient matrix C (20 x 9) as
+    C = fx B[0] + fy B[1] + B[2]. Row 2j + c (c = 0: u, 1: v) holds dr_c/dp_j in the basis
+    q = [1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z] of the point's normalised coordinates a = X/Z,
+    b = Y/Z, for p = (w (3) rad, tau (3) mm, fx, fy, cx, cy) with the pose perturbed on the left."""
+    B = np.zeros((3, 10, 2, 9))
+    fx, fy, one = 0, 1, 2
+    # du/dp = fx [-ab, 1 + a^2, -b, 1/Z, 0, -a/Z], then [a, 0, 1, 0] for (fx, fy, cx, cy).
+    B[fx, 0, 0, 3], B[fx, 1, 0, 0], B[fx, 1, 0, 4], B[fx, 2, 0, 2] = -1.0, 1.0, 1.0, -1.0
+    B[fx, 3, 0, 6], B[fx, 5, 0, 7], B[one, 6, 0, 1], B[one, 8, 0, 0] = 1.0, -1.0, 1.0, 1.0
+    # dv/dp = fy [-1 - b^2, ab, a, 0, 1/Z, -b/Z], then [0, b, 0, 1].
+    B[fy, 0, 1, 0], B[fy, 0, 1, 5], B[fy, 1, 1, 3], B[fy, 2, 1, 1] = -1.0, -1.0, 1.0, 1.0
+    B[fy, 4, 1, 6], B[fy, 5, 1, 8], B[one, 7, 1, 2], B[one, 9, 1, 0] = 1.0, -1.0, 1.0, 1.0
+    return B.reshape(3, 20 * 9)
+
+
+_JACOBIAN_BASIS = _jacobian_basis()
+
+
+def frame_normal_equations(xy_inv_z: np.ndarray, points_2d: np.ndarray,
+                           k) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """One frame's Gauss-Newton normal equations under the pinhole (fx, fy, cx, cy) px ``k``.
+
+    xy_inv_z (3, N): the points in {C} as X, Y (mm) and 1/Z (1/mm) (``camera_xy_inverse_depth``);
+    points_2d (N, 2) px. With r the residuals pi(K, X_C) - x and J (10, 2N) their Jacobian for
+    p = (w (3) rad, tau (3) mm, fx, fy, cx, cy), the pose perturbed on the left (X_C ->
+    exp([w]x) X_C + tau, so R -> exp([w]x) R, t -> exp([w]x) t + tau), returns J J^T (10, 10),
+    J r (10,), r.r (px^2) and r (2, N) px (the u residuals, then the v residuals).
+
+    Every entry of J is a linear combination of nine per-point monomials q (see
+    ``_jacobian_basis``), so J J^T = C (q q^T) C^T summed over u and v: one N-long product
+    of an (11, N) array with itself (q and r) instead of forming J.
+    """
+    fx, fy, cx, cy = k
+    Q = np.empty((11, xy_inv_z.shape[1]))  # q (9 rows), then r_u, r_v
+    Q[6] = inv_z = xy_inv_z[2]
+    ab = np.multiply(xy_inv_z[:2], inv_z, out=Q[1:3])  # a, b
+    np.multiply(ab[0], ab[1], out=Q[3])
+    np.multiply(ab, ab, out=Q[4:6])
+    np.multiply(ab, inv_z, out=Q[7:9])
+    Q[0] = 1.0
+    r = np.multiply(ab, ((fx,), (fy,)), out=Q[9:])
+    r += ((cx,), (cy,))
+    r -= points_2d.T
+    G = Q @ Q.T
+    C = np.dot((fx, fy, 1.0), _JACOBIAN_BASIS).reshape(20, 9)
+    # J J^T: sum over c in (u, v) and q of (C q q^T)[2i + c, q] C[2j + c, q]; J r likewise.
+    JJ = (C @ G[:9, :9]).reshape(10, 18) @ C.reshape(10, 18).T
+    Cr = C @ G[:9, 9:]
+    return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10]), r

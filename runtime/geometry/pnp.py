@@ -1,0 +1,87 @@
+"""Poses from correspondences: the closed-form starts (SQPnP, DLT) and the degeneracy check."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from dimenet.runtime.errors import CalibrationError, InputError
+from dimenet.runtime.geometry.camera import k_matrix, k_params
+from dimenet.runtime.geometry.rotation import matrix_to_rvec
+from dimenet.runtime.geometry.spread import spans_3d
+
+
+def check_not_degenerate(points_3d: np.ndarray, points_2d: np.ndarray) -> None:
+    """Raise InputError when the correspondences cannot fix a pose.
+
+    Rejects coincident or collinear 3D points (mm) and coincident image points (px).
+    """
+    for name, pts, unit in (("points_3d", points_3d, "mm"), ("points_2d", points_2d, "px")):
+        centred = pts - pts.mean(axis=0)
+        sv = np.linalg.svd(centred, compute_uv=False)
+        scale = max(np.abs(pts).max(), 1.0)
+        if sv[0] <= 1e-9 * scale:
+            raise InputError(f"{name}: all points coincide ({unit}); a pose needs spread-out points")
+        if sv[1] <= 1e-6 * sv[0]:
+            raise InputError(f"{name}: all points are collinear; a pose needs points off one line")
+
+
+def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fast closed-form pose {W}->{C} (SQPnP) for one frame: (N, 2) px, (N, 3) mm -> rvec, tvec (3,).
+
+    Raises InputError when OpenCV finds no pose.
+    """
+    ok, rvec, tvec = cv2.solvePnP(
+        np.ascontiguousarray(points_3d, dtype=np.float64),
+        np.ascontiguousarray(points_2d, dtype=np.float64),
+        np.asarray(K, dtype=np.float64), None, flags=cv2.SOLVEPNP_SQPNP,
+    )
+    if not ok or not ((cv2.checkRange(rvec)[0] and cv2.checkRange(tvec)[0])  # fast; refuses +DBL_MAX too
+                      or (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))):
+        raise InputError("PnP failed: no camera pose explains these correspondences")
+    return rvec.ravel(), tvec.ravel()
+
+
+def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed-form K, rvec, tvec from >= 6 non-coplanar correspondences of one frame (DLT + RQ).
+
+    Hartley-normalised direct linear transform of the 3x4 camera matrix, then an RQ
+    decomposition; skew is dropped (the 4-parameter model). Raises CalibrationError
+    when the 3D points are coplanar or too few, where K is not observable from one view.
+    """
+    n = len(points_3d)
+    if n < 6:
+        raise CalibrationError(f"K from one frame needs >= 6 points, got {n}")
+    c3 = points_3d.mean(0)
+    s3 = np.sqrt(3) / np.sqrt(((points_3d - c3) ** 2).sum(1).mean())
+    if not spans_3d((points_3d - c3) * s3):
+        raise CalibrationError("the 3D points are (nearly) coplanar: K is not observable from one planar view")
+    c2 = points_2d.mean(0)
+    s2 = np.sqrt(2) / np.sqrt(((points_2d - c2) ** 2).sum(1).mean())
+    T3 = np.diag([s3, s3, s3, 1.0])
+    T3[:3, 3] = -s3 * c3
+    T2 = np.diag([s2, s2, 1.0])
+    T2[:2, 2] = -s2 * c2
+    Xh = np.c_[(points_3d - c3) * s3, np.ones(n)]
+    xn = (points_2d - c2) * s2
+    A = np.zeros((2 * n, 12))
+    A[0::2, 0:4] = Xh
+    A[0::2, 8:12] = -xn[:, :1] * Xh
+    A[1::2, 4:8] = Xh
+    A[1::2, 8:12] = -xn[:, 1:] * Xh
+    P = np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 4)
+    P = np.linalg.inv(T2) @ P @ T3
+    M = P[:, :3]
+    if np.linalg.det(M) < 0:
+        P, M = -P, -M
+    # RQ decomposition of M = K R via QR of the row-reversed transpose.
+    flip = np.eye(3)[::-1]
+    Q, U = np.linalg.qr((flip @ M).T)
+    Kr = flip @ U.T @ flip
+    R = flip @ Q.T
+    signs = np.diag(np.sign(np.diag(Kr)))
+    Kr, R = Kr @ signs, signs @ R
+    t = np.linalg.solve(Kr, P[:, 3])
+    Kr = Kr / Kr[2, 2]
+    if np.linalg.det(R) < 0:
+        raise CalibrationError("DLT gave a reflection: the correspondences are inconsistent")
+    return k_matrix(k_params(Kr)), matrix_to_rvec(R), t

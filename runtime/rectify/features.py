@@ -1,0 +1,164 @@
+"""The DIME-Net input: the gridified OIS discrepancy feature (paper Sec. IV-A).
+
+One implementation, numpy only, used by training, evaluation, export checks and the runtime.
+
+1. Pose {W}->{C0}: PnP under the prior K_c on the frame's inference points (SQPnP).
+2. Point feature f_i = [dx, dy, X, Y, 1/Z]: dx, dy = K_c proj(X_C0) - x (px, the projection
+   model discrepancy, PMD) and (X, Y, Z) the point in {C0} (mm).
+3. Each cell of the u x v grid (runtime/grid.py) holds the mean of its points' features;
+   empty cells are zero. Flattened cell by cell in (row, column) order, channels inside.
+4. Every channel is multiplied by a fixed scale (no shift, so a zero feature stays zero).
+
+Variants (paper Table 3): A all five channels; B PMD only; C PMD + 1/Z; D PMD + X, Y;
+E X, Y, 1/Z only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.geometry import rotation_matrices, solve_pnp_start
+from dimenet.runtime.rectify.grid import Grid
+
+CHANNELS = ("dx", "dy", "X", "Y", "inv_z")
+VARIANTS = {
+    "A": ("dx", "dy", "X", "Y", "inv_z"),
+    "B": ("dx", "dy"),
+    "C": ("dx", "dy", "inv_z"),
+    "D": ("dx", "dy", "X", "Y"),
+    "E": ("X", "Y", "inv_z"),
+}
+# Fixed per-channel scales bringing each channel to order 1 on hand-held rig data:
+# PMD of ~10 px, {C0} coordinates of ~100 mm, inverse depth of ~1/500 mm^-1.
+DEFAULT_SCALE = {"dx": 0.1, "dy": 0.1, "X": 0.01, "Y": 0.01, "inv_z": 500.0}
+
+
+@dataclass(frozen=True)
+class FeatureSpec:
+    """What the network sees: grid, channel variant and per-channel scale (units: 1/px, 1/mm, mm)."""
+
+    grid: Grid = Grid(8, 6)
+    variant: str = "A"
+    scale: dict = field(default_factory=lambda: dict(DEFAULT_SCALE))
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise InputError(f"feature variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
+        missing = [c for c in CHANNELS if c not in self.scale]
+        if missing:
+            raise InputError(f"feature scale lacks channel {missing[0]!r}")
+
+    @property
+    def channels(self) -> tuple:
+        return VARIANTS[self.variant]
+
+    @cached_property
+    def channel_scale(self) -> np.ndarray:
+        """(C,) the per-channel scales in channel order (computed once per spec)."""
+        return np.array([self.scale[c] for c in self.channels])
+
+    @property
+    def size(self) -> int:
+        return len(self.channels) * self.grid.n_cells
+
+    def to_dict(self) -> dict:
+        return {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FeatureSpec":
+        return cls(grid=Grid.parse(d["grid"]), variant=d["variant"], scale={k: float(v) for k, v in d["scale"].items()})
+
+
+def poses_c0(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray]:
+    """Pose {W}->{C0} of each of F frames: SQPnP under K_c on the masked points (mask None:
+    all). (F, 3) each."""
+    F = len(points_2d)
+    rvec, tvec = np.empty((F, 3)), np.empty((F, 3))
+    for b in range(F):
+        m = slice(None) if mask is None else mask[b]
+        n = points_2d.shape[1] if mask is None else int(m.sum())
+        if n < 4:
+            raise InputError(f"frame {b}: {n} inference points, the C0 pose needs >= 4")
+        rvec[b], tvec[b] = solve_pnp_start(points_2d[b][m], points_3d[b][m], K_c)
+    return rvec, tvec
+
+
+def point_features(points_2d, points_3d, K_c, rvec, tvec) -> np.ndarray:
+    """(F, N, 5) raw [dx, dy, X, Y, 1/Z] (px, px, mm, mm, 1/mm) in {C0}; unmasked values are arbitrary."""
+    points_2d = np.asarray(points_2d, dtype=np.float64)
+    out = np.empty((len(points_2d), len(CHANNELS), points_2d.shape[1]))
+    _point_features_into(out, points_2d, np.asarray(points_3d, dtype=np.float64), K_c, rvec, tvec)
+    return np.ascontiguousarray(np.swapaxes(out, 1, 2))
+
+
+def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec) -> None:
+    """The raw point features of ``point_features`` channel-major into out[:, :5] of an (F, >= 5, N) array.
+
+    One matrix product maps each {W} point X to [u, v, X_C0, Y_C0, Z_C0] with (u, v, Z_C0) =
+    K_c (R X + t); then 1/Z, and dx, dy = u / Z - x, v / Z - y.
+    """
+    F = len(points_2d)
+    P = np.empty((F, 5, 4))  # rows: K_c[:2] [R | t], then [R | t]
+    P[:, 2:, :3] = rotation_matrices(rvec)
+    P[:, 2:, 3] = tvec
+    np.matmul(np.asarray(K_c, dtype=np.float64)[:2], P[:, 2:], out=P[:, :2])
+    rows = np.matmul(P[:, :, :3], np.swapaxes(points_3d, 1, 2), out=out[:, :5])
+    rows += P[:, :, 3:]
+    inv_z = np.divide(1.0, rows[:, 4:5], out=rows[:, 4:5])
+    pmd = rows[:, :2]
+    pmd *= inv_z
+    pmd -= np.swapaxes(points_2d, 1, 2)
+
+
+def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None,
+                  return_points: bool = False):
+    """The flattened, scaled grid feature of F frames: (F, spec.size) float64.
+
+    points_2d (F, N, 2) px; points_3d (F, N, 3) mm in {W}; mask (F, N) bool, the inference
+    points (None: every point); K_c (3, 3) the prior; image_size (width, height) px.
+    ``poses`` (rvec, tvec) of {W}->{C0} may be passed when already known (else solved here
+    with SQPnP).
+
+    With ``return_points``, returns (feature, points): points (F, 6, N) the raw unscaled point
+    rows [dx, dy, X, Y, 1/Z, 1] channel-major (px, px, mm, mm, 1/mm, 1) in {C0}, arbitrary on
+    unmasked points; rows 0-1 (the PMD) are each point's reprojection residual under K_c at
+    the C0 pose.
+    """
+    points_2d = np.asarray(points_2d, dtype=np.float64)
+    points_3d = np.asarray(points_3d, dtype=np.float64)
+    F, N = points_2d.shape[:2]
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.all():
+            mask = None
+    rvec, tvec = poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
+    if mask is not None:
+        points_2d = np.where(mask[..., None], points_2d, 0.0)
+        points_3d = np.where(mask[..., None], points_3d, 0.0)
+    # Channel-major point rows [dx, dy, X, Y, 1/Z, 1] (F, 6, N); the last one counts points.
+    rows = np.empty((F, len(CHANNELS) + 1, N))
+    _point_features_into(rows, points_2d, points_3d, K_c, rvec, tvec)
+    rows[:, -1] = 1.0
+    points = rows
+    channels = spec.channels
+    if channels != CHANNELS:
+        rows = rows[:, [CHANNELS.index(c) for c in channels] + [len(CHANNELS)]]
+    width = rows.shape[1]
+    bins = F * spec.grid.n_cells  # cell bins of all frames; one block of them per channel
+    cells = spec.grid.cell_index(points_2d, image_size)
+    if F > 1:
+        cells += spec.grid.n_cells * np.arange(F)[:, None]
+    index = cells[:, None, :] + np.arange(0, width * bins, bins)[:, None]
+    if mask is None:
+        index, weights = index.ravel(), rows.ravel()
+    else:
+        index, weights = np.swapaxes(index, 1, 2)[mask], np.swapaxes(rows, 1, 2)[mask]
+    # Per channel and cell, the sum of its points' values in point order.
+    sums = np.bincount(index.ravel(), weights=weights.ravel(), minlength=width * bins).reshape(width, bins)
+    means = sums[:-1] / np.maximum(sums[-1], 1.0)
+    means *= spec.channel_scale[:, None]
+    feats = means.T.reshape(F, bins // F * (width - 1))
+    return (feats, points) if return_points else feats

@@ -1,0 +1,164 @@
+"""MAP rectification of one frame: K and pose from the frame's own points and the network's prior.
+
+Minimises over (rvec, tvec, k = (fx, fy, cx, cy))
+
+    sum_i ||pi(K, R X_i + t) - x_i||^2 / s^2  +  (k - k_net)^T Sigma^-1 (k - k_net)
+
+where k_net, Sigma (4x4, px^2) are the network's Delta K mean and covariance (added to K_c)
+and s^2 (px^2) the frame's 2D noise variance: s^2 = RSS / (2N - 10) of the linearised MAP
+residuals (first weighted by the start's own residuals), floored at NOISE_FLOOR_PX^2.
+ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) turned to
+k_net's principal point (``turned_to_principal_point``), with the analytic normal equations
+(``geometry.frame_normal_equations``, the pose perturbed on the left); a step that does not
+lower the cost ends the fit. The posterior covariance of k is the K block of the inverse
+Gauss-Newton Hessian at the last linearisation, widened per parameter for the network's
+correlation with the data on noisy points when the uncertainty model has one (spec >= 1.3,
+``Uncertainty.posterior_scale``).
+
+One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
+observable even from one planar view, where the data alone cannot fix it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.geometry import (
+    camera_xy_inverse_depth,
+    frame_k_matrix,
+    frame_normal_equations,
+    frame_residuals,
+    left_update,
+    solve_pnp_start,
+)
+from dimenet.runtime.rectify.uncertainty import Uncertainty
+
+# Gauss-Newton steps. From k_net and the C0 pose turned to k_net's principal point one step
+# lands at the optimum: on 282 fresh galaxy-s8 rig frames its rms K error, 1.1 / 0.6 px (f / c),
+# is that of 4 steps, where one step from the C0 pose itself left 1.6 / 1.1 px and its
+# posterior covered only 52-64 % of the true K (training/METHOD.md, "Calibration on fresh frames").
+ITERATIONS = 1
+NOISE_FLOOR_PX = 0.1
+# The start pose (C0, under K_c, turned) is not the optimum under k_net, so its residuals
+# overstate the noise: s^2 is re-estimated this many times from the linearised MAP residuals
+# (2N - 10 dof). galaxy-s8 seed-1 test rho, passes 0 / 1 / 2, measured from the unturned C0
+# pose: natural 72.8 / 89.7 / 89.8, planar 49.8 / 87.5 / 89.0; with the turn, no pass breaks
+# the fit (rig K error 2.9 px against 1.1 px, training/METHOD.md).
+NOISE_PASSES = 1
+
+
+@dataclass(frozen=True)
+class MapFit:
+    """k (4,) px (fx, fy, cx, cy); rvec (3,) rad, tvec (3,) mm {W}->{C}; k_cov (4, 4) px^2 the
+    posterior covariance; residuals (N, 2) px at the result; steps: the Gauss-Newton steps
+    taken (0: the first step would have raised the cost, the result is the start); noise_px:
+    the frame's 2D noise std s the data term was weighted with."""
+
+    k: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    k_cov: np.ndarray
+    residuals: np.ndarray
+    steps: int
+    noise_px: float
+
+
+def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
+            rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS,
+            K_start: np.ndarray | None = None, uncertainty: Uncertainty | None = None) -> MapFit:
+    """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
+    k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
+    {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
+    to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
+    own); iterations >= 1 Gauss-Newton steps at most; uncertainty: the network's, whose
+    ``posterior_scale`` widens k_cov (None: the independent-errors posterior)."""
+    precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
+    k_net = np.asarray(k_net, dtype=np.float64)
+    R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
+    k = k_net
+    if K_start is not None:
+        R, tvec = turned_to_principal_point(R, tvec, K_start, k_net)
+    JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
+    weight = _noise_weight(rss, r.size - 6)
+    for _ in range(NOISE_PASSES):
+        # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations.
+        step = _posterior(JJ, precision, weight) @ Jr * weight
+        weight = _noise_weight(rss - 2.0 * float(step @ Jr) + float(step @ JJ @ step), r.size - 10)
+    cov = _posterior(JJ, precision, weight)
+    cost, residuals, steps = weight * rss, None, 0
+    for it in range(iterations):
+        g = Jr * weight
+        if it:  # the prior's gradient, zero at the start k = k_net
+            g[6:] += precision @ (k - k_net)
+        step = cov @ g
+        step *= -1.0
+        k_new = k + step[6:]
+        R_new, tvec_new = left_update(R, tvec, step[:3], step[3:6])
+        res = frame_residuals(points_2d, points_3d, frame_k_matrix(k_new), R_new, tvec_new)
+        d = k_new - k_net
+        cost_new = weight * float(np.vdot(res, res)) + float(d @ precision @ d)
+        if not cost_new <= cost:
+            break
+        k, R, tvec, cost, residuals, steps = k_new, R_new, tvec_new, cost_new, res, steps + 1
+        if it + 1 < iterations:
+            JJ, Jr, _, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
+            cov = _posterior(JJ, precision, weight)
+    if residuals is None:
+        residuals = np.ascontiguousarray(r.T)
+    k_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
+    noise_px = weight ** -0.5
+    if uncertainty is not None and uncertainty.widens:
+        scale = np.array(uncertainty.posterior_scale((k_cov.diagonal() / cov_net.diagonal()).tolist(), noise_px))
+        k_cov = k_cov * (scale[:, None] * scale)
+    return MapFit(k=k, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=tvec, k_cov=k_cov, residuals=residuals, steps=steps,
+                  noise_px=noise_px)
+
+
+def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, K_from: np.ndarray,
+                              k_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose {W}->{C} (R (3, 3), tvec (3,) mm) turned so that under k_to (4,) px its pixels
+    are, to first order, where they were under K_from (3, 3) px up to scale: moving the principal
+    point from c_from to c_to shifts the normalised coordinates by d = (c_from - c_to) / f_to,
+    as the rotation by (-d_y, d_x, 0) rad does. (The scale f_from / f_to the step fits alone:
+    moving the depth to match it too changes nothing measurable.)"""
+    fx, fy, cx, cy = k_to.tolist()
+    turn = cv2.Rodrigues(np.array([(cy - K_from[1, 2]) / fy, (K_from[0, 2] - cx) / fx, 0.0]))[0]
+    return turn @ R, turn @ tvec
+
+
+def _noise_weight(rss: float, dof: int) -> float:
+    """1 / s^2 (px^-2) from a residual sum of squares rss (px^2) with dof degrees of freedom."""
+    return 1.0 / max(rss / max(dof, 1), NOISE_FLOOR_PX**2)
+
+
+def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarray:
+    """The inverse of the 10x10 Gauss-Newton Hessian of the MAP cost, weight J J^T plus the prior
+    on K: the step is its product with the gradient, its K block the posterior covariance."""
+    H = JJ * weight
+    H[6:, 6:] += precision
+    return cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1]
+
+
+def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
+                k_bounds: np.ndarray, K_c: np.ndarray, pose=None,
+                uncertainty: Uncertainty | None = None) -> tuple[MapFit | None, str | None]:
+    """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
+    checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
+    (the turned C0 pose is not k_net's optimum, so the caller's own PnP under k_net is better)
+    or the MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the
+    DIME-Net K. ``uncertainty``: as ``map_fit``'s."""
+    if pose is None:
+        try:
+            pose = solve_pnp_start(points_2d, points_3d, K_c)
+        except InputError:
+            return None, "no C0 pose under K_c"
+    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
+    if result.steps == 0:
+        return None, "the MAP step did not lower the cost"
+    # Plain floats: a NaN fails every comparison, so this also refuses a non-finite K.
+    if not all(low <= v <= high for v, (low, high) in zip(result.k.tolist(), k_bounds.tolist())):
+        return None, "the MAP K is implausible (outside the model's K_bounds)"
+    return result, None

@@ -1,0 +1,113 @@
+"""An exported DIME-Net (``dimenet-model/1`` ONNX file) run by ONNX Runtime: features -> Delta K.
+
+The file holds the frozen MLP (input ``features`` float32 [batch, D], output ``delta_k``
+float32 [batch, 4] px as (dfx, dfy, dcx, dcy)) and its model spec as JSON in the ONNX
+``metadata_props`` under ``METADATA_KEY``. Loading refuses, with a ModelError naming the file:
+an unreadable or corrupt file, a foreign model without the spec, a spec of another major
+version, and a graph whose input or output does not match the spec. Needs onnxruntime only
+(never onnx, never torch). See models_spec/model-v1.md.
+"""
+from __future__ import annotations
+
+import hashlib
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import onnxruntime as ort
+
+from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.rectify.spec import METADATA_KEY, ModelSpec
+
+INPUT_NAME = "features"
+OUTPUT_NAME = "delta_k"
+DEFAULT_PROVIDERS = ("CPUExecutionProvider",)
+
+
+@dataclass(frozen=True)
+class OnnxModel:
+    """A loaded model: its ORT session, spec, where it came from and the sha256 of its bytes."""
+
+    session: ort.InferenceSession
+    spec: ModelSpec
+    source: str
+    sha256: str
+    _frame_io: threading.local = field(default_factory=threading.local, init=False, repr=False, compare=False)
+
+    def delta_k(self, features: np.ndarray) -> np.ndarray:
+        """features (B, D) float32 -> Delta K (B, 4) float32 px, one ORT call."""
+        return self.session.run((OUTPUT_NAME,), {INPUT_NAME: features})[0]
+
+    def frame_delta_k(self, features: np.ndarray) -> np.ndarray:
+        """One frame's features (1, D), any float type -> Delta K (4,) float64 px: ``delta_k``
+        through an ORT IO binding to float32 buffers made once per thread, which skips the
+        per-call input and output conversions of ``session.run`` (the runtime's hot path)."""
+        io = self._frame_io
+        if not hasattr(io, "binding"):
+            io.features, io.delta_k = np.empty((1, self.spec.features.size), np.float32), np.empty((1, 4), np.float32)
+            io.binding = self.session.io_binding()
+            io.binding.bind_cpu_input(INPUT_NAME, io.features)
+            io.binding.bind_output(OUTPUT_NAME, "cpu", 0, np.float32, [1, 4], io.delta_k.ctypes.data)
+        np.copyto(io.features, features)
+        self.session.run_with_iobinding(io.binding)
+        return io.delta_k[0].astype(np.float64)
+
+    @property
+    def providers(self) -> list:
+        return self.session.get_providers()
+
+
+def session_options(threads: int) -> ort.SessionOptions:
+    """Sequential execution on ``threads`` intra-op threads, one inter-op thread, errors-only log."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise InputError(f"threads must be an integer >= 1, got {threads!r}")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.log_severity_level = 3
+    return options
+
+
+def _check_signature(session: ort.InferenceSession, spec: ModelSpec, source: str) -> None:
+    """ModelError unless the graph maps float features [batch, spec.features.size] to delta_k [batch, 4]."""
+    inputs, outputs = session.get_inputs(), session.get_outputs()
+    if [i.name for i in inputs] != [INPUT_NAME] or [o.name for o in outputs] != [OUTPUT_NAME]:
+        raise ModelError(f"{source}: the graph must map input {INPUT_NAME!r} to output {OUTPUT_NAME!r}, "
+                         f"it maps {[i.name for i in inputs]} to {[o.name for o in outputs]}")
+    size = spec.features.size
+    shape = inputs[0].shape
+    if inputs[0].type != "tensor(float)" or len(shape) != 2 or shape[1] != size:
+        raise ModelError(f"{source}: input {INPUT_NAME!r} is {inputs[0].type} {shape}, the spec's feature "
+                         f"({spec.features.variant}, grid {spec.features.grid}) needs tensor(float) [batch, {size}]")
+    if len(outputs[0].shape) != 2 or outputs[0].shape[1] != 4:
+        raise ModelError(f"{source}: output {OUTPUT_NAME!r} has shape {outputs[0].shape}, expected [batch, 4]")
+
+
+def onnx_model_from_bytes(blob: bytes, source: str, *, threads: int = 1,
+                          providers: Optional[Sequence[str]] = None) -> OnnxModel:
+    """Create the ORT session from the model's bytes and read and validate its spec."""
+    options = session_options(threads)
+    try:
+        session = ort.InferenceSession(blob, options, providers=list(providers or DEFAULT_PROVIDERS))
+    except Exception as exc:  # ORT raises its own exception types for corrupt files and bad providers
+        raise ModelError(f"{source}: not a loadable ONNX model ({type(exc).__name__}: {str(exc).strip()[:300]})") from None
+    text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+    if text is None:
+        raise ModelError(f"{source}: no {METADATA_KEY!r} in the ONNX metadata: not a DIME-Net model "
+                         f"(export one with `dimenet export RUN_DIR --out model.onnx`)")
+    spec = ModelSpec.from_json(text, source=source)
+    _check_signature(session, spec, source)
+    return OnnxModel(session=session, spec=spec, source=source, sha256=hashlib.sha256(blob).hexdigest())
+
+
+def load_onnx_model(path: str | Path, *, threads: int = 1, providers: Optional[Sequence[str]] = None) -> OnnxModel:
+    """Load a ``dimenet-model/1`` .onnx file (see ``onnx_model_from_bytes``)."""
+    path = Path(path)
+    if path.is_dir():
+        raise ModelError(f"{path}: a folder, the runtime needs a .onnx file (`dimenet export RUN_DIR --out model.onnx`)")
+    if not path.is_file():
+        raise ModelError(f"{path}: no such model file")
+    return onnx_model_from_bytes(path.read_bytes(), str(path), threads=threads, providers=providers)

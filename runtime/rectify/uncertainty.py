@@ -1,0 +1,164 @@
+"""The network's uncertainty on Delta K: a 4x4 covariance (px^2) per frame.
+
+Choice (models_spec/model-v1.md, "uncertainty"): not a second network head but a model of
+the network's residuals, fitted after training on the early-stopping frames under the
+training augmentation (fewer points, emptied cells, clustered noisy labels). It keeps the
+network, and f(0) = 0 for the mean, untouched.
+
+Per frame, four statistics of the inference points say how much the input can tell:
+``n`` points, ``m`` occupied grid cells, ``d`` their mean PMD norm under K_c at the C0 pose
+(px) and ``t`` the thickness of their 3D cloud (``thickness``: 0 on one plane, 1/3 for
+an isotropic cloud). With z = [1, log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)],
+each parameter's standard deviation is sigma_p = exp(coef_p . z) (px), and the covariance is
+diag(sigma) C diag(sigma) with one correlation matrix C. Fitting: per parameter, the
+Gaussian maximum-likelihood coef on the residuals K - K* (Newton, convex), then its
+intercept rescaled so that 68.27 % of the fitting frames lie within 1 sigma, then C from
+the standardised residuals. Models of spec 1.1 use the first three statistics only; a model
+names the statistics it uses, and reads those columns of the (B, 4) statistics.
+
+The network reads the same points as the MAP data term, so on noisy points their errors are
+correlated, which the MAP posterior (independent prior and data) does not know. Spec 1.3 adds
+per parameter a correlation rho_p, fitted on noisy fitting frames (``fit_data_correlation``),
+by which mode map widens its posterior: for an estimate weighting prior and data as w = r and
+1 - r (r the posterior over the prior variance), errors of correlation rho add
+2 rho sqrt(r (1 - r)) times the posterior variance. The correlation comes from the noise, so it
+is scaled by w(s) = s^2 / (s^2 + s0^2) with s the frame's 2D noise (px, the MAP fit's) and
+s0 = NOISE_SCALE_PX: at corner-level noise (0.4 px) the two read independent information.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dimenet.runtime.errors import InputError
+
+PARAMETERS = ("fx", "fy", "cx", "cy")
+STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
+D_FLOOR_PX = 0.05  # PMD below this says nothing more: noise-free frames are not infinitely certain
+T_FLOOR = 1e-6  # thickness of a plane to float rounding: log t stays finite on exactly planar points
+# 2D noise (px) at which half of the prior-data correlation applies. galaxy-s8, 690 fresh
+# frames: s0 = 0 (rho for any noise) over-covers single planar views (cx 79 %), 4 px needs
+# rho_cx > 1; 2 px calibrates noisy rig frames and leaves clean ones as they are
+# (training/METHOD.md, "Calibration on fresh frames").
+NOISE_SCALE_PX = 2.0
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """coef (4, 1 + S): per parameter (fx, fy, cx, cy), the weights of z = [1, the S statistics
+    named in ``statistics``] (a subsequence of STATISTICS); correlation (4, 4): of the
+    standardised residuals; data_correlation (4,): rho_p of the network's errors with the MAP
+    data term's on noisy points, in [0, 1] (zeros: independent, as models before spec 1.3);
+    noise_scale_px: the s0 (px) of the noise weight w(s)."""
+
+    coef: np.ndarray
+    correlation: np.ndarray
+    statistics: tuple = STATISTICS
+    data_correlation: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    noise_scale_px: float = NOISE_SCALE_PX
+
+    def __post_init__(self):
+        if not set(self.statistics) <= set(STATISTICS) or len(set(self.statistics)) != len(self.statistics):
+            raise ValueError(f"uncertainty: statistics must be distinct names among {list(STATISTICS)}, "
+                             f"got {list(self.statistics)}")
+        if self.coef.shape != (4, 1 + len(self.statistics)) or self.correlation.shape != (4, 4):
+            raise ValueError(f"uncertainty: coef must be 4x{1 + len(self.statistics)} and correlation 4x4, "
+                             f"got {self.coef.shape} and {self.correlation.shape}")
+        if not (np.all(np.isfinite(self.coef)) and np.all(np.isfinite(self.correlation))):
+            raise ValueError("uncertainty: coef and correlation must be finite")
+        if np.any(np.linalg.eigvalsh((self.correlation + self.correlation.T) / 2) <= 0):
+            raise ValueError("uncertainty: the correlation matrix is not positive definite")
+        rho = np.asarray(self.data_correlation, dtype=np.float64)
+        if rho.shape != (4,) or not np.all((rho >= 0) & (rho <= 1)):
+            raise ValueError(f"uncertainty: data_correlation must be 4 values in [0, 1], got {self.data_correlation!r}")
+        if not (math.isfinite(self.noise_scale_px) and self.noise_scale_px > 0):
+            raise ValueError(f"uncertainty: noise_scale_px must be a positive number, got {self.noise_scale_px!r}")
+        object.__setattr__(self, "data_correlation", rho)
+        object.__setattr__(self, "_columns", [STATISTICS.index(name) for name in self.statistics])
+        object.__setattr__(self, "_rho", rho.tolist())  # plain floats for the per-frame widening
+
+    @property
+    def widens(self) -> bool:
+        """Whether ``posterior_scale`` can differ from 1 (some rho_p > 0)."""
+        return any(self._rho)
+
+    def to_dict(self) -> dict:
+        return {"parameters": list(PARAMETERS), "statistics": ["1", *self.statistics],
+                "coef": self.coef.tolist(), "correlation": self.correlation.tolist(),
+                "data_correlation": self.data_correlation.tolist(), "noise_scale_px": self.noise_scale_px}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Uncertainty":
+        names = d.get("statistics", ["1", *STATISTICS[:3]])  # 1.1 files: the first three
+        if not names or names[0] != "1":
+            raise ValueError(f"uncertainty: statistics must start with the intercept '1', got {names!r}")
+        return cls(coef=np.asarray(d["coef"], dtype=np.float64),
+                   correlation=np.asarray(d["correlation"], dtype=np.float64), statistics=tuple(names[1:]),
+                   data_correlation=np.asarray(d.get("data_correlation", np.zeros(4)), dtype=np.float64),
+                   noise_scale_px=float(d.get("noise_scale_px", NOISE_SCALE_PX)))
+
+    def posterior_scale(self, variance_ratio, noise_px: float) -> list:
+        """Per parameter, the factor on the MAP posterior's standard deviation for the network's
+        correlation with the data: sqrt(1 + 2 rho_p w(s) sqrt(r_p (1 - r_p))), with r_p
+        (sequence of 4) the posterior over the prior variance and s = noise_px the frame's 2D
+        noise. Plain floats: one frame's four numbers."""
+        w = noise_px * noise_px / (noise_px * noise_px + self.noise_scale_px ** 2)
+        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(max(r * (1.0 - r), 0.0))) if rho else 1.0
+                for rho, r in zip(self._rho, variance_ratio)]
+
+    def sigma(self, stats: np.ndarray) -> np.ndarray:
+        """(B, 4) frame statistics (``frame_statistics``) -> (B, 4) standard deviations of
+        (fx, fy, cx, cy), px."""
+        stats = np.asarray(stats, dtype=np.float64)[:, self._columns]
+        return np.exp(stats @ self.coef[:, 1:].T + self.coef[:, 0])
+
+    def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float, thickness_3d: float) -> np.ndarray:
+        """``covariance`` of one frame from its four numbers (the runtime's single-frame path)."""
+        all_z = (math.log(n_points), math.log(occupied), math.log(max(mean_pmd_px, D_FLOOR_PX)),
+                 math.log(max(thickness_3d, T_FLOOR)))
+        s = np.exp(self.coef @ np.array((1.0, *(all_z[c] for c in self._columns))))
+        return np.outer(s, s) * self.correlation
+
+    def covariance(self, stats: np.ndarray) -> np.ndarray:
+        """(B, 4) frame statistics -> (B, 4, 4) covariance of Delta K, px^2."""
+        s = self.sigma(stats)
+        return s[:, :, None] * self.correlation * s[:, None, :]
+
+
+def thickness(trace: float, minors: float, det: float) -> float:
+    """How far 3D points are from one plane, from the invariants of their covariance C
+    (``geometry.covariance_invariants``): det(C) tr(C) / e2(C)^2, with e2 the sum of its 2x2
+    principal minors. Scale free, in [0, 1/3]: 0 on one plane (or line), 1/3 for an isotropic
+    cloud; for eigenvalues l1 >= l2 >= l3 about l3 (l1 + l2) / (l1 l2) when l3 is small, the
+    plane's thickness squared over its extent."""
+    # At most 1/3 in exact arithmetic; the clip bounds the rounding of (near-)collinear points.
+    return min(max(det, 0.0) * trace / minors**2, 1 / 3) if minors > 0 else 0.0
+
+
+def frame_statistics(n_points, occupied_cells, mean_pmd_px, thicknesses) -> np.ndarray:
+    """(B, 4) [log n, log m, log max(d, D_FLOOR_PX), log max(t, T_FLOOR)] from (B,) counts,
+    mean PMD norms (px) and thicknesses."""
+    n = np.asarray(n_points, dtype=np.float64)
+    m = np.asarray(occupied_cells, dtype=np.float64)
+    if np.any(n < 1) or np.any(m < 1):
+        raise InputError("uncertainty: a frame needs >= 1 inference point in >= 1 cell")
+    d = np.maximum(np.asarray(mean_pmd_px, dtype=np.float64), D_FLOOR_PX)
+    t = np.maximum(np.asarray(thicknesses, dtype=np.float64), T_FLOOR)
+    return np.stack([np.log(n), np.log(m), np.log(d), np.log(t)], -1)
+
+
+def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
+    """(B, D) grid features -> (B,) number of cells holding points (a zero cell is empty)."""
+    return features.reshape(len(features), -1, n_channels).any(-1).sum(-1)  # count_nonzero(axis) is slower
+
+
+def input_statistics(features: np.ndarray, n_points: np.ndarray, pmd_norms: np.ndarray, invariants_3d: tuple,
+                     n_channels: int) -> np.ndarray:
+    """(B, 4) statistics of B frames' inference points from what the caller has computed anyway:
+    features (B, D) their grid features, n_points (B,) their count, pmd_norms (B,) px their mean
+    PMD norm (``geometry.mean_residual_norms`` of the feature's PMD rows) and invariants_3d the
+    ``geometry.covariance_invariants_batch`` (trace, minors, det, (B,) each) of their 3D points."""
+    t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants_3d))]
+    return frame_statistics(n_points, occupied_cells(features, n_channels), pmd_norms, t)

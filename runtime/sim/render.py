@@ -1,0 +1,393 @@
+"""Photo renderer for ingestion tests: hand-held photos of the rig through the simulator's OIS camera.
+
+Each photo is the simulator's hand-held shot (``simulator.shoot``: OIS principal-point shift, focus
+breathing, pose, visibility rule), optionally held upside down, then drawn:
+
+- background clutter (a smooth colour field, random shapes and lines);
+- every board facing the camera, far to near: its printed pattern (plain checkerboard, or the
+  OpenCV ChArUco image when the board has ``aruco``) on white paper with a half-square margin,
+  mapped onto its plane by the exact homography K·[r1 r2 t] with ``cv2.warpPerspective`` into a
+  4x supersampled patch, then box-filtered (``INTER_AREA``) to the native pixels (anti-aliased
+  edges whose 50 % level sits exactly on the true edge);
+- optionally an occluding rectangle over part of one board ("covered" photos);
+- vignetting, optical blur (Gaussian), sensor noise (read + shot) and JPEG/PNG encoding.
+
+Pixels are x right, y down, origin at the centre of the top-left pixel (as in ``geometry``);
+3D in mm in the rig frame {W}. The truth (``truth.npz``, see models_spec/ingest.md) holds per photo
+the true K (px), the pose {W}->{C}, every rig corner's true pixel and whether its board is seen.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Iterator, Optional
+
+import cv2
+import numpy as np
+
+from dimenet.runtime import __version__
+from dimenet.runtime.errors import InputError, RigError
+from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.formats.rig import Board, Rig, rig_to_dict
+from dimenet.runtime.geometry import matrix_to_rvec, project, rvec_to_matrix, to_camera
+from dimenet.runtime.geometry.camera import camera_centre, facing
+from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
+from dimenet.runtime.ingest.detection import charuco_board
+from dimenet.runtime.sim.simulator import (
+    MAX_POSE_ATTEMPTS,
+    DeviceProfile,
+    Scene,
+    rig_scene,
+    rig_view_ok,
+    sample_pose,
+    shoot,
+)
+
+GENERATOR = "dimenet.render"
+TRUTH_FILE = "truth.npz"
+MARGIN_SQUARES = 0.5  # white paper around the printed pattern, in squares
+SUPERSAMPLE = 4  # board patches are drawn at 4x4 samples per pixel, then box-filtered
+MAX_TEXELS_PER_SQUARE = 256
+CHARUCO_SIZE_TRIES = 4  # texel counts tried (2 apart) when OpenCV refuses to draw a ChArUco board at one
+FORMATS = ("jpg", "png")
+VARIANT_CYCLE = 5  # of every 5 photos, the 2nd is taken upside down and the 4th has a board covered
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One photo's truth: K (3, 3) px, pose {W}->{C} (rvec rad, tvec mm), every rig corner's true pixel
+    (P, 2) and whether it is seen (P,): its board lies wholly in the image, faces the camera, is hidden
+    by no other board and is not touched by the occluder."""
+
+    K: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    corners_px: np.ndarray
+    seen: np.ndarray
+    upside_down: bool
+    covered_board: int  # index of the board under the occluder, -1 for none
+    cover_px: Optional[tuple[int, int, int, int]]  # occluder x0, y0, x1, y1 (px, inclusive), or None
+
+
+def scaled_profile(profile: DeviceProfile, factor: float) -> DeviceProfile:
+    """The same camera with ``factor`` times fewer pixels per side (pitch x factor): same field of view.
+
+    For fast tests: the image size is rounded to whole pixels; the optical-centre offset scales too.
+    """
+    if not factor >= 1.0:
+        raise InputError(f"scale factor must be >= 1, got {factor}")
+    w, h = profile.image_size_px
+    return replace(profile, image_size_px=(round(w / factor), round(h / factor)),
+                   pixel_pitch_um=profile.pixel_pitch_um * factor,
+                   centre_offset_px=tuple(c / factor for c in profile.centre_offset_px))
+
+
+def paper_rect_mm(board: Board) -> tuple[float, float, float, float]:
+    """The board's paper in its own frame (mm): x0, y0, x1, y1 of the printed pattern plus the margin."""
+    nx, ny = board.inner_corners
+    s = board.square_mm
+    m = MARGIN_SQUARES * s
+    return -s - m, -s - m, nx * s + m, ny * s + m
+
+
+def paper_corners_mm(board: Board) -> np.ndarray:
+    """(4, 3) the paper's corners in {W} (mm)."""
+    x0, y0, x1, y1 = paper_rect_mm(board)
+    local = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    return local @ board.rotation().T + np.asarray(board.tvec_mm)
+
+
+def paper_scene(rig: Rig) -> Scene:
+    """The rig's corners with each board's whole paper (pattern + margin) as its opaque surface."""
+    def surface(board: Board) -> np.ndarray:
+        c = paper_corners_mm(board)
+        return np.stack([c[0], c[1] - c[0], c[3] - c[0]])
+
+    return replace(rig_scene(rig), surfaces=np.stack([surface(b) for b in rig.boards]))
+
+
+def upside_down_pose(profile: DeviceProfile, centre_mm: np.ndarray, rng: np.random.Generator):
+    """``simulator.sample_pose`` rolled 180° about the optical axis: the phone held upside down."""
+    rvec, tvec = sample_pose(profile, centre_mm, rng)
+    flip = np.diag([-1.0, -1.0, 1.0])
+    return matrix_to_rvec(flip @ rvec_to_matrix(rvec)), flip @ tvec
+
+
+def board_count(rig: Rig, seen: np.ndarray) -> int:
+    return len(np.unique(rig.board_of_point[seen]))
+
+
+def cover_rect(paper_px: np.ndarray, image_size: tuple[int, int], rng: np.random.Generator) -> tuple[int, int, int, int]:
+    """An occluder (x0, y0, x1, y1 px, inclusive) hiding 40-100 % of a board's paper from one side."""
+    w, h = image_size
+    lo, hi = paper_px.min(0) - 5.0, paper_px.max(0) + 5.0
+    side = int(rng.integers(4))
+    cut = lo + rng.uniform(0.4, 1.0) * (hi - lo) if side < 2 else hi - rng.uniform(0.4, 1.0) * (hi - lo)
+    x0, y0, x1, y1 = lo[0], lo[1], hi[0], hi[1]
+    if side == 0:
+        x1 = cut[0]
+    elif side == 1:
+        y1 = cut[1]
+    elif side == 2:
+        x0 = cut[0]
+    else:
+        y0 = cut[1]
+    return (int(np.clip(np.floor(x0), 0, w - 1)), int(np.clip(np.floor(y0), 0, h - 1)),
+            int(np.clip(np.ceil(x1), 0, w - 1)), int(np.clip(np.ceil(y1), 0, h - 1)))
+
+
+def pattern_quad_px(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """(4, 2) the printed pattern's outer corners (one square beyond the inner corners) in px."""
+    nx, ny = board.inner_corners
+    s = board.square_mm
+    local = np.array([[-s, -s, 0.0], [nx * s, -s, 0.0], [nx * s, ny * s, 0.0], [-s, ny * s, 0.0]])
+    return project(local @ board.rotation().T + np.asarray(board.tvec_mm), K, rvec, tvec)
+
+
+def covered_boards(rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+                   rect: tuple[int, int, int, int]) -> np.ndarray:
+    """(P,) whether each corner's board has its printed pattern touched by the occluder (board lost)."""
+    x0, y0, x1, y1 = rect
+    box = np.array([[x0, y0], [x1 + 1, y0], [x1 + 1, y1 + 1], [x0, y1 + 1]], np.float32)
+    hit = [cv2.intersectConvexConvex(pattern_quad_px(b, K, rvec, tvec).astype(np.float32), box)[0] > 0
+           for b in rig.boards]
+    return np.asarray(hit)[rig.board_of_point]
+
+
+def plan_shot(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool,
+              covered: bool) -> Shot:
+    """Pose, K and truth of one photo: the simulator's hand-held shot (``simulator.shoot``) of the rig's papers.
+
+    A covered photo puts an occluder over part of one of >= 3 boards seen; every board whose printed
+    pattern the occluder touches is lost; the photo keeps >= 2 boards seen, spanning 3D.
+    """
+    scene = paper_scene(rig)
+    min_boards = 3 if covered else 2
+    pose = upside_down_pose if upside_down else sample_pose
+    for _ in range(MAX_POSE_ATTEMPTS):
+        K, rvec, tvec, px, seen = shoot(scene, profile, rng,
+                                        lambda sc, s: rig_view_ok(sc, s) and board_count(rig, s) >= min_boards, pose)
+        if not covered:
+            return Shot(K, rvec, tvec, px, seen, upside_down, -1, None)
+        board = int(rng.choice(np.unique(rig.board_of_point[seen])))
+        paper_px = project(paper_corners_mm(rig.boards[board]), K, rvec, tvec)
+        rect = cover_rect(paper_px, profile.image_size_px, rng)
+        kept = seen & ~covered_boards(rig, K, rvec, tvec, rect)
+        if board_count(rig, kept) >= 2 and spans_3d(rig.points()[kept], RIG_VIEW_RATIO):
+            return Shot(K, rvec, tvec, px, kept, upside_down, board, rect)
+    raise RigError(f"no covered view out of {MAX_POSE_ATTEMPTS} keeps 2 whole boards with profile {profile.name!r}")
+
+
+def pattern_image(board: Board, texels_per_square: int) -> tuple[int, np.ndarray]:
+    """The texels per square used and the (h, w) uint8 paper image: the printed pattern (0 black, 255
+    white) with the white margin.
+
+    Texel (u, v) has its centre at board (x0 + (u + 0.5)·t, y0 + (v + 0.5)·t) mm, t = square / texels,
+    (x0, y0) the paper corner (``paper_rect_mm``). ChArUco boards use OpenCV's CharucoBoard image
+    (square (0, 0) black, markers in the white squares, ids from ``first_id``); OpenCV refuses some
+    sizes (its marker rounding overflows the square), so the next even count it draws is used.
+    """
+    nx, ny = board.inner_corners
+    for tps in range(texels_per_square, texels_per_square + 2 * CHARUCO_SIZE_TRIES, 2):
+        margin = tps // 2
+        size = ((nx + 1) * tps + 2 * margin, (ny + 1) * tps + 2 * margin)
+        if board.aruco is None:
+            i = (np.arange(size[0]) - margin) // tps
+            j = (np.arange(size[1]) - margin) // tps
+            black = ((i[None, :] + j[:, None]) % 2 == 0)
+            inside = ((i >= 0) & (i <= nx))[None, :] & ((j >= 0) & (j <= ny))[:, None]
+            return tps, np.where(black & inside, 0, 255).astype(np.uint8)
+        try:
+            return tps, charuco_board(board).generateImage(size, marginSize=margin, borderBits=1)
+        except cv2.error:
+            continue
+    raise InputError(f"OpenCV cannot draw ChArUco board {board.name!r} near {texels_per_square} px per square")
+
+
+def board_homography(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """(3, 3) homography from board-plane (x, y) mm to image px: K·[r1 r2 t] of the board in {C}."""
+    R_cw = rvec_to_matrix(rvec)
+    R_cb = R_cw @ board.rotation()
+    t_cb = R_cw @ np.asarray(board.tvec_mm) + tvec
+    return K @ np.column_stack([R_cb[:, 0], R_cb[:, 1], t_cb])
+
+
+def texels_per_square(board: Board, H: np.ndarray) -> int:
+    """Texels per square (even) so that a texel is about one supersample at the board's largest scale."""
+    nx, ny = board.inner_corners
+    s = board.square_mm
+    j, i = np.mgrid[-1:ny + 1, -1:nx + 1]
+    grid = cv2.perspectiveTransform(np.stack([i * s, j * s], -1).reshape(-1, 1, 2).astype(np.float64), H)
+    grid = grid.reshape(ny + 2, nx + 2, 2)
+    step = max(np.linalg.norm(np.diff(grid, axis=0), axis=-1).max(), np.linalg.norm(np.diff(grid, axis=1), axis=-1).max())
+    return int(min(MAX_TEXELS_PER_SQUARE, 2 * np.ceil(SUPERSAMPLE * step / 2)))
+
+
+def inverse_depth(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, lo, hi) -> np.ndarray:
+    """(h, w) float32 1/z (1/mm) of the board's plane at the pixels [lo, hi) (x, y px): affine in the pixel."""
+    R_cw = rvec_to_matrix(rvec)
+    normal = R_cw @ board.normal()
+    a = normal @ np.linalg.inv(K) / (normal @ (R_cw @ np.asarray(board.tvec_mm) + tvec))
+    u = np.arange(lo[0], hi[0], dtype=np.float32)
+    v = np.arange(lo[1], hi[1], dtype=np.float32)
+    return (np.float32(a[0]) * u[None, :] + np.float32(a[1]) * v[:, None] + np.float32(a[2])).astype(np.float32)
+
+
+def draw_board(canvas: np.ndarray, zbuf: np.ndarray, board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
+               white: float, black: float) -> None:
+    """Composite the board's paper onto ``canvas`` (h, w, 3) float32 in place, anti-aliased, depth-tested.
+
+    ``zbuf`` (h, w) holds the inverse depth (1/mm, 0 = nothing) of what is drawn and is updated;
+    ``white``/``black`` are the paper's and the ink's grey levels.
+    """
+    H = board_homography(board, K, rvec, tvec)
+    h_img, w_img = canvas.shape[:2]
+    tps, pattern = pattern_image(board, texels_per_square(board, H))
+    x0, y0, x1, y1 = paper_rect_mm(board)
+    paper = cv2.perspectiveTransform(np.array([[[x0, y0]], [[x1, y0]], [[x1, y1]], [[x0, y1]]]), H).reshape(4, 2)
+    lo = np.maximum(np.floor(paper.min(0)) - 2, 0).astype(int)
+    hi = np.minimum(np.ceil(paper.max(0)) + 3, [w_img, h_img]).astype(int)
+    if np.any(hi <= lo):
+        return
+    w, h = hi - lo
+    t = board.square_mm / tps
+    texel_to_board = np.array([[t, 0.0, x0 + 0.5 * t], [0.0, t, y0 + 0.5 * t], [0.0, 0.0, 1.0]])
+    ss = SUPERSAMPLE
+    sample_to_image = np.array([[1 / ss, 0.0, lo[0] + 0.5 / ss - 0.5], [0.0, 1 / ss, lo[1] + 0.5 / ss - 0.5], [0.0, 0.0, 1.0]])
+    M = np.linalg.inv(sample_to_image) @ H @ texel_to_board
+    src = np.dstack([pattern, np.full_like(pattern, 255)])
+    warped = cv2.warpPerspective(src, M, (ss * w, ss * h), flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    small = cv2.resize(warped, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+    inv = inverse_depth(board, K, rvec, tvec, lo, hi)
+    depth = zbuf[lo[1]:hi[1], lo[0]:hi[0]]
+    front = (inv > depth).astype(np.float32)[..., None]
+    ink, alpha = small[..., 0:1] * front, small[..., 1:2] * front
+    depth[alpha[..., 0] > 0] = inv[alpha[..., 0] > 0]
+    roi = canvas[lo[1]:hi[1], lo[0]:hi[0]]
+    roi *= 1.0 - alpha
+    roi += black * alpha + (white - black) * ink
+
+
+def clutter(size: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """(h, w, 3) float32 background: a smooth colour field with random filled shapes and lines."""
+    w, h = size
+    field = cv2.resize(rng.uniform(40, 200, (4, 5, 3)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
+    img = np.clip(field, 0, 255).astype(np.uint8)
+    scale = max(w, h)
+    for _ in range(60):
+        colour = tuple(int(c) for c in rng.integers(0, 256, 3))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        r = int(rng.uniform(0.005, 0.08) * scale)
+        kind = int(rng.integers(4))
+        if kind == 0:
+            cv2.circle(img, (x, y), r, colour, -1, cv2.LINE_AA)
+        elif kind == 1:
+            axes = (r, max(1, int(r * rng.uniform(0.2, 1.0))))
+            cv2.ellipse(img, (x, y), axes, float(rng.uniform(0, 180)), 0, 360, colour, -1, cv2.LINE_AA)
+        elif kind == 2:
+            pts = np.array([[x, y]]) + rng.integers(-r, r + 1, (int(rng.integers(3, 7)), 2))
+            cv2.fillPoly(img, [pts.astype(np.int32)], colour, cv2.LINE_AA)
+        else:
+            end = (x + int(rng.integers(-3 * r, 3 * r + 1)), y + int(rng.integers(-3 * r, 3 * r + 1)))
+            cv2.line(img, (x, y), end, colour, max(1, r // 8), cv2.LINE_AA)
+    return img.astype(np.float32)
+
+
+def vignetting(size: tuple[int, int], strength: float) -> np.ndarray:
+    """(h, w, 1) float32 gain: 1 at the centre, 1 - strength at the image corners (quadratic in radius)."""
+    w, h = size
+    x = (np.arange(w, dtype=np.float32) - (w - 1) / 2) / (w / 2)
+    y = (np.arange(h, dtype=np.float32) - (h - 1) / 2) / (h / 2)
+    r2 = (x[None, :] ** 2 + y[:, None] ** 2) / 2.0
+    return (1.0 - strength * r2)[..., None]
+
+
+def sensor(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Radiance (h, w, 3) float32 -> 8-bit photo: vignetting, Gaussian blur, read + shot noise."""
+    h, w = img.shape[:2]
+    img *= vignetting((w, h), float(rng.uniform(0.15, 0.35)))
+    sigma = float(rng.uniform(0.6, 1.1)) * max(w, h) / 4032.0
+    img = cv2.GaussianBlur(img, (0, 0), max(sigma, 0.3))
+    noise = rng.standard_normal(img.shape, dtype=np.float32)
+    img += noise * np.sqrt(np.float32(2.0**2) + np.float32(0.03) * np.maximum(img, 0))
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def render_photo(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool = False,
+                 covered: bool = False) -> tuple[np.ndarray, Shot]:
+    """One photo (h, w, 3) uint8 BGR and its truth."""
+    shot = plan_shot(rig, profile, rng, upside_down=upside_down, covered=covered)
+    canvas = clutter(profile.image_size_px, rng)
+    zbuf = np.zeros(canvas.shape[:2], np.float32)
+    centres = np.array([b.points().mean(0) for b in rig.boards])
+    depth = to_camera(centres, shot.rvec, shot.tvec)[:, 2]
+    front = facing(centres, -np.array([b.normal() for b in rig.boards]), camera_centre(shot.rvec, shot.tvec))
+    for b in np.argsort(depth)[::-1]:
+        board = rig.boards[b]
+        if depth[b] <= 0 or not front[b]:
+            continue  # behind the camera, or seen from the back: not drawn
+        white = float(rng.uniform(170, 235))
+        draw_board(canvas, zbuf, board, shot.K, shot.rvec, shot.tvec, white, white * float(rng.uniform(0.08, 0.18)))
+    if shot.cover_px is not None:
+        x0, y0, x1, y1 = shot.cover_px
+        canvas[y0:y1 + 1, x0:x1 + 1] = rng.uniform(30, 220, 3).astype(np.float32)
+    canvas *= rng.uniform(0.93, 1.07, 3).astype(np.float32)  # white balance
+    return sensor(canvas, rng), shot
+
+
+def photo_variant(k: int) -> tuple[bool, bool]:
+    """Whether photo k is upside down (k % VARIANT_CYCLE == 1) and has a board covered (k % VARIANT_CYCLE == 3)."""
+    return k % VARIANT_CYCLE == 1, k % VARIANT_CYCLE == 3
+
+
+def render_photos(rig: Rig, profile: DeviceProfile, n: int, *, seed: int = 0) -> Iterator[tuple[np.ndarray, Shot]]:
+    """``n`` photos; photo k draws from its own generator (seed, k), so any subset re-renders identically."""
+    for k in range(n):
+        upside_down, covered = photo_variant(k)
+        yield render_photo(rig, profile, np.random.default_rng([seed, k]), upside_down=upside_down, covered=covered)
+
+
+def encode(img: np.ndarray, fmt: str) -> bytes:
+    """JPEG (quality 92) or PNG bytes of a BGR image."""
+    params = [cv2.IMWRITE_JPEG_QUALITY, 92] if fmt == "jpg" else []
+    ok, buf = cv2.imencode(f".{fmt}", img, params)
+    if not ok:
+        raise InputError(f"OpenCV cannot encode {fmt} images")
+    return buf.tobytes()
+
+
+def truth_arrays(rig: Rig, profile: DeviceProfile, seed: int, files: list[str], shots: list[Shot]) -> dict[str, np.ndarray]:
+    """The ``truth.npz`` arrays (see models_spec/ingest.md)."""
+    meta = {"generator": GENERATOR, "version": __version__, "seed": int(seed), "profile": profile.name,
+            "device": asdict(profile), "rig": rig_to_dict(rig), "units": {"2d": "px", "3d": "mm"}}
+    return {"frame_id": np.array(files), "K": np.stack([s.K for s in shots]), "rvec": np.stack([s.rvec for s in shots]),
+            "tvec": np.stack([s.tvec for s in shots]), "corners_px": np.stack([s.corners_px for s in shots]),
+            "seen": np.stack([s.seen for s in shots]),
+            "board_of_point": rig.board_of_point, "upside_down": np.array([s.upside_down for s in shots]),
+            "covered_board": np.array([s.covered_board for s in shots], np.int64),
+            "image_size": np.array(profile.image_size_px, np.int64), "meta": np.array(json.dumps(meta, sort_keys=True))}
+
+
+def write_render(out_dir: str | Path, rig: Rig, profile: DeviceProfile, n: int, *, seed: int = 0, fmt: str = "jpg",
+                 progress=iter) -> Path:
+    """Render ``n`` photos into ``out_dir`` as photo-0000.<fmt>, … and write ``truth.npz``; returns its path.
+
+    ``progress`` wraps the photo iterator (e.g. ``dimenet.runtime.cli.progress.progress``).
+    """
+    if fmt not in FORMATS:
+        raise InputError(f"unknown photo format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    if n < 1:
+        raise InputError(f"the number of photos must be >= 1, got {n}")
+    out = Path(out_dir)
+    files, shots = [], []
+    photos = render_photos(rig, profile, n, seed=seed)
+    for k, (img, shot) in enumerate(progress(photos)):
+        name = f"photo-{k:04d}.{fmt}"
+        data = encode(img, fmt)
+        atomic_write(out / name, lambda f: f.write(data))
+        files.append(name)
+        shots.append(shot)
+    arrays = truth_arrays(rig, profile, seed, files, shots)
+    return atomic_write(out / TRUTH_FILE, lambda f: np.savez_compressed(f, **arrays))

@@ -1,0 +1,353 @@
+"""OIS camera simulator: hand-held photos of the rig (and of a natural scene) with per-frame K.
+
+Physics (see models_spec/simulator.md for every parameter, value and source):
+- pinhole camera at the native 4032x3024 px, lens distortion removed (the paper's assumption);
+- focus breathing: the autofocus focuses at the rig distance u (mm, with a small AF error),
+  the lens sits at the thin-lens image distance v = f·u / (u - f), so f_px = v / pixel pitch;
+- OIS: hand shake is a random 2-axis angle θ (deg, Gaussian per axis); the OIS shifts the lens
+  to compensate, moving the principal point by f_px·tan(θ) per axis, clipped at the actuator
+  stroke. The OIS state is drawn independently of the camera pose, so K is not predictable
+  from the pose; only focus breathing depends (legitimately) on the distance;
+- 2D observations are the projection under the true K plus Gaussian corner noise; a board with
+  any corner outside the image (less a few px margin) is lost entirely.
+
+``simulate`` returns a ``dimenet-dataset/1`` Dataset: the rig frames in the train/test splits
+of the paper's Table 1 and, optionally, natural-scene frames (paper's LEGO test) in test.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from typing import Callable, Optional, Union
+
+import numpy as np
+
+from dimenet.runtime import __version__
+from dimenet.runtime.errors import InputError, RigError
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.formats.rig import Board, Rig, paper_rig, rig_to_dict
+from dimenet.runtime.geometry import camera_centre, facing, matrix_to_rvec, project, spans_3d, to_camera
+from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO
+
+GENERATOR = "dimenet.simulator"
+# Give up when this many poses in a row fail the visibility rule (the scene cannot fit the view).
+MAX_POSE_ATTEMPTS = 1000
+
+
+@dataclass(frozen=True)
+class DeviceProfile:
+    """One phone/tablet camera and how it was hand-held (units in the names)."""
+
+    name: str
+    focal_length_mm: float  # lens focal length at infinity focus
+    pixel_pitch_um: float  # sensor pixel pitch
+    shake_sigma_deg: float  # hand-shake angle, std per axis (tuned: Avg(e_c), Table 5)
+    ois_stroke_deg: float  # largest angle the OIS actuator compensates, per axis
+    corner_sigma_px: float  # checkerboard corner detection noise, std per axis (tuned: Avg(e*), Table 1)
+    n_train: int  # rig frames in train (Table 1)
+    n_test: int  # rig frames in test (Table 1)
+    image_size_px: tuple[int, int] = (4032, 3024)  # width, height (Table 1)
+    pixel_aspect: float = 1.0  # fy / fx (square pixels)
+    centre_offset_px: tuple[float, float] = (0.0, 0.0)  # optical centre minus sensor centre, x and y
+    af_error_rel: float = 0.03  # autofocus distance error, std as a fraction of the distance
+    label_sigma_px: float = 4.9  # natural scene: hand-labelling noise of 2D features, std per axis (tuned: Table 5 N)
+    model_sigma_mm: float = 0.5  # natural scene: CAD model/alignment error of 3D features, std per axis
+    distance_mm: tuple[float, float] = (400.0, 700.0)  # camera to rig centre, uniform
+    view_max_deg: float = 25.0  # viewing direction off the rig normal, uniform per axis (yaw, pitch)
+    roll_max_deg: float = 10.0  # camera roll, uniform
+    aim_jitter_mm: float = 50.0  # aim point off the rig centre in the rig plane, uniform per axis
+    border_margin_px: float = 4.0  # a corner closer than this to the image border is not detected
+
+    @property
+    def focal_px(self) -> float:
+        """Nominal focal length (px) at infinity focus."""
+        return self.focal_length_mm / (self.pixel_pitch_um * 1e-3)
+
+    @property
+    def centre_px(self) -> np.ndarray:
+        """(2,) optical centre (px) with the OIS at rest: sensor centre plus the fixed offset."""
+        w, h = self.image_size_px
+        return np.array([(w - 1) / 2.0, (h - 1) / 2.0]) + np.asarray(self.centre_offset_px)
+
+
+PROFILES = {p.name: p for p in (
+    DeviceProfile(name="galaxy-s8", focal_length_mm=4.25, pixel_pitch_um=1.4, shake_sigma_deg=1.4,
+                  ois_stroke_deg=1.5, corner_sigma_px=0.36, n_train=185, n_test=47,
+                  centre_offset_px=(9.0, -6.0)),
+    DeviceProfile(name="iphone-12-pro", focal_length_mm=4.2, pixel_pitch_um=1.4, shake_sigma_deg=0.77,
+                  ois_stroke_deg=1.0, corner_sigma_px=0.37, n_train=164, n_test=42,
+                  centre_offset_px=(-7.0, 5.0)),
+    DeviceProfile(name="ipad-mini-6", focal_length_mm=4.0, pixel_pitch_um=1.3, shake_sigma_deg=0.5,
+                  ois_stroke_deg=0.8, corner_sigma_px=0.26, n_train=224, n_test=57,
+                  centre_offset_px=(5.0, 8.0)),
+)}
+
+
+def get_profile(name: str) -> DeviceProfile:
+    """The named device profile; InputError naming it and the known ones when unknown."""
+    if name not in PROFILES:
+        raise InputError(f"unknown device profile {name!r}; known profiles: {', '.join(sorted(PROFILES))}")
+    return PROFILES[name]
+
+
+def focus_breathing_focal_px(profile: DeviceProfile, focus_distance_mm: float) -> float:
+    """Focal length (px) when focused at u mm: thin-lens image distance v = f·u/(u - f), over the pitch."""
+    f = profile.focal_length_mm
+    if not focus_distance_mm > f:
+        raise InputError(f"focus distance must exceed the focal length {f} mm, got {focus_distance_mm} mm")
+    return profile.focal_px * focus_distance_mm / (focus_distance_mm - f)
+
+
+def ois_shift_px(theta_deg: np.ndarray, focal_px: float, stroke_deg: float) -> np.ndarray:
+    """Principal-point shift (px) of an OIS compensating the shake θ (deg), clipped at the stroke."""
+    return focal_px * np.tan(np.radians(np.clip(theta_deg, -stroke_deg, stroke_deg)))
+
+
+def intrinsics(profile: DeviceProfile, focus_distance_mm: float, theta_deg: np.ndarray) -> np.ndarray:
+    """(3, 3) K (px) of one frame: focus breathing sets f, the OIS moves the principal point."""
+    f_px = focus_breathing_focal_px(profile, focus_distance_mm)
+    cx, cy = profile.centre_px + ois_shift_px(np.asarray(theta_deg), f_px, profile.ois_stroke_deg)
+    return np.array([[f_px, 0.0, cx], [0.0, f_px * profile.pixel_aspect, cy], [0.0, 0.0, 1.0]])
+
+
+def look_at(camera_mm: np.ndarray, target_mm: np.ndarray, roll_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pose {W}->{C} (rvec rad, tvec mm) of a camera at ``camera_mm`` looking at ``target_mm``.
+
+    Image y points along {W} +y (down) before the roll about the optical axis.
+    """
+    z = target_mm - camera_mm
+    z = z / np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x = x / np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    c, s = np.cos(roll_rad), np.sin(roll_rad)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
+    return matrix_to_rvec(R), -R @ camera_mm
+
+
+def sample_pose(profile: DeviceProfile, centre_mm: np.ndarray, rng: np.random.Generator):
+    """A hand-held pose (rvec, tvec) viewing a scene whose front faces -z of {W}, centred at ``centre_mm``."""
+    distance = rng.uniform(*profile.distance_mm)
+    yaw, pitch = np.radians(rng.uniform(-profile.view_max_deg, profile.view_max_deg, 2))
+    direction = np.array([np.sin(yaw) * np.cos(pitch), np.sin(pitch), -np.cos(yaw) * np.cos(pitch)])
+    aim = centre_mm + np.r_[rng.uniform(-profile.aim_jitter_mm, profile.aim_jitter_mm, 2), 0.0]
+    roll = np.radians(rng.uniform(-profile.roll_max_deg, profile.roll_max_deg))
+    return look_at(centre_mm + distance * direction, aim, roll)
+
+
+def in_image(points_px: np.ndarray, profile: DeviceProfile) -> np.ndarray:
+    """(N,) whether each pixel lies inside the image, at least the border margin from its edges."""
+    m = profile.border_margin_px
+    w, h = profile.image_size_px
+    x, y = points_px[:, 0], points_px[:, 1]
+    return (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A photographed set-up in {W} (mm): points, their surface normals and groups, and opaque surfaces."""
+
+    points: np.ndarray  # (N, 3) mm
+    normals: np.ndarray  # (N, 3) unit normals towards the side the point is seen from
+    group: np.ndarray  # (N,) int: board index, or -1 for natural (building) features
+    surfaces: np.ndarray  # (M, 3, 3) mm: opaque rectangles as (corner, edge a, edge b)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(3,) centre of the points' bounding box (mm): where the camera aims and focuses."""
+        return (self.points.min(0) + self.points.max(0)) / 2.0
+
+
+def board_surface(board: Board) -> np.ndarray:
+    """(3, 3) the board's printed pattern, one square beyond the inner corners, as (corner, edge a, edge b)."""
+    nx, ny = board.inner_corners
+    s = board.square_mm
+    R = board.rotation()
+    corner = R @ np.array([-s, -s, 0.0]) + np.asarray(board.tvec_mm)
+    return np.stack([corner, R[:, 0] * (nx + 1) * s, R[:, 1] * (ny + 1) * s])
+
+
+def occluded(points_mm: np.ndarray, camera_mm: np.ndarray, surfaces: np.ndarray) -> np.ndarray:
+    """(N,) whether the line of sight from the camera to each point crosses an opaque surface first.
+
+    A point lying on a surface is not hidden by that surface (the crossing must be strictly before it).
+    """
+    corner, a, b = surfaces[:, 0], surfaces[:, 1], surfaces[:, 2]  # (M, 3)
+    n = np.cross(a, b)
+    ray = points_mm - camera_mm  # (N, 3)
+    denom = ray @ n.T  # (N, M)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((corner - camera_mm) * n).sum(1) / denom
+    hit = camera_mm + t[..., None] * ray[:, None, :] - corner  # (N, M, 3)
+    u = (hit * a).sum(-1) / (a * a).sum(-1)
+    v = (hit * b).sum(-1) / (b * b).sum(-1)
+    inside = (t > 0) & (t < 1 - 1e-9) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+    return inside.any(1)
+
+
+def rig_scene(rig: Rig) -> Scene:
+    """The rig's corners; a board is seen from its printed side, -normal."""
+    normals = np.concatenate([np.tile(-b.normal(), (b.n_points, 1)) for b in rig.boards])
+    return Scene(points=rig.points(), normals=normals, group=rig.board_of_point,
+                 surfaces=np.stack([board_surface(b) for b in rig.boards]))
+
+
+def _face(origin, u_axis, v_axis, st_mm) -> np.ndarray:
+    """Face coordinates (s, t) mm along u and v from ``origin`` -> (N, 3) mm."""
+    st = np.asarray(st_mm, dtype=np.float64)
+    return np.asarray(origin, float) + st[:, :1] * np.asarray(u_axis, float) + st[:, 1:] * np.asarray(v_axis, float)
+
+
+def _rect(s0, t0, width, height) -> list:
+    """The 4 corners (s, t) of a rectangle on a face (window, door, facade)."""
+    return [(s0, t0), (s0 + width, t0), (s0, t0 + height), (s0 + width, t0 + height)]
+
+
+def box_surfaces(low_mm, high_mm) -> np.ndarray:
+    """(6, 3, 3) the faces of the axis-aligned box [low, high] (mm) as (corner, edge a, edge b)."""
+    low, size = np.asarray(low_mm, float), np.asarray(high_mm, float) - np.asarray(low_mm, float)
+    faces = []
+    for axis in range(3):
+        a, b = np.eye(3)[[(axis + 1) % 3, (axis + 2) % 3]] * size[[(axis + 1) % 3, (axis + 2) % 3], None]
+        for at in (0.0, size[axis]):
+            faces.append([low + np.eye(3)[axis] * at, a, b])
+    return np.array(faces)
+
+
+def buildings() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two LEGO-like buildings: labelled features (47 left + 19 right) in {W} (mm), their normals,
+    and the boxes' faces (opaque surfaces).
+
+    Boxes stand on a table (y = 130 mm) left and right of the middle board, in line with it
+    (board plane z = 0): the left one x in [-300, -160], 210 mm tall, z in [-50, 50]; the right
+    one x in [160, 260], 120 mm tall, z in [-30, 50]. Features are facade, window and door
+    corners on the front face (towards -z) and on the side facing the middle board.
+    """
+    ex, ey, ez = np.eye(3)
+    # Left building: front face 140 x 210 mm, inner (right) side face 100 mm deep.
+    front = [*_rect(0, 0, 140, 210), *(c for s in (20, 90) for t in (20, 70, 120) for c in _rect(s, t, 30, 30)),
+             *_rect(55, 160, 30, 50), (70, 8)]
+    side = [(100, 0), (100, 210), *(c for t in (20, 70, 120) for c in _rect(35, t, 30, 30))]
+    left = [(_face((-300, -80, -50), ex, ey, front), -ez), (_face((-160, -80, -50), ez, ey, side), ex)]
+    # Right building: front face 100 x 120 mm, inner (left) side face 80 mm deep.
+    front = [*_rect(0, 0, 100, 120), *_rect(12, 15, 30, 30), *_rect(58, 15, 30, 30), *_rect(35, 70, 30, 50)]
+    side = [(80, 0), (80, 120), (40, 40)]
+    right = [(_face((160, 10, -30), ex, ey, front), -ez), (_face((160, 10, -30), ez, ey, side), -ex)]
+    parts = left + right
+    points = np.concatenate([p for p, _ in parts])
+    normals = np.concatenate([np.tile(n, (len(p), 1)) for p, n in parts])
+    surfaces = np.concatenate([box_surfaces((-300, -80, -50), (-160, 130, 50)),
+                               box_surfaces((160, 10, -30), (260, 130, 50))])
+    return points, normals, surfaces
+
+
+def natural_scene(board: Board) -> Scene:
+    """The LEGO test set-up: ``board``'s pattern facing the camera at the origin, buildings beside it."""
+    middle = replace(board, rvec=(0.0, 0.0, 0.0),
+                     tvec_mm=(-(board.inner_corners[0] - 1) * board.square_mm / 2.0,
+                              -(board.inner_corners[1] - 1) * board.square_mm / 2.0, 0.0))
+    features, feature_normals, boxes = buildings()
+    return Scene(points=np.concatenate([middle.points(), features]),
+                 normals=np.concatenate([np.tile(-middle.normal(), (middle.n_points, 1)), feature_normals]),
+                 group=np.r_[np.zeros(middle.n_points, np.int64), np.full(len(features), -1)],
+                 surfaces=np.concatenate([board_surface(middle)[None], boxes]))
+
+
+def visible(scene: Scene, profile: DeviceProfile, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray):
+    """Pixels (N, 2) of the scene points and which are seen: in front of the camera, facing it, not
+    hidden behind a surface, inside the image; a board with any corner unseen is lost entirely."""
+    camera = camera_centre(rvec, tvec)
+    px = project(scene.points, K, rvec, tvec)
+    seen = ((to_camera(scene.points, rvec, tvec)[:, 2] > 0) & in_image(px, profile)
+            & facing(scene.points, scene.normals, camera) & ~occluded(scene.points, camera, scene.surfaces))
+    for g in np.unique(scene.group[scene.group >= 0]):
+        board = scene.group == g
+        seen[board] = seen[board].all()
+    return px, seen
+
+
+def rig_view_ok(scene: Scene, seen: np.ndarray) -> bool:
+    """A rig photo is usable when >= 2 boards are seen and their corners span 3D (K* observable)."""
+    return len(np.unique(scene.group[seen])) >= 2 and spans_3d(scene.points[seen], RIG_VIEW_RATIO)
+
+
+def natural_view_ok(scene: Scene, seen: np.ndarray) -> bool:
+    """A natural photo is usable when every labelled building feature is seen."""
+    return bool(seen[scene.group < 0].all())
+
+
+def shoot(scene: Scene, profile: DeviceProfile, rng: np.random.Generator, usable: Callable[[Scene, np.ndarray], bool],
+          pose: Callable = sample_pose):
+    """One hand-held photo: OIS and AF state, then poses ``pose(profile, centre, rng)`` until ``usable``.
+
+    Returns K_true (px), the pose {W}->{C} (rvec, tvec mm), the scene's pixels (N, 2) and which are seen (N,).
+    """
+    theta_deg = rng.normal(0.0, profile.shake_sigma_deg, 2)
+    af_error = rng.normal(0.0, profile.af_error_rel)
+    for _ in range(MAX_POSE_ATTEMPTS):
+        rvec, tvec = pose(profile, scene.centre, rng)
+        focus_mm = to_camera(scene.centre[None], rvec, tvec)[0, 2] * (1.0 + af_error)
+        K = intrinsics(profile, focus_mm, theta_deg)
+        px, seen = visible(scene, profile, K, rvec, tvec)
+        if usable(scene, seen):
+            return K, rvec, tvec, px, seen
+    raise RigError(f"no hand-held pose out of {MAX_POSE_ATTEMPTS} gives a usable view of the scene "
+                   f"with profile {profile.name!r}: does the rig fit the camera's view?")
+
+
+def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frames: int = 0,
+             planar_frames: int = 0, rig: Optional[Rig] = None) -> Dataset:
+    """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
+    test frames, then ``planar_frames`` planar test frames.
+
+    A planar frame is a rig photo (>= 2 boards seen, so K* stays observable from all its valid
+    points) whose inference points are the corners of one of its boards, drawn at random: from
+    one planar view K is not fully observable. Deterministic per seed; rig frames depend on
+    neither count, natural frames not on ``planar_frames``. 2D points in px, 3D points in mm
+    in the frame's {W} (the rig frame, or the natural scene's frame).
+    """
+    profile = get_profile(profile) if isinstance(profile, str) else profile
+    for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+            raise InputError(f"{name} must be an integer >= 0, got {value!r}")
+    rig = paper_rig() if rig is None else rig
+    rng = np.random.default_rng(seed)
+    rig_set = rig_scene(rig)
+    nature = natural_scene(rig.boards[0])
+    n_rig = profile.n_train + profile.n_test
+    n_shot = n_rig + natural_frames
+    F, P = n_shot + planar_frames, max(len(rig_set.points), len(nature.points))
+    p2, p3 = np.full((F, P, 2), np.nan), np.full((F, P, 3), np.nan)
+    valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
+    K_true = np.zeros((F, 3, 3))
+    for k in range(n_rig):
+        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok)
+        n = len(px)
+        p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        p3[k, :n][seen] = rig_set.points[seen]
+        valid[k, :n], infer[k, :n] = seen, seen
+    building = nature.group < 0
+    model_points = nature.points + building[:, None] * rng.normal(0.0, profile.model_sigma_mm, nature.points.shape)
+    noise_px = np.where(building, profile.label_sigma_px, profile.corner_sigma_px)[:, None]
+    for k in range(n_rig, n_shot):
+        K_true[k], _, _, px, seen = shoot(nature, profile, rng, natural_view_ok)
+        n = len(px)
+        p2[k, :n][seen] = (px + rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
+        p3[k, :n][seen] = model_points[seen]
+        valid[k, :n], infer[k, :n] = seen, seen & building
+    for k in range(n_shot, F):
+        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok)
+        n = len(px)
+        p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        p3[k, :n][seen] = rig_set.points[seen]
+        board = rng.choice(np.unique(rig_set.group[seen]))
+        valid[k, :n], infer[k, :n] = seen, seen & (rig_set.group == board)
+    meta = {"generator": GENERATOR, "version": __version__, "profile": profile.name, "seed": int(seed),
+            "natural_frames": int(natural_frames), "planar_frames": int(planar_frames), "units": {"2d": "px", "3d": "mm"},
+            "device": asdict(profile), "rig": rig_to_dict(rig), "natural_board": rig.boards[0].name}
+    return Dataset(
+        image_size=np.array(profile.image_size_px, np.int64), points_2d=p2, points_3d=p3, valid=valid,
+        infer_mask=infer,
+        split=np.array(["train"] * profile.n_train + ["test"] * (profile.n_test + natural_frames + planar_frames)),
+        scene=np.array(["rig"] * n_rig + ["natural"] * natural_frames + ["planar"] * planar_frames), meta=meta,
+        K_true=K_true,
+        frame_id=np.array([f"{profile.name}-{k:04d}" for k in range(F)]))
