@@ -1,4 +1,5 @@
 """`dimenet export`: a RUN_DIR to a ``dimenet-model/1`` ONNX file. torch and onnx are imported only when run."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,7 +16,12 @@ MIN_OPSET, MAX_OPSET = 9, 20
 def _add_export(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", metavar="RUN_DIR", help="a trained model folder from `dimenet train`")
     p.add_argument("--out", required=True, metavar="MODEL.onnx", help="ONNX file to write (atomically)")
-    p.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset, {MIN_OPSET} to {MAX_OPSET} (default {DEFAULT_OPSET})")
+    p.add_argument(
+        "--opset",
+        type=int,
+        default=DEFAULT_OPSET,
+        help=f"ONNX opset, {MIN_OPSET} to {MAX_OPSET} (default {DEFAULT_OPSET})",
+    )
 
 
 def _run_export(args: argparse.Namespace) -> int:
@@ -23,8 +29,10 @@ def _run_export(args: argparse.Namespace) -> int:
 
     out = Path(export_run(args.run_dir, args.out, opset=args.opset))
     blob = out.read_bytes()
-    print(f"exported {args.run_dir} -> {out} ({len(blob) / 1024:.0f} KiB, opset {args.opset}, "
-          f"sha256 {hashlib.sha256(blob).hexdigest()[:16]})")
+    print(
+        f"exported {args.run_dir} -> {out} ({len(blob) / 1024:.0f} KiB, opset {args.opset}, "
+        f"sha256 {hashlib.sha256(blob).hexdigest()[:16]})"
+    )
     return 0
 
 

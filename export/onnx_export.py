@@ -6,6 +6,7 @@ The exported bytes are checked (onnx.checker, then ONNX Runtime against torch on
 features, and zero features -> exactly zero Delta K) before anything is written, and the
 file is written atomically: a failed export leaves any previous file intact.
 """
+
 from __future__ import annotations
 
 import io
@@ -37,9 +38,17 @@ def _trace(model: DimeNet, size: int, opset: int) -> bytes:
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter announces its deprecation
-        torch.onnx.export(model.eval(), (torch.zeros(1, size),), buf, dynamo=False, opset_version=opset,
-                          input_names=[INPUT_NAME], output_names=[OUTPUT_NAME], do_constant_folding=True,
-                          dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}})
+        torch.onnx.export(
+            model.eval(),
+            (torch.zeros(1, size),),
+            buf,
+            dynamo=False,
+            opset_version=opset,
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME],
+            do_constant_folding=True,
+            dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+        )
     return buf.getvalue()
 
 
@@ -66,8 +75,10 @@ def _check_parity(model: DimeNet, blob: bytes, size: int) -> None:
     got = onnx_model_from_bytes(blob, "exported model").delta_k(probe)
     worst = float(np.abs(got - expected).max())
     if not worst <= PARITY_TOLERANCE_PX + PARITY_RELATIVE * float(np.abs(expected).max()):
-        raise ModelError(f"export: ONNX Runtime and torch differ by up to {worst:.2e} px "
-                         f"(allowed {PARITY_TOLERANCE_PX} px + {PARITY_RELATIVE:g} x the largest |Delta K|)")
+        raise ModelError(
+            f"export: ONNX Runtime and torch differ by up to {worst:.2e} px "
+            f"(allowed {PARITY_TOLERANCE_PX} px + {PARITY_RELATIVE:g} x the largest |Delta K|)"
+        )
     if np.any(got[0] != 0.0):
         raise ModelError(f"export: zero features give Delta K {got[0].tolist()} px in ONNX, expected exactly 0")
 

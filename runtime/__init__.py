@@ -19,7 +19,20 @@ from dimenet.runtime.errors import (
 
 __version__ = "0.1.0"
 _RECTIFY = ("Rectifier", "Rectification", "BatchRectification")
-__all__ = ["CalibrationError", "DatasetError", "DimenetError", "IdentificationError", "IngestError", "InputError", "LabelsError", "ModelError", "PhotoError", "RigError", *_RECTIFY, "__version__"]
+__all__ = [
+    "CalibrationError",
+    "DatasetError",
+    "DimenetError",
+    "IdentificationError",
+    "IngestError",
+    "InputError",
+    "LabelsError",
+    "ModelError",
+    "PhotoError",
+    "RigError",
+    *_RECTIFY,
+    "__version__",
+]
 
 
 def __getattr__(name: str):

@@ -1,4 +1,5 @@
 """Typed errors. Every one is a ``ValueError`` so callers can catch bad input broadly."""
+
 from __future__ import annotations
 
 

@@ -5,6 +5,7 @@ profile's rig frames (paper Table 1 splits) plus NATURAL_FRAMES natural-scene te
 calibrated with the real per-frame K* fit (K_c from the train frames). ``s8_dataset`` and
 ``s8_calibration`` are the default Galaxy S8 set (seed 0), the one most tests use.
 """
+
 from __future__ import annotations
 
 import os
@@ -13,10 +14,10 @@ import os
 # (a 1.3 s calibration took 20+ s on a busy 2-core machine). Must be set before numpy loads.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import pytest  # noqa: E402
+import pytest
 
-from dimenet.runtime.evaluation.calibration import calibrate_dataset  # noqa: E402
-from dimenet.runtime.sim.simulator import simulate  # noqa: E402
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.sim.simulator import simulate
 
 NATURAL_FRAMES = 34  # the paper's LEGO test set size
 

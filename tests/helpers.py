@@ -1,4 +1,5 @@
 """Small synthetic scenes for unit tests (no simulator needed)."""
+
 from __future__ import annotations
 
 import numpy as np

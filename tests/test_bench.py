@@ -1,4 +1,5 @@
 """`dimenet bench`: the report's keys and the budget exit code (no timing assertions)."""
+
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
 """The batched exact BPnP layer: pose vs OpenCV, implicit gradients vs re-solved finite differences."""
+
 from __future__ import annotations
 
 import cv2
@@ -30,7 +31,12 @@ def _single_thread():
 def _scene(seed, frames=2, points=10, noise_px=0.4, planar=False):
     """float64 tensors x (B, N, 2) px, X (B, N, 3) mm, K (B, 3, 3), w (B, N) of a noisy synthetic scene."""
     x, X, K, _, _ = random_frames(np.random.default_rng(seed), frames, points, noise_px, K=K_PHONE, planar=planar)
-    return torch.from_numpy(x), torch.from_numpy(X), torch.from_numpy(K), torch.ones(frames, points, dtype=torch.float64)
+    return (
+        torch.from_numpy(x),
+        torch.from_numpy(X),
+        torch.from_numpy(K),
+        torch.ones(frames, points, dtype=torch.float64),
+    )
 
 
 def _pose(x, X, K, w):
@@ -201,8 +207,17 @@ def _spoil(kind, x, X, K, w):
         K[1, 0, 0] = 0.0
 
 
-@pytest.mark.parametrize("kind", ["three points", "collinear 3D points", "coincident 2D points",
-                                  "nan in a weighted point", "infinite K", "zero focal length"])
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "three points",
+        "collinear 3D points",
+        "coincident 2D points",
+        "nan in a weighted point",
+        "infinite K",
+        "zero focal length",
+    ],
+)
 def test_singular_frame_raises_input_error_naming_it(kind):
     x, X, K, w = _scene(seed=12, frames=3, points=10)
     _spoil(kind, x, X, K, w)

@@ -1,4 +1,5 @@
 """The `dimenet` command line as a user meets it: help with examples, one-line errors, JSON."""
+
 from __future__ import annotations
 
 import json
@@ -16,8 +17,12 @@ COMMANDS = ["simulate", "calibrate", "evaluate", "train", "reproduce", "export",
 
 
 def dimenet(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", "import sys; from dimenet.runtime.cli.main import main; sys.exit(main())", *args],
-                          capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-c", "import sys; from dimenet.runtime.cli.main import main; sys.exit(main())", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def test_every_command_is_registered_and_its_help_has_an_example(capsys):
@@ -32,13 +37,16 @@ def test_every_command_is_registered_and_its_help_has_an_example(capsys):
         assert "example:" in out and f"dimenet {name}" in out
 
 
-@pytest.mark.parametrize("args, words", [
-    (["evaluate", "missing.npz"], "no such dataset file"),
-    (["simulate", "--profile", "nokia-3310", "--out", "x.npz"], "nokia-3310"),
-    (["evaluate", "missing.npz", "--noise-2d", "-1"], "--noise-2d"),
-    (["frobnicate"], "invalid choice"),
-    (["calibrate"], "required"),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["evaluate", "missing.npz"], "no such dataset file"),
+        (["simulate", "--profile", "nokia-3310", "--out", "x.npz"], "nokia-3310"),
+        (["evaluate", "missing.npz", "--noise-2d", "-1"], "--noise-2d"),
+        (["frobnicate"], "invalid choice"),
+        (["calibrate"], "required"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line_and_no_traceback(args, words):
     res = dimenet(*args)
     assert res.returncode == 2
@@ -97,11 +105,15 @@ def test_ingest_bad_input_exits_2_with_one_line(tmp_path):
         ([str(broken), "--rig", str(bad_rig), "--out", out], "rig.json: units"),
         ([str(tmp_path / "missing.jpg"), "--rig", "paper", "--out", out], "missing.jpg: no such photo"),
         ([str(broken), "--rig", "paper", "--out", out, "--labels", str(labels)], "--labels and --object go together"),
-        ([str(broken), "--rig", "paper", "--out", out, "--labels", str(labels), "--object", str(obj)],
-         "labels.csv:2: point_id 'p7' is not in the object file"),
+        (
+            [str(broken), "--rig", "paper", "--out", out, "--labels", str(labels), "--object", str(obj)],
+            "labels.csv:2: point_id 'p7' is not in the object file",
+        ),
     ]:
         res = dimenet("ingest", *args)
         lines = res.stderr.strip().splitlines()
-        assert res.returncode == 2 and len(lines) == 1 and words in lines[0] and "Traceback" not in res.stderr, res.stderr
+        assert res.returncode == 2 and len(lines) == 1 and words in lines[0] and "Traceback" not in res.stderr, (
+            res.stderr
+        )
     report = json.loads((tmp_path / "d.report.json").read_text())
     assert "broken.jpg: cannot decode" in report["photos"][0]["skipped"]

@@ -26,9 +26,16 @@ def tiny_dataset():
     infer[1, :2] = True
     rng = np.random.default_rng(0)
     p3 = np.where(valid[..., None], rng.uniform(-100, 100, (2, 8, 3)) + [0, 0, 600], np.nan)
-    return Dataset(image_size=np.array([400, 300], np.int64), points_2d=p2, points_3d=p3, valid=valid,
-                   infer_mask=infer, split=np.array(["test", "test"]), scene=np.array(["rig", "rig"]),
-                   meta=json.loads('{"device": "tiny"}'))
+    return Dataset(
+        image_size=np.array([400, 300], np.int64),
+        points_2d=p2,
+        points_3d=p3,
+        valid=valid,
+        infer_mask=infer,
+        split=np.array(["test", "test"]),
+        scene=np.array(["rig", "rig"]),
+        meta=json.loads('{"device": "tiny"}'),
+    )
 
 
 def test_occupancy_hand_computed():
@@ -114,24 +121,27 @@ def test_conditions_do_not_modify_their_input():
     np.testing.assert_array_equal(ds.infer_mask, infer)
 
 
-@pytest.mark.parametrize("call", [
-    lambda ds, rng: drop_inference_points(ds, 5, rng),
-    lambda ds, rng: drop_inference_points(ds, 6.5, rng),
-    lambda ds, rng: drop_inference_points(ds, True, rng),
-    lambda ds, rng: drop_inference_points(ds, 64, 0),
-    lambda ds, rng: add_noise(ds, -1.0, 0.0, rng),
-    lambda ds, rng: add_noise(ds, 0.0, float("nan"), rng),
-    lambda ds, rng: add_noise(ds, float("inf"), 0.0, rng),
-    lambda ds, rng: add_noise(ds, "3", 0.0, rng),
-    lambda ds, rng: empty_cells(ds, 1.0, GRID_8X6, rng),
-    lambda ds, rng: empty_cells(ds, -0.1, GRID_8X6, rng),
-    lambda ds, rng: empty_cells(ds, float("nan"), GRID_8X6, rng),
-    lambda ds, rng: empty_cells(ds, 0.5, "8x6", rng),
-    lambda ds, rng: occupancy(ds, "8x6"),
-    lambda ds, rng: two_objects(ds, 0),
-    lambda ds, rng: two_objects(ds, rng, group_points=(5, 10)),
-    lambda ds, rng: two_objects(ds, rng, n_points=(40, 20)),
-])
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda ds, rng: drop_inference_points(ds, 5, rng),
+        lambda ds, rng: drop_inference_points(ds, 6.5, rng),
+        lambda ds, rng: drop_inference_points(ds, True, rng),
+        lambda ds, rng: drop_inference_points(ds, 64, 0),
+        lambda ds, rng: add_noise(ds, -1.0, 0.0, rng),
+        lambda ds, rng: add_noise(ds, 0.0, float("nan"), rng),
+        lambda ds, rng: add_noise(ds, float("inf"), 0.0, rng),
+        lambda ds, rng: add_noise(ds, "3", 0.0, rng),
+        lambda ds, rng: empty_cells(ds, 1.0, GRID_8X6, rng),
+        lambda ds, rng: empty_cells(ds, -0.1, GRID_8X6, rng),
+        lambda ds, rng: empty_cells(ds, float("nan"), GRID_8X6, rng),
+        lambda ds, rng: empty_cells(ds, 0.5, "8x6", rng),
+        lambda ds, rng: occupancy(ds, "8x6"),
+        lambda ds, rng: two_objects(ds, 0),
+        lambda ds, rng: two_objects(ds, rng, group_points=(5, 10)),
+        lambda ds, rng: two_objects(ds, rng, n_points=(40, 20)),
+    ],
+)
 def test_bad_arguments_raise_input_error(call):
     with pytest.raises(InputError):
         call(tiny_dataset(), np.random.default_rng(0))
@@ -145,7 +155,7 @@ def test_per_frame_values(s8_dataset):
     sigma = np.where(np.arange(F) < F // 2, 0.0, 2.0)
     noisy = add_noise(s8_dataset, sigma, 0.0, np.random.default_rng(7))
     d2 = noisy.points_2d - s8_dataset.points_2d
-    assert np.nanstd(d2[: F // 2]) == 0.0 and np.nanstd(d2[F // 2:]) == pytest.approx(2.0, rel=0.03)
+    assert np.nanstd(d2[: F // 2]) == 0.0 and np.nanstd(d2[F // 2 :]) == pytest.approx(2.0, rel=0.03)
     eta = np.where(np.arange(F) % 2 == 0, 0.0, 0.5)
     emptied = empty_cells(s8_dataset, eta, GRID_8X6, np.random.default_rng(8))
     np.testing.assert_array_equal(emptied.infer_mask[::2], s8_dataset.infer_mask[::2])
@@ -186,7 +196,9 @@ def test_two_objects_keeps_a_subset_of_two_groups_around_far_apart_centres(s8_da
         apart.append(extent(x))
         points = rig.points_2d[f][rig.infer_mask[f]]
         for _ in range(10):
-            near = [np.argsort(np.linalg.norm(points - points[c], axis=1))[:6] for c in rng.integers(len(points), size=2)]
+            near = [
+                np.argsort(np.linalg.norm(points - points[c], axis=1))[:6] for c in rng.integers(len(points), size=2)
+            ]
             uniform.append(extent(points[np.union1d(*near)]))
     assert np.mean(apart) > 1.12 * np.mean(uniform)
     again = two_objects(rig, np.random.default_rng(0))
@@ -198,7 +210,8 @@ def test_two_objects_keeps_frames_with_too_few_points():
     one = ds.infer_mask.copy()
     one[1] = False
     one[1, 0] = True
-    out = two_objects(Dataset(**{**ds.__dict__, "infer_mask": one}), np.random.default_rng(0),
-                      group_points=(6, 6), n_points=(6, 6))
+    out = two_objects(
+        Dataset(**{**ds.__dict__, "infer_mask": one}), np.random.default_rng(0), group_points=(6, 6), n_points=(6, 6)
+    )
     np.testing.assert_array_equal(out.infer_mask[1], one[1])  # one point: unchanged
     np.testing.assert_array_equal(out.infer_mask[0], ds.infer_mask[0])  # 4 points, all in both groups

@@ -18,9 +18,14 @@ def make_arrays(frames=3, points=10, seed=0):
     return {
         "format": np.array("dimenet-dataset/1"),
         "image_size": np.array([4032, 3024], np.int64),
-        "points_2d": x, "points_3d": X, "valid": valid, "infer_mask": valid.copy(),
-        "split": np.array(["train", "test", "test"][:frames]), "scene": np.array(["rig"] * frames),
-        "meta": np.array(json.dumps({"device": "unit-test"})), "K_true": K,
+        "points_2d": x,
+        "points_3d": X,
+        "valid": valid,
+        "infer_mask": valid.copy(),
+        "split": np.array(["train", "test", "test"][:frames]),
+        "scene": np.array(["rig"] * frames),
+        "meta": np.array(json.dumps({"device": "unit-test"})),
+        "K_true": K,
     }
 
 
@@ -52,16 +57,19 @@ def _broken(key, value=None, drop=False):
     return arrays
 
 
-@pytest.mark.parametrize("arrays, key, words", [
-    (_broken("format", np.array("dimenet-dataset/2")), "format", "exactly"),
-    (_broken("points_3d", np.zeros((3, 9, 3))), "points_3d", "shape"),
-    (_broken("valid", drop=True), "valid", "missing"),
-    (_broken("split", np.array(["train", "holdout", "test"])), "split", "unknown split"),
-    (_broken("meta", np.array("[1, 2]")), "meta", "JSON object"),
-    (_broken("meta", np.array("{not json")), "meta", "not valid JSON"),
-    (_broken("image_size", np.array([4032.0, 3024.0])), "image_size", "integers"),
-    (_broken("extra", np.zeros(3)), "extra", "unknown key"),
-])
+@pytest.mark.parametrize(
+    "arrays, key, words",
+    [
+        (_broken("format", np.array("dimenet-dataset/2")), "format", "exactly"),
+        (_broken("points_3d", np.zeros((3, 9, 3))), "points_3d", "shape"),
+        (_broken("valid", drop=True), "valid", "missing"),
+        (_broken("split", np.array(["train", "holdout", "test"])), "split", "unknown split"),
+        (_broken("meta", np.array("[1, 2]")), "meta", "JSON object"),
+        (_broken("meta", np.array("{not json")), "meta", "not valid JSON"),
+        (_broken("image_size", np.array([4032.0, 3024.0])), "image_size", "integers"),
+        (_broken("extra", np.zeros(3)), "extra", "unknown key"),
+    ],
+)
 def test_non_conforming_arrays_are_rejected_by_name(arrays, key, words):
     with pytest.raises(DatasetError, match=f"{key}.*{words}"):
         validate_arrays(arrays)

@@ -3,6 +3,7 @@
 ``model_spec`` and ``random_model_file`` are shared with test_rectifier.py and test_bench.py:
 a random-init DimeNet exported to ONNX (needs torch and onnx, else the test is skipped).
 """
+
 from __future__ import annotations
 
 import json
@@ -27,8 +28,14 @@ def model_spec(dataset, *, bounds_margin: float = 1.0) -> ModelSpec:
     p = k_params(dataset.K_true[dataset.frames_in("train")])
     span = p.max(0) - p.min(0)
     bounds = np.stack([p.min(0) - bounds_margin * span, p.max(0) + bounds_margin * span], -1)
-    return ModelSpec(features=FeatureSpec(), K_c=k_matrix(p.mean(0)), image_size=tuple(int(v) for v in dataset.image_size),
-                     K_bounds=bounds, hidden=(256, 128), provenance={"note": "random-init test model"})
+    return ModelSpec(
+        features=FeatureSpec(),
+        K_c=k_matrix(p.mean(0)),
+        image_size=tuple(int(v) for v in dataset.image_size),
+        K_bounds=bounds,
+        hidden=(256, 128),
+        provenance={"note": "random-init test model"},
+    )
 
 
 def random_torch_model(spec: ModelSpec, *, seed: int = 0, weight_scale: float = 1.0):
@@ -110,8 +117,9 @@ def test_onnx_matches_torch_on_every_simulated_test_frame(exported, run_dir, s8_
 
     model, spec = load_run(run_dir)
     test = s8_dataset.select(s8_dataset.frames_in("test"))
-    feats = grid_features(test.points_2d, test.points_3d, test.infer_mask, spec.K_c, spec.image_size,
-                          spec.features).astype(np.float32)
+    feats = grid_features(
+        test.points_2d, test.points_3d, test.infer_mask, spec.K_c, spec.image_size, spec.features
+    ).astype(np.float32)
     onnx_model = load_onnx_model(exported)
     with torch.no_grad():
         expected = model(torch.from_numpy(feats)).numpy()
@@ -119,8 +127,9 @@ def test_onnx_matches_torch_on_every_simulated_test_frame(exported, run_dir, s8_
     zero = onnx_model.delta_k(np.zeros((3, spec.features.size), np.float32))
     assert zero.shape == (3, 4) and np.all(zero == 0.0)
     # the `onnx` predictor entry point gives the same K as the torch RUN_DIR backend
-    np.testing.assert_allclose(load_predictor(exported).predict_k(test), load_predictor(run_dir).predict_k(test),
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        load_predictor(exported).predict_k(test), load_predictor(run_dir).predict_k(test), atol=1e-3
+    )
 
 
 def test_foreign_corrupt_and_future_models_are_refused_by_name(exported, tmp_path):

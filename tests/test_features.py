@@ -42,7 +42,9 @@ def test_vectorised_feature_equals_per_point_reference(variant):
     feats = grid_features(x, X, mask, K_c, IMAGE, spec, poses=(rvec, tvec))
     assert feats.shape == (3, spec.size)
     for b in range(3):
-        np.testing.assert_allclose(feats[b], reference_features(x[b], X[b], mask[b], K_c, rvec[b], tvec[b], spec), atol=1e-10)
+        np.testing.assert_allclose(
+            feats[b], reference_features(x[b], X[b], mask[b], K_c, rvec[b], tvec[b], spec), atol=1e-10
+        )
 
 
 def test_layout_is_row_major_and_empty_cells_are_zero():
@@ -56,7 +58,9 @@ def test_layout_is_row_major_and_empty_cells_are_zero():
     cell = 1 * 8 + 2
     nonzero = np.flatnonzero(f[0])
     assert set(nonzero // 5) == {cell}
-    np.testing.assert_allclose(f[0, cell * 5: cell * 5 + 2], np.array([-3.0, 1.0]) / 6 * DEFAULT_SCALE["dx"], atol=1e-9)
+    np.testing.assert_allclose(
+        f[0, cell * 5 : cell * 5 + 2], np.array([-3.0, 1.0]) / 6 * DEFAULT_SCALE["dx"], atol=1e-9
+    )
     np.testing.assert_allclose(f[0, cell * 5 + 4], 500.0 / 1000.0)
 
 
@@ -77,7 +81,9 @@ def test_batch_equals_single_frames_and_masked_points_have_no_effect():
     x2 = x.copy()
     x2[:, :5] = np.nan  # garbage on masked points
     for b in range(4):
-        np.testing.assert_allclose(grid_features(x2[b:b + 1], X[b:b + 1], mask[b:b + 1], K_TEST, IMAGE, spec)[0], batch[b], atol=1e-9)
+        np.testing.assert_allclose(
+            grid_features(x2[b : b + 1], X[b : b + 1], mask[b : b + 1], K_TEST, IMAGE, spec)[0], batch[b], atol=1e-9
+        )
 
 
 def test_spec_round_trip_and_bad_variant():

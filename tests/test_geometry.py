@@ -36,8 +36,9 @@ def test_frame_normal_equations_match_finite_differences_of_the_updated_pose():
     np.testing.assert_allclose(r.ravel(), residuals(np.zeros(10)), atol=1e-9)
     assert rss == pytest.approx(float(residuals(np.zeros(10)) @ residuals(np.zeros(10))), rel=1e-12)
     steps = np.array([1e-7] * 3 + [1e-4] * 3 + [1e-3] * 4)
-    J = np.stack([(residuals(np.eye(10)[j] * h) - residuals(-np.eye(10)[j] * h)) / (2 * h)
-                  for j, h in enumerate(steps)])
+    J = np.stack(
+        [(residuals(np.eye(10)[j] * h) - residuals(-np.eye(10)[j] * h)) / (2 * h) for j, h in enumerate(steps)]
+    )
     np.testing.assert_allclose(JJ, J @ J.T, rtol=1e-6, atol=1e-6 * np.abs(J @ J.T).max())
     np.testing.assert_allclose(Jr, J @ r.ravel(), rtol=1e-6, atol=1e-6 * np.abs(J @ r.ravel()).max())
 
@@ -62,8 +63,9 @@ def test_mean_reprojection_error_hand_computed():
     x2, X2, R = np.stack([x, x]), np.stack([X, X]), np.stack([np.eye(3)] * 2)
     np.testing.assert_allclose(g.mean_reprojection_errors(x2, X2, None, K_TEST, R, np.zeros((2, 3))), [2.5, 2.5])
     mask = np.array([[True, True], [False, True]])
-    np.testing.assert_allclose(g.mean_reprojection_errors(x2, X2, mask, K_TEST, R, np.zeros((2, 3))), [2.5, 0.0],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        g.mean_reprojection_errors(x2, X2, mask, K_TEST, R, np.zeros((2, 3))), [2.5, 0.0], atol=1e-12
+    )
 
 
 def test_mean_residual_norms_hand_computed():
@@ -111,5 +113,6 @@ def test_covariance_invariants_match_numpy():
         frames[1, :7] = np.nan
         batch = np.array(g.covariance_invariants_batch(frames, mask))
         for b in range(2):
-            np.testing.assert_allclose(batch[:, b], g.covariance_invariants(np.ascontiguousarray(frames[b][mask[b]])),
-                                       rtol=1e-9)
+            np.testing.assert_allclose(
+                batch[:, b], g.covariance_invariants(np.ascontiguousarray(frames[b][mask[b]])), rtol=1e-9
+            )

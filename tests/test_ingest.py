@@ -3,6 +3,7 @@
 The photos are rendered at 1/3 of the Galaxy S8's 4032x3024 px (same field of view) to keep the
 suite fast; the 12 MP figures come from ``python -m dimenet.runtime.ingest.bench``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -117,7 +118,9 @@ def test_report_names_every_photo_and_why_one_was_skipped(rendered, tmp_path):
     assert photos["blank.png"]["skipped"] == "0 board(s) found, a rig photo needs 2"
     assert "broken.jpg: cannot decode" in photos["broken.jpg"]["skipped"]
     assert "image size 672x504 px differs" in photos["small.jpg"]["skipped"]
-    assert rep["totals"]["frames"] == 1 and rep["totals"]["skipped"] == 3 and rep["totals"]["image_size"] == [1344, 1008]
+    assert (
+        rep["totals"]["frames"] == 1 and rep["totals"]["skipped"] == 3 and rep["totals"]["image_size"] == [1344, 1008]
+    )
 
 
 def test_cli_photos_to_ingest_to_calibrate(rendered, tmp_path, capsys):
@@ -137,8 +140,26 @@ def test_cli_photos_to_ingest_to_calibrate(rendered, tmp_path, capsys):
 
 
 def test_cli_render_writes_photos_and_truth(tmp_path, capsys):
-    assert main(["render", "--rig", "paper", "--profile", "galaxy-s8", "--n", "2", "--scale", "8",
-                 "--format", "png", "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--rig",
+                "paper",
+                "--profile",
+                "galaxy-s8",
+                "--n",
+                "2",
+                "--scale",
+                "8",
+                "--format",
+                "png",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     assert "2 photos of 504x378 px" in capsys.readouterr().out
     truth = read_truth(tmp_path / TRUTH_FILE)
     assert list(truth.frame_id) == ["photo-0000.png", "photo-0001.png"]
@@ -162,8 +183,10 @@ def _natural_files(tmp_path, truth, photo, rng):
     obj.write_text("point_id,X_mm,Y_mm,Z_mm\n" + "".join(f"p{k},{x},{y},{z}\n" for k, (x, y, z) in enumerate(points)))
     px = project(points, truth.K[photo], truth.rvec[photo], truth.tvec[photo]) + rng.normal(0, 1.0, (12, 2))
     labels = tmp_path / "labels.csv"
-    labels.write_text("image,point_id,x_px,y_px\n" + "".join(
-        f"{truth.frame_id[photo]},p{k},{x},{y}\n" for k, (x, y) in enumerate(px) if k != 5))  # p5 not labelled
+    labels.write_text(
+        "image,point_id,x_px,y_px\n"
+        + "".join(f"{truth.frame_id[photo]},p{k},{x},{y}\n" for k, (x, y) in enumerate(px) if k != 5)
+    )  # p5 not labelled
     return obj, labels, points, px
 
 
@@ -171,8 +194,12 @@ def test_natural_labels_become_infer_points_of_a_natural_frame(rendered, tmp_pat
     folder, truth = rendered
     obj_path, labels_path, points, px = _natural_files(tmp_path, truth, 2, np.random.default_rng(0))
     obj = read_object(obj_path)
-    result = ingest([folder / str(truth.frame_id[2]), folder / str(truth.frame_id[4])], paper_rig(), obj=obj,
-                    labels=read_labels(labels_path, obj))
+    result = ingest(
+        [folder / str(truth.frame_id[2]), folder / str(truth.frame_id[4])],
+        paper_rig(),
+        obj=obj,
+        labels=read_labels(labels_path, obj),
+    )
     ds = result.dataset
     assert ds.n_points == 320 + 12 and ds.meta["object_points"] == [f"p{k}" for k in range(12)]
     assert list(ds.scene) == ["natural", "rig"] and ds.split[0] == "test"
@@ -186,16 +213,19 @@ def test_natural_labels_become_infer_points_of_a_natural_frame(rendered, tmp_pat
     assert report(result, paper_rig())["photos"][0]["labels"] == 11
 
 
-@pytest.mark.parametrize("which, text, words", [
-    ("object", "id,X_mm,Y_mm,Z_mm\np0,1,2,3\n", "object.csv:1: the header must be point_id,X_mm,Y_mm,Z_mm"),
-    ("object", "point_id,X_mm,Y_mm,Z_mm\np0,1,2\n", "object.csv:2: expected 4 fields"),
-    ("object", "point_id,X_mm,Y_mm,Z_mm\np0,1,2,3\np0,4,5,6\n", "object.csv:3: duplicate point_id 'p0'"),
-    ("object", "point_id,X_mm,Y_mm,Z_mm\np0,1,nan,3\n", "object.csv:2: Y_mm must be a finite number"),
-    ("labels", "image,point_id,x_px,y_px\na.jpg,p9,1,2\n", "labels.csv:2: point_id 'p9' is not in the object file"),
-    ("labels", "image,point_id,x_px,y_px\na.jpg,p0,1,2\na.jpg,p0,3,4\n", "labels.csv:3: point 'p0' labelled twice"),
-    ("labels", "image,point_id,x_px,y_px\na.jpg,p0,one,2\n", "labels.csv:2: x_px must be a finite number"),
-    ("labels", "image,point_id,x_px,y_px\n", "labels.csv: no rows after the header"),
-])
+@pytest.mark.parametrize(
+    "which, text, words",
+    [
+        ("object", "id,X_mm,Y_mm,Z_mm\np0,1,2,3\n", "object.csv:1: the header must be point_id,X_mm,Y_mm,Z_mm"),
+        ("object", "point_id,X_mm,Y_mm,Z_mm\np0,1,2\n", "object.csv:2: expected 4 fields"),
+        ("object", "point_id,X_mm,Y_mm,Z_mm\np0,1,2,3\np0,4,5,6\n", "object.csv:3: duplicate point_id 'p0'"),
+        ("object", "point_id,X_mm,Y_mm,Z_mm\np0,1,nan,3\n", "object.csv:2: Y_mm must be a finite number"),
+        ("labels", "image,point_id,x_px,y_px\na.jpg,p9,1,2\n", "labels.csv:2: point_id 'p9' is not in the object file"),
+        ("labels", "image,point_id,x_px,y_px\na.jpg,p0,1,2\na.jpg,p0,3,4\n", "labels.csv:3: point 'p0' labelled twice"),
+        ("labels", "image,point_id,x_px,y_px\na.jpg,p0,one,2\n", "labels.csv:2: x_px must be a finite number"),
+        ("labels", "image,point_id,x_px,y_px\n", "labels.csv: no rows after the header"),
+    ],
+)
 def test_bad_csv_raises_labels_error_naming_file_and_line(tmp_path, which, text, words):
     obj, labels = tmp_path / "object.csv", tmp_path / "labels.csv"
     obj.write_text(text if which == "object" else "point_id,X_mm,Y_mm,Z_mm\np0,1,2,3\n")
@@ -229,7 +259,13 @@ def test_bad_inputs_raise_typed_errors(rendered, tmp_path):
 def _with_exif_orientation(jpeg: bytes, orientation: int, order: str) -> bytes:
     """The JPEG with an APP1 Exif segment holding one IFD0 entry: Orientation (SHORT)."""
     tag = b"II" if order == "little" else b"MM"
-    entry = (0x0112).to_bytes(2, order) + (3).to_bytes(2, order) + (1).to_bytes(4, order) + orientation.to_bytes(2, order) + b"\0\0"
+    entry = (
+        (0x0112).to_bytes(2, order)
+        + (3).to_bytes(2, order)
+        + (1).to_bytes(4, order)
+        + orientation.to_bytes(2, order)
+        + b"\0\0"
+    )
     tiff = tag + (42).to_bytes(2, order) + (8).to_bytes(4, order) + (1).to_bytes(2, order) + entry + b"\0\0\0\0"
     payload = b"Exif\0\0" + tiff
     return jpeg[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + jpeg[2:]
@@ -259,15 +295,23 @@ def test_a_board_cut_by_the_image_edge_is_dropped_not_faked(rendered):
     truth_px = corners - [cut, 0]
     assert len(detections) >= 2
     for d in detections:  # every detection is a whole board, exactly where a true board lies (either way round)
-        assert min(board_rms(d.corners_px[perm], truth_px[b]) for b in range(4)
-                   for perm in (np.arange(80), np.arange(80)[::-1])) < 0.3
+        assert (
+            min(
+                board_rms(d.corners_px[perm], truth_px[b])
+                for b in range(4)
+                for perm in (np.arange(80), np.arange(80)[::-1])
+            )
+            < 0.3
+        )
 
 
 def _synthetic_detections(rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, rng) -> list[Detection]:
     """Every board's projected corners (+0.1 px noise), some turned 180° (as a plain-board detector may
     report them), in shuffled order."""
     px = project(rig.points(), K, rvec, tvec) + rng.normal(0, 0.1, (rig.n_points, 2))
-    dets = [Detection(b.inner_corners, px[rig.board_of_point == k][::1 if k % 2 else -1]) for k, b in enumerate(rig.boards)]
+    dets = [
+        Detection(b.inner_corners, px[rig.board_of_point == k][:: 1 if k % 2 else -1]) for k, b in enumerate(rig.boards)
+    ]
     return [dets[i] for i in rng.permutation(len(dets))]
 
 
@@ -284,8 +328,12 @@ def test_identify_tells_identical_boards_apart_and_rejects_a_symmetric_rig():
         assert np.abs(k_params(found.K) - k_params(K)).max() < 15 and found.rms_px < 0.2
     left = Board("left", (10, 8), 22.0, (0.0, 0.6, 0.0), (-260.0, -80.0, 0.0))
     R_half_turn = rvec_to_matrix(np.array([0.0, 0.0, np.pi]))
-    right = dataclasses.replace(left, name="right", rvec=tuple(matrix_to_rvec(R_half_turn @ left.rotation())),
-                                tvec_mm=tuple(R_half_turn @ np.array(left.tvec_mm)))
+    right = dataclasses.replace(
+        left,
+        name="right",
+        rvec=tuple(matrix_to_rvec(R_half_turn @ left.rotation())),
+        tvec_mm=tuple(R_half_turn @ np.array(left.tvec_mm)),
+    )
     symmetric = Rig((left, right))  # looks the same turned half round: no photo can tell its boards apart
     dets = _synthetic_detections(symmetric, K, np.array([0.1, 0.05, 0.0]), np.array([0.0, 0.0, 700.0]), rng)
     with pytest.raises(IdentificationError, match="ambiguous board identity"):
@@ -294,7 +342,11 @@ def test_identify_tells_identical_boards_apart_and_rejects_a_symmetric_rig():
 
 @pytest.fixture(scope="module")
 def charuco_rendered(tmp_path_factory):
-    rig = Rig(tuple(dataclasses.replace(b, aruco=Aruco("DICT_4X4_250", 49 * k, 16.0)) for k, b in enumerate(paper_rig().boards)))
+    rig = Rig(
+        tuple(
+            dataclasses.replace(b, aruco=Aruco("DICT_4X4_250", 49 * k, 16.0)) for k, b in enumerate(paper_rig().boards)
+        )
+    )
     folder = tmp_path_factory.mktemp("charuco")
     write_render(folder, rig, scaled_profile(get_profile("galaxy-s8"), SCALE), 5, seed=0)
     return rig, folder, read_truth(folder / TRUTH_FILE)
@@ -307,7 +359,7 @@ def test_charuco_boards_are_identified_by_their_markers_even_partly_hidden(charu
     assert s.detection_rate >= 0.95 and s.identity_errors == 0 and s.corner_rms_px <= 0.15
     gray = cv2.imread(str(folder / str(truth.frame_id[0])), cv2.IMREAD_GRAYSCALE)
     b = int(np.flatnonzero(truth.seen[0].reshape(4, 80).all(1))[0])
-    true_px = truth.corners_px[0, 80 * b:80 * b + 80]
+    true_px = truth.corners_px[0, 80 * b : 80 * b + 80]
     cut = np.median(true_px[:, 0])
     hidden = true_px[:, 0] < cut  # paint over these corners and the squares around them
     hull = cv2.convexHull(np.float32(true_px[hidden])).astype(np.int32)

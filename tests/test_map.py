@@ -1,5 +1,6 @@
 """Beyond the paper: the uncertainty model, MAP rectification, the self baseline, planar scenes
 and `dimenet evaluate --methods`."""
+
 from __future__ import annotations
 
 import json
@@ -46,10 +47,20 @@ def constant_uncertainty(sigma_px: float) -> Uncertainty:
 def test_uncertainty_fit_recovers_a_known_noise_model():
     rng = np.random.default_rng(0)
     n = 4000
-    stats = np.c_[np.log(rng.uniform(60, 320, n)), np.log(rng.uniform(8, 48, n)), np.log(rng.uniform(0.3, 10, n)),
-                  np.log(rng.uniform(1e-6, 0.3, n))]
-    true_coef = np.array([[1.0, -0.5, 0.0, 0.3, -0.1], [0.5, 0.0, -0.2, 0.6, 0.0], [2.0, -0.3, -0.1, 0.0, -0.2],
-                          [1.5, 0.0, 0.0, 0.4, -0.05]])
+    stats = np.c_[
+        np.log(rng.uniform(60, 320, n)),
+        np.log(rng.uniform(8, 48, n)),
+        np.log(rng.uniform(0.3, 10, n)),
+        np.log(rng.uniform(1e-6, 0.3, n)),
+    ]
+    true_coef = np.array(
+        [
+            [1.0, -0.5, 0.0, 0.3, -0.1],
+            [0.5, 0.0, -0.2, 0.6, 0.0],
+            [2.0, -0.3, -0.1, 0.0, -0.2],
+            [1.5, 0.0, 0.0, 0.4, -0.05],
+        ]
+    )
     corr = np.array([[1, 0.8, 0, 0], [0.8, 1, 0, 0], [0, 0, 1, -0.3], [0, 0, -0.3, 1.0]])
     sigma = np.exp(np.c_[np.ones(n), stats] @ true_coef.T)
     residuals = (rng.multivariate_normal(np.zeros(4), corr, n)) * sigma
@@ -68,8 +79,14 @@ def test_uncertainty_fit_recovers_a_known_noise_model():
 
 def test_a_spec_1_1_uncertainty_reads_the_first_three_statistics():
     coef = np.array([[1.0, -0.5, 0.0, 0.3]] * 4)
-    old = Uncertainty.from_dict({"parameters": ["fx", "fy", "cx", "cy"], "statistics": ["1", "log_points", "log_cells",
-                                 "log_pmd"], "coef": coef.tolist(), "correlation": np.eye(4).tolist()})
+    old = Uncertainty.from_dict(
+        {
+            "parameters": ["fx", "fy", "cx", "cy"],
+            "statistics": ["1", "log_points", "log_cells", "log_pmd"],
+            "coef": coef.tolist(),
+            "correlation": np.eye(4).tolist(),
+        }
+    )
     stats = np.log([[100, 20, 2.5, 1e-6], [100, 20, 2.5, 0.3]])  # the thickness does not matter to it
     np.testing.assert_allclose(old.sigma(stats), np.exp(1.0 - 0.5 * np.log(100) + 0.3 * np.log(2.5)) * np.ones((2, 4)))
     np.testing.assert_allclose(old.frame_covariance(100, 20, 2.5, 0.3), old.covariance(stats)[1], rtol=1e-12)
@@ -89,8 +106,9 @@ def test_point_thickness_hand_computed_cases():
     assert point_thickness(np.ascontiguousarray(plane)) < 1e-12
     assert point_thickness(np.outer(rng.normal(size=20), [1.0, 2.0, 3.0])) == 0.0  # a line
     mask = np.array([[True] * 6, [True] * 3 + [False] * 3])
-    stats = input_statistics(np.ones((2, 6)), mask.sum(1), np.ones(2),
-                             covariance_invariants_batch(np.stack([axes, box]), mask), 2)
+    stats = input_statistics(
+        np.ones((2, 6)), mask.sum(1), np.ones(2), covariance_invariants_batch(np.stack([axes, box]), mask), 2
+    )
     assert stats[0, 3] == pytest.approx(np.log(1 / 3)) and stats[1, 3] == np.log(T_FLOOR)  # 3 points: a plane
 
 
@@ -112,15 +130,19 @@ def test_uncertainty_refuses_bad_input():
     with pytest.raises(ValueError, match="not positive definite"):
         Uncertainty.from_dict({"coef": np.zeros((4, 4)).tolist(), "correlation": np.ones((4, 4)).tolist()})
     with pytest.raises(ValueError, match="distinct names"):
-        Uncertainty.from_dict({"statistics": ["1", "log_points", "log_depth"], "coef": np.zeros((4, 3)).tolist(),
-                               "correlation": np.eye(4).tolist()})
+        Uncertainty.from_dict(
+            {
+                "statistics": ["1", "log_points", "log_depth"],
+                "coef": np.zeros((4, 3)).tolist(),
+                "correlation": np.eye(4).tolist(),
+            }
+        )
 
 
 def test_posterior_scale_hand_computed():
     u = replace(constant_uncertainty(1.0), data_correlation=np.array([0.0, 0.2, 0.5, 1.0]))
     # s = s0: half the correlation applies (w = 1/2); r = 1/2: sqrt(r (1 - r)) = 1/2.
-    np.testing.assert_allclose(u.posterior_scale([0.5] * 4, NOISE_SCALE_PX),
-                               np.sqrt([1.0, 1.1, 1.25, 1.5]), rtol=1e-12)
+    np.testing.assert_allclose(u.posterior_scale([0.5] * 4, NOISE_SCALE_PX), np.sqrt([1.0, 1.1, 1.25, 1.5]), rtol=1e-12)
     # A posterior equal to the prior (r = 1) or set by the data alone (r = 0) is not widened,
     # nor is a noise-free frame.
     assert u.posterior_scale([1.0, 0.0, 1.0, 0.0], 5.0) == [1.0] * 4
@@ -160,8 +182,14 @@ def test_map_fit_widens_its_posterior_by_the_data_correlation():
     widened = map_fit(x, X, k_net, prior, *start, uncertainty=u)
     np.testing.assert_array_equal(widened.k, plain.k)  # the estimate itself does not change
     assert 2.0 < plain.noise_px < 4.0  # the frame's 3 px noise, estimated
-    scale = np.sqrt(1 + 2 * u.data_correlation * plain.noise_px**2 / (plain.noise_px**2 + NOISE_SCALE_PX**2)
-                    * np.sqrt((r := np.diag(plain.k_cov) / np.diag(prior)) * (1 - r)))
+    scale = np.sqrt(
+        1
+        + 2
+        * u.data_correlation
+        * plain.noise_px**2
+        / (plain.noise_px**2 + NOISE_SCALE_PX**2)
+        * np.sqrt((r := np.diag(plain.k_cov) / np.diag(prior)) * (1 - r))
+    )
     np.testing.assert_allclose(widened.k_cov, plain.k_cov * np.outer(scale, scale), rtol=1e-12)
     assert scale[0] == 1.0 and np.all(scale[1:] > 1.0)
 
@@ -249,7 +277,7 @@ def test_self_calibration_falls_back_on_planar_and_too_few_points():
 def test_planar_frames_infer_from_one_board_and_leave_the_other_frames_alone():
     plain = simulate("galaxy-s8", seed=5, natural_frames=2)
     ds = simulate("galaxy-s8", seed=5, natural_frames=2, planar_frames=4)
-    np.testing.assert_array_equal(ds.points_2d[:plain.n_frames], plain.points_2d)
+    np.testing.assert_array_equal(ds.points_2d[: plain.n_frames], plain.points_2d)
     planar = ds.scene == "planar"
     assert planar.sum() == 4 and np.all(ds.split[planar] == "test") and ds.meta["planar_frames"] == 4
     for f in np.flatnonzero(planar):
@@ -271,8 +299,10 @@ def test_rectifier_map_mode_fits_at_least_as_well_and_reports_its_posterior(map_
     rig = np.flatnonzero(frames.scene == "rig")[-4:]
     for b in rig:
         m = frames.valid[b]
-        a, c = dimenet.rectify(frames.points_2d[b][m], frames.points_3d[b][m]), \
-            fused.rectify(frames.points_2d[b][m], frames.points_3d[b][m])
+        a, c = (
+            dimenet.rectify(frames.points_2d[b][m], frames.points_3d[b][m]),
+            fused.rectify(frames.points_2d[b][m], frames.points_3d[b][m]),
+        )
         if a.fallback is None:
             np.testing.assert_allclose(a.K_cov, np.eye(4) * 64.0)
         assert c.fallback is None and "map" in c.timings_us
@@ -291,8 +321,9 @@ def test_batch_covariance_is_the_single_frame_covariance_of_the_inference_points
     rectifier = Rectifier.load(random_model_file(tmp_path / "stats.onnx", spec))
     for scene, infer in (("rig", frames.valid), ("natural", frames.infer_mask)):
         idx = np.flatnonzero(frames.scene == scene)[:3]
-        batch = rectifier.rectify_batch(frames.points_2d[idx], frames.points_3d[idx], frames.valid[idx],
-                                        infer_mask=infer[idx])
+        batch = rectifier.rectify_batch(
+            frames.points_2d[idx], frames.points_3d[idx], frames.valid[idx], infer_mask=infer[idx]
+        )
         # K_cov depends on the inference points only: one frame of just those gives the same.
         one = [rectifier.rectify(frames.points_2d[b][infer[b]], frames.points_3d[b][infer[b]]) for b in idx]
         assert all(o.fallback is None for o in one) and not any(batch.fallback)
@@ -302,7 +333,10 @@ def test_batch_covariance_is_the_single_frame_covariance_of_the_inference_points
 def test_map_mode_needs_an_uncertainty_model(tmp_path, map_model):
     frames, _ = map_model
     old = random_model_file(tmp_path / "old.onnx", model_spec(frames))
-    assert Rectifier.load(old).rectify(*(a[0][frames.valid[0]] for a in (frames.points_2d, frames.points_3d))).K_cov is None
+    assert (
+        Rectifier.load(old).rectify(*(a[0][frames.valid[0]] for a in (frames.points_2d, frames.points_3d))).K_cov
+        is None
+    )
     with pytest.raises(ModelError, match=r"old\.onnx.*no uncertainty model.*'map'"):
         Rectifier.load(old, mode="map")
     with pytest.raises(InputError, match="mode must be one of dimenet, map"):
@@ -317,8 +351,9 @@ def test_spec_round_trips_its_uncertainty_and_still_reads_1_0(map_model):
     old = json.loads(model_spec(frames).to_json())
     old["version"] = "1.0.0"
     assert ModelSpec.from_dict(old).uncertainty is None
-    correlated = replace(spec, uncertainty=replace(spec.uncertainty, data_correlation=np.array([0, 0, 0.7, 0.5]),
-                                                   noise_scale_px=1.5))
+    correlated = replace(
+        spec, uncertainty=replace(spec.uncertainty, data_correlation=np.array([0, 0, 0.7, 0.5]), noise_scale_px=1.5)
+    )
     back = ModelSpec.from_json(correlated.to_json()).uncertainty
     np.testing.assert_array_equal(back.data_correlation, [0, 0, 0.7, 0.5])
     assert back.noise_scale_px == 1.5

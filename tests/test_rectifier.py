@@ -3,6 +3,7 @@
 The model is a random-init DimeNet exported to ONNX (needs torch and onnx), else the bundled
 default model; without either the tests are skipped.
 """
+
 from __future__ import annotations
 
 import json
@@ -102,8 +103,9 @@ def test_frame_delta_k_is_the_batch_call_in_every_thread(rectifier, frames):
     from concurrent.futures import ThreadPoolExecutor
 
     spec = rectifier.spec
-    feats = grid_features(frames.points_2d, frames.points_3d, frames.infer_mask, spec.K_c, spec.image_size,
-                          spec.features)
+    feats = grid_features(
+        frames.points_2d, frames.points_3d, frames.infer_mask, spec.K_c, spec.image_size, spec.features
+    )
     expected = rectifier.model.delta_k(feats.astype(np.float32)).astype(np.float64)
     # The IO binding's buffers are per thread: concurrent calls must not see each other's frames.
     with ThreadPoolExecutor(4) as pool:
@@ -156,7 +158,9 @@ BAD_INPUTS = {
     "points_2d: point 3 is not finite": lambda p2, p3: (np.where(np.arange(len(p2))[:, None] == 3, np.nan, p2), p3),
     "points_3d: point 0 is not finite": lambda p2, p3: (p2, np.where(np.arange(len(p3))[:, None] == 0, np.inf, p3)),
     "point 2 at \\(5000.0, .*outside the 4032x3024 px image": lambda p2, p3: (
-        np.where(np.arange(len(p2))[:, None] == 2, [5000.0, 100.0], p2), p3),
+        np.where(np.arange(len(p2))[:, None] == 2, [5000.0, 100.0], p2),
+        p3,
+    ),
     "point 1 at \\(-3.0, .*outside": lambda p2, p3: (np.where(np.arange(len(p2))[:, None] == 1, [-3.0, 100.0], p2), p3),
     "points_3d: all points are collinear": _collinear,
     "points_2d: all points coincide": lambda p2, p3: (np.broadcast_to([1000.0, 800.0], p2.shape), p3),
@@ -176,16 +180,21 @@ def test_spread_tests_of_one_frame_and_of_a_batch_agree_and_imply_the_exact_chec
     rng = np.random.default_rng(3)
     base = rng.normal(size=(40, 3)) * [300.0, 200.0, 100.0] + [0.0, 0.0, 600.0]
     direction = np.array([1.0, 0.5, 0.2])
-    frames = [base, base * [1.0, 1.0, 0.0],  # spread; planar (still spread over 2 dimensions)
-              np.linspace(0, 1, 40)[:, None] * direction * 500 + rng.normal(size=(40, 3)) * 1e-3,  # nearly collinear
-              np.outer(np.linspace(0, 1, 40), direction) * 500,  # collinear
-              np.broadcast_to([5.0, 6.0, 7.0], (40, 3)) + rng.normal(size=(40, 3)) * 1e-12]  # coincident
+    frames = [
+        base,
+        base * [1.0, 1.0, 0.0],  # spread; planar (still spread over 2 dimensions)
+        np.linspace(0, 1, 40)[:, None] * direction * 500 + rng.normal(size=(40, 3)) * 1e-3,  # nearly collinear
+        np.outer(np.linspace(0, 1, 40), direction) * 500,  # collinear
+        np.broadcast_to([5.0, 6.0, 7.0], (40, 3)) + rng.normal(size=(40, 3)) * 1e-12,
+    ]  # coincident
     points = np.stack(frames)
     passed = np.ones(len(points), bool)
     for D in (3, 2):
         batch = rectifier_module._spread_frames(points[..., :D], None)[0]
-        single = [rectifier_module._well_spread(f, covariance_invariants(f))
-                  for f in map(np.ascontiguousarray, points[..., :D])]
+        single = [
+            rectifier_module._well_spread(f, covariance_invariants(f))
+            for f in map(np.ascontiguousarray, points[..., :D])
+        ]
         assert batch.tolist() == single
         assert single[:2] == [True, True] and single[3:] == [False, False]
         passed &= single
@@ -232,10 +241,13 @@ def test_implausible_k_from_huge_weights_falls_back_to_k_c(tmp_path, frames):
     assert all("K_bounds" in r for r in batch.fallback) and np.all(batch.K == spec.K_c)
 
 
-@pytest.mark.parametrize("delta_k, reason", [
-    ([np.nan, 0.0, 0.0, 0.0], "Delta K is not finite"),
-    ([0.0, 0.0, 400.0, -300.0], "fits worse than K_c"),
-])
+@pytest.mark.parametrize(
+    "delta_k, reason",
+    [
+        ([np.nan, 0.0, 0.0, 0.0], "Delta K is not finite"),
+        ([0.0, 0.0, 400.0, -300.0], "fits worse than K_c"),
+    ],
+)
 def test_non_finite_or_worse_k_falls_back_to_k_c(frames, delta_k, reason):
     spec = replace(model_spec(frames), K_bounds=np.array([[0.0, 1e4]] * 4))
     stub = stub_rectifier(spec, delta_k)
@@ -255,7 +267,8 @@ def test_missing_bundled_model_is_a_model_error(monkeypatch):
 def test_runtime_and_its_commands_never_import_torch_or_onnx():
     code = (
         "import sys\n"
-        "import dimenet.runtime, dimenet.runtime.rectify.rectifier, dimenet.runtime.rectify.model, dimenet.runtime.evaluation.latency\n"
+        "import dimenet.runtime, dimenet.runtime.rectify.rectifier, dimenet.runtime.rectify.model\n"
+        "import dimenet.runtime.evaluation.latency\n"
         "from dimenet.runtime.cli.main import main\n"
         "for cmd in ('rectify', 'bench'):\n"
         "    try:\n"
@@ -306,8 +319,10 @@ def test_rectify_command_mode_map_writes_k_cov(model_path, tmp_path, capsys):
             np.testing.assert_allclose(frame["K_sigma_px"], np.sqrt(np.diag(results[mode]["K_cov"][i])))
             assert all(s > 0 for s in frame["K_sigma_px"])
     assert results["map"]["e"].mean() < results["dimenet"]["e"].mean()
-    assert np.all(np.diagonal(results["map"]["K_cov"], axis1=1, axis2=2)
-                  < np.diagonal(results["dimenet"]["K_cov"], axis1=1, axis2=2))  # the data add information
+    assert np.all(
+        np.diagonal(results["map"]["K_cov"], axis1=1, axis2=2)
+        < np.diagonal(results["dimenet"]["K_cov"], axis1=1, axis2=2)
+    )  # the data add information
     if model_path is not None:  # a model without an uncertainty model cannot fuse: one line, exit 2
         assert main(["rectify", "--example", "--model", str(model_path), "--mode", "map"]) == 2
         assert "no uncertainty model" in capsys.readouterr().err

@@ -95,25 +95,40 @@ def _mutated(path, value):
     return d
 
 
-@pytest.mark.parametrize("path, value, field", [
-    (("format",), "dimenet-rig/2", "format"),
-    (("units",), "cm", "units"),
-    (("boards",), [], "boards"),
-    (("boards", 1, "inner_corners"), [1, 8], "boards[1].inner_corners"),
-    (("boards", 1, "inner_corners"), [10.5, 8], "boards[1].inner_corners"),
-    (("boards", 2, "square_mm"), -22.0, "boards[2].square_mm"),
-    (("boards", 2, "square_mm"), "22", "boards[2].square_mm"),
-    (("boards", 0, "rvec"), [0.0, 0.1], "boards[0].rvec"),
-    (("boards", 0, "tvec_mm"), [0.0, float("nan"), 0.0], "boards[0].tvec_mm[1]"),
-    (("boards", 3, "name"), "top-left", "boards[3].name"),
-    (("boards", 3, "name"), "", "boards[3].name"),
-    (("boards", 0, "square"), 22.0, "boards[0].square"),
-    (("boards", 0, "tvec_mm"), KeyError, "boards[0].tvec_mm"),
-    (("boards", 0, "aruco"), {"dictionary": "DICT_NOPE", "first_id": 0, "marker_mm": 16.0}, "boards[0].aruco.dictionary"),
-    (("boards", 0, "aruco"), {"dictionary": "DICT_4X4_50", "first_id": -1, "marker_mm": 16.0}, "boards[0].aruco.first_id"),
-    (("boards", 0, "aruco"), {"dictionary": "DICT_4X4_50", "first_id": 0, "marker_mm": 30.0}, "boards[0].aruco.marker_mm"),
-    (("extra",), 1, "extra"),
-])
+@pytest.mark.parametrize(
+    "path, value, field",
+    [
+        (("format",), "dimenet-rig/2", "format"),
+        (("units",), "cm", "units"),
+        (("boards",), [], "boards"),
+        (("boards", 1, "inner_corners"), [1, 8], "boards[1].inner_corners"),
+        (("boards", 1, "inner_corners"), [10.5, 8], "boards[1].inner_corners"),
+        (("boards", 2, "square_mm"), -22.0, "boards[2].square_mm"),
+        (("boards", 2, "square_mm"), "22", "boards[2].square_mm"),
+        (("boards", 0, "rvec"), [0.0, 0.1], "boards[0].rvec"),
+        (("boards", 0, "tvec_mm"), [0.0, float("nan"), 0.0], "boards[0].tvec_mm[1]"),
+        (("boards", 3, "name"), "top-left", "boards[3].name"),
+        (("boards", 3, "name"), "", "boards[3].name"),
+        (("boards", 0, "square"), 22.0, "boards[0].square"),
+        (("boards", 0, "tvec_mm"), KeyError, "boards[0].tvec_mm"),
+        (
+            ("boards", 0, "aruco"),
+            {"dictionary": "DICT_NOPE", "first_id": 0, "marker_mm": 16.0},
+            "boards[0].aruco.dictionary",
+        ),
+        (
+            ("boards", 0, "aruco"),
+            {"dictionary": "DICT_4X4_50", "first_id": -1, "marker_mm": 16.0},
+            "boards[0].aruco.first_id",
+        ),
+        (
+            ("boards", 0, "aruco"),
+            {"dictionary": "DICT_4X4_50", "first_id": 0, "marker_mm": 30.0},
+            "boards[0].aruco.marker_mm",
+        ),
+        (("extra",), 1, "extra"),
+    ],
+)
 def test_bad_specs_raise_rig_error_naming_the_field(path, value, field):
     with pytest.raises(RigError) as exc:
         rig_from_dict(_mutated(path, value))

@@ -164,8 +164,24 @@ def test_unknown_profile_and_bad_counts_raise_input_error():
 
 def test_cli_simulate_writes_a_dataset(tmp_path, capsys):
     out = tmp_path / "ipad.npz"
-    assert main(["simulate", "--profile", "ipad-mini-6", "--seed", "4", "--natural-frames", "2", "--planar-frames", "1",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                "ipad-mini-6",
+                "--seed",
+                "4",
+                "--natural-frames",
+                "2",
+                "--planar-frames",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     line = capsys.readouterr().out.strip()
     assert "224 train + 57 test rig frames, 2 natural and 1 planar test frames" in line and str(out) in line
     ds = read_dataset(out)

@@ -1,4 +1,5 @@
 """Trainer, model and run directory: real behaviour on small simulated datasets."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -11,15 +12,15 @@ import pytest
 
 torch = pytest.importorskip("torch")  # the base-only install has no torch: skip, not fail
 
-from dimenet.runtime.evaluation.calibration import calibrate_dataset  # noqa: E402
-from dimenet.runtime.evaluation.methods import evaluate  # noqa: E402
-from dimenet.runtime.evaluation.predictor import load_predictor  # noqa: E402
-from dimenet.runtime.formats.dataset import write_dataset  # noqa: E402
-from dimenet.runtime.geometry import k_params  # noqa: E402
-from dimenet.runtime.sim.simulator import PROFILES, simulate  # noqa: E402
-from dimenet.training.model import DimeNet  # noqa: E402
-from dimenet.training.run_dir import load_run  # noqa: E402
-from dimenet.training.trainer import (  # noqa: E402
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.methods import evaluate
+from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.sim.simulator import PROFILES, simulate
+from dimenet.training.model import DimeNet
+from dimenet.training.run_dir import load_run
+from dimenet.training.trainer import (
     TrainConfig,
     cluster_inference_points,
     focal_loss,
@@ -199,12 +200,18 @@ def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(fitting, 
 
 
 def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_path):
-    hd = dataclasses.replace(PROFILES["galaxy-s8"], name="hd-cam", image_size_px=(1920, 1080), pixel_pitch_um=2.8,
-                             n_train=24, n_test=6)
+    hd = dataclasses.replace(
+        PROFILES["galaxy-s8"], name="hd-cam", image_size_px=(1920, 1080), pixel_pitch_um=2.8, n_train=24, n_test=6
+    )
     ds = simulate(hd, seed=1)
     keep = np.arange(0, ds.n_points, 2)  # other P: 160 points per frame
-    ds = dataclasses.replace(ds, points_2d=ds.points_2d[:, keep], points_3d=ds.points_3d[:, keep],
-                             valid=ds.valid[:, keep], infer_mask=ds.infer_mask[:, keep])
+    ds = dataclasses.replace(
+        ds,
+        points_2d=ds.points_2d[:, keep],
+        points_3d=ds.points_3d[:, keep],
+        valid=ds.valid[:, keep],
+        infer_mask=ds.infer_mask[:, keep],
+    )
     assert not ds.frames_in("val").any()
     fit_idx, val_idx = split_train_val(ds, TrainConfig())
     assert len(val_idx) > 0 and not set(fit_idx) & set(val_idx)
@@ -258,7 +265,21 @@ def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small,
     spec = json.loads((tmp_path / "run" / "spec.json").read_text())
     assert spec["provenance"]["config"]["focal_weight"] == 0.0
     for bad in ("-1", "nan", "inf"):
-        res = subprocess.run([sys.executable, "-m", "dimenet.runtime.cli.main", "train", str(data), "--out",
-                              str(tmp_path / "bad"), "--focal-weight", bad], capture_output=True, text=True, timeout=120)
+        res = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "dimenet.runtime.cli.main",
+                "train",
+                str(data),
+                "--out",
+                str(tmp_path / "bad"),
+                "--focal-weight",
+                bad,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 2 and len(lines) == 1 and "--focal-weight" in lines[0], res.stderr

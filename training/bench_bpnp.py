@@ -5,6 +5,7 @@
 Times ``dimenet.training.bpnp.solve_pnp`` and, for scale, a BPnP_fast-style baseline
 (see ``_BaselineBPnP``) on the same synthetic scene, and reports the median wall times.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,7 +39,9 @@ def _rodrigues(rvec: torch.Tensor) -> torch.Tensor:
     theta = rvec.norm()
     k = rvec / theta
     zero = torch.zeros((), dtype=rvec.dtype)
-    S = torch.stack([torch.stack([zero, -k[2], k[1]]), torch.stack([k[2], zero, -k[0]]), torch.stack([-k[1], k[0], zero])])
+    S = torch.stack(
+        [torch.stack([zero, -k[2], k[1]]), torch.stack([k[2], zero, -k[0]]), torch.stack([-k[1], k[0], zero])]
+    )
     return torch.eye(3, dtype=rvec.dtype) + torch.sin(theta) * S + (1.0 - torch.cos(theta)) * (S @ S)
 
 
@@ -57,8 +60,9 @@ class _BaselineBPnP(torch.autograd.Function):
     def forward(ctx, x, X, K):
         poses = []
         for b in range(len(x)):
-            _, r, t = cv2.solvePnP(X[b].double().numpy(), x[b].double().numpy(), K[b].double().numpy(), None,
-                                   flags=cv2.SOLVEPNP_ITERATIVE)
+            _, r, t = cv2.solvePnP(
+                X[b].double().numpy(), x[b].double().numpy(), K[b].double().numpy(), None, flags=cv2.SOLVEPNP_ITERATIVE
+            )
             poses.append(np.r_[r.ravel(), t.ravel()])
         pose = torch.tensor(np.array(poses), dtype=torch.float32)
         ctx.save_for_backward(X, K, pose)
@@ -108,12 +112,20 @@ def run(frames: int, points: int, repeats: int, baseline_repeats: int) -> dict:
 
     ours = _median_ms(exact, repeats)
     base = _median_ms(baseline, baseline_repeats)
-    return {"frames": frames, "points": points, "threads": 1, "repeats": repeats, "median_ms": ours,
-            "baseline": "BPnP_fast-style baseline, re-implemented: per-sample Python loop, float32, "
-                        "autograd-computed projection Jacobians via torch.autograd.functional.jacobian, "
-                        "Hessian via the Gauss-Newton approximation",
-            "baseline_repeats": baseline_repeats, "baseline_median_ms": base, "speedup": base / ours,
-            "target_ms": 20.0}
+    return {
+        "frames": frames,
+        "points": points,
+        "threads": 1,
+        "repeats": repeats,
+        "median_ms": ours,
+        "baseline": "BPnP_fast-style baseline, re-implemented: per-sample Python loop, float32, "
+        "autograd-computed projection Jacobians via torch.autograd.functional.jacobian, "
+        "Hessian via the Gauss-Newton approximation",
+        "baseline_repeats": baseline_repeats,
+        "baseline_median_ms": base,
+        "speedup": base / ours,
+        "target_ms": 20.0,
+    }
 
 
 def main(argv=None) -> None:
@@ -129,9 +141,13 @@ def main(argv=None) -> None:
         print(json.dumps(result, indent=2))
         return
     print(f"B={result['frames']} frames x N={result['points']} points, forward+backward, 1 thread")
-    print(f"  exact BPnP (this package): median {result['median_ms']:.2f} ms over {result['repeats']} runs "
-          f"(target <= {result['target_ms']:.0f} ms)")
-    print(f"  {result['baseline']}: median {result['baseline_median_ms']:.1f} ms over {result['baseline_repeats']} runs")
+    print(
+        f"  exact BPnP (this package): median {result['median_ms']:.2f} ms over {result['repeats']} runs "
+        f"(target <= {result['target_ms']:.0f} ms)"
+    )
+    print(
+        f"  {result['baseline']}: median {result['baseline_median_ms']:.1f} ms over {result['baseline_repeats']} runs"
+    )
     print(f"  speed-up: {result['speedup']:.1f}x")
 
 

@@ -29,6 +29,7 @@ weights get no gradient. Frames whose pose is not a strict isolated
 optimum (fewer than 4 weighted points, coincident or collinear points, non-finite
 values, points behind the camera, a singular Hessian) raise InputError naming the frame.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -148,8 +149,10 @@ def _check_inputs(points_2d, points_3d, K, weights) -> None:
     named = {"points_2d": points_2d, "points_3d": points_3d, "K": K, "weights": weights}
     for name, value in named.items():
         if not isinstance(value, torch.Tensor) or value.dtype != torch.float64 or value.device.type != "cpu":
-            raise InputError(f"{name} must be a float64 CPU torch tensor, got {getattr(value, 'dtype', type(value))}"
-                             f" on {getattr(value, 'device', '-')}")
+            raise InputError(
+                f"{name} must be a float64 CPU torch tensor, got {getattr(value, 'dtype', type(value))}"
+                f" on {getattr(value, 'device', '-')}"
+            )
     if points_2d.ndim != 3 or points_2d.shape[-1] != 2:
         raise InputError(f"points_2d must have shape (B, N, 2), got {tuple(points_2d.shape)}")
     B, N = points_2d.shape[:2]
@@ -214,8 +217,10 @@ def _evaluate(problem: _Problem, R: torch.Tensor, t: torch.Tensor) -> _State:
 
 def _select(mask: torch.Tensor, new: _State, old: _State) -> _State:
     """Per frame, ``new`` where mask (B,) is true, else ``old``."""
+
     def pick(n, o):
         return torch.where(mask.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)
+
     return _State(**{f.name: pick(getattr(new, f.name), getattr(old, f.name)) for f in fields(_State)})
 
 
@@ -281,8 +286,10 @@ def _exact_hessian(problem: _Problem, state: _State) -> torch.Tensor:
     w = problem.w
     one, zero = torch.ones_like(ax), torch.zeros_like(ax)
     Mz = torch.stack([ay, -ax, zero, zero, zero, one], -1)
-    V = w[..., None] * torch.stack([beta * az + half_gamma * ay, -alpha * az - half_gamma * ax,
-                                    alpha * ay - beta * ax, -alpha, -beta, half_gamma], -1)
+    V = w[..., None] * torch.stack(
+        [beta * az + half_gamma * ay, -alpha * az - half_gamma * ax, alpha * ay - beta * ax, -alpha, -beta, half_gamma],
+        -1,
+    )
     A = Mz.transpose(1, 2) @ V
     qa = (w[..., None] * q).transpose(1, 2) @ state.a
     trace = qa.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
@@ -318,11 +325,14 @@ def _input_gradients(problem: _Problem, state: _State, u: torch.Tensor):
     ju, jv = fx * state.inv_z * (mx - state.xn * mz), fy * state.inv_z * (my - state.yn * mz)  # J u
     w = problem.w
     grad_2d = w[..., None] * torch.stack([ju, jv], -1)
-    Cm = torch.stack([
-        fx * state.inv_z * ju - alpha * mz,
-        fy * state.inv_z * jv - beta * mz,
-        -(fx * state.xn * ju + fy * state.yn * jv) * state.inv_z - alpha * mx - beta * my + gamma * mz,
-    ], -1)
+    Cm = torch.stack(
+        [
+            fx * state.inv_z * ju - alpha * mz,
+            fy * state.inv_z * jv - beta * mz,
+            -(fx * state.xn * ju + fy * state.yn * jv) * state.inv_z - alpha * mx - beta * my + gamma * mz,
+        ],
+        -1,
+    )
     grad_a = -w[..., None] * (torch.cross(q, u[:, None, :3].expand_as(q), dim=-1) + Cm)
     grad_3d = grad_a @ state.R  # a = R X
     ru, rv = state.r.unbind(-1)
@@ -360,8 +370,9 @@ class _BPnP(torch.autograd.Function):
         return grad_2d, grad_3d, grad_K, None
 
 
-def solve_pnp(points_2d: torch.Tensor, points_3d: torch.Tensor, K: torch.Tensor,
-              weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def solve_pnp(
+    points_2d: torch.Tensor, points_3d: torch.Tensor, K: torch.Tensor, weights: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Weighted least-squares PnP optimum of B frames, differentiable w.r.t. points_2d, points_3d and K.
 
     points_2d (B, N, 2) px; points_3d (B, N, 3) mm in {W}; K (B, 3, 3) px (fx, fy, cx, cy

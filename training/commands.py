@@ -1,4 +1,5 @@
 """`dimenet train` (and the other torch-side subcommands). Torch is imported only when run."""
+
 from __future__ import annotations
 
 import argparse
@@ -19,9 +20,14 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", default="A", choices="ABCDE", help="feature variant of paper Table 3 (default A)")
     p.add_argument("--epochs", type=int, default=600, help="epochs (default 600; the best val epoch is kept)")
     p.add_argument("--seed", type=int, default=0, help="seed: same seed, same model (default 0)")
-    p.add_argument("--focal-weight", type=float, default=TRAIN_DEFAULT_FOCAL_WEIGHT, metavar="W",
-                   help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
-                        f"each frame's K* (default {TRAIN_DEFAULT_FOCAL_WEIGHT}; 0: the paper's loss alone)")
+    p.add_argument(
+        "--focal-weight",
+        type=float,
+        default=TRAIN_DEFAULT_FOCAL_WEIGHT,
+        metavar="W",
+        help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
+        f"each frame's K* (default {TRAIN_DEFAULT_FOCAL_WEIGHT}; 0: the paper's loss alone)",
+    )
 
 
 def _run_train(args: argparse.Namespace) -> int:
@@ -35,19 +41,26 @@ def _run_train(args: argparse.Namespace) -> int:
     if not 0.0 <= args.focal_weight < math.inf:
         raise InputError(f"--focal-weight must be a finite number >= 0, got {args.focal_weight}")
     ds = read_dataset(args.data)
-    config = TrainConfig(grid=args.grid, variant=args.features, epochs=args.epochs, seed=args.seed,
-                         focal_weight=args.focal_weight)
-    result = train(ds, config, args.out, dataset_sha256=file_sha256(args.data),
-                   command="dimenet " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
-    print(f"trained {result.best_epoch} epochs (best), val Avg(e) {result.best_val_e:.3f} px, "
-          f"{result.seconds:.0f} s -> {result.run_dir}")
+    config = TrainConfig(
+        grid=args.grid, variant=args.features, epochs=args.epochs, seed=args.seed, focal_weight=args.focal_weight
+    )
+    result = train(
+        ds,
+        config,
+        args.out,
+        dataset_sha256=file_sha256(args.data),
+        command="dimenet " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+    )
+    print(
+        f"trained {result.best_epoch} epochs (best), val Avg(e) {result.best_val_e:.3f} px, "
+        f"{result.seconds:.0f} s -> {result.run_dir}"
+    )
     return 0
 
 
 TRAIN = Command(
     name="train",
-    summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, "
-            "plus a focal term).",
+    summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, plus a focal term).",
     example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0",
     add_arguments=_add_train,
     run=_run_train,
@@ -57,8 +70,9 @@ TRAIN = Command(
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="folder for REPRODUCTION.md, results.json, plots, runs/")
     p.add_argument("--epochs", type=int, default=600, help="epochs of the three device models (default 600)")
-    p.add_argument("--ablation-epochs", type=int, default=150,
-                   help="epochs of the Table 2/3 ablation models (default 150)")
+    p.add_argument(
+        "--ablation-epochs", type=int, default=150, help="epochs of the Table 2/3 ablation models (default 150)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of simulation, training and conditions (default 0)")
 
 
@@ -71,11 +85,16 @@ def _run_reproduce(args: argparse.Namespace) -> int:
 
     if args.epochs < 1 or args.ablation_epochs < 1:
         raise InputError("--epochs and --ablation-epochs must be >= 1")
-    results = run(ReproduceConfig(out_dir=Path(args.out), epochs=args.epochs, ablation_epochs=args.ablation_epochs,
-                                  seed=args.seed))
+    results = run(
+        ReproduceConfig(
+            out_dir=Path(args.out), epochs=args.epochs, ablation_epochs=args.ablation_epochs, seed=args.seed
+        )
+    )
     for name, r in results["table5"].items():
         rho = "-" if r["rho"] is None else f"{100 * r['rho']:.1f}%"
-        print(f"{name:16s} Avg(e_c) {r['avg_e_c']:.2f}  Avg(e) {r['avg_e']:.2f}  Avg(e*) {r['avg_e_star']:.2f}  rho {rho}")
+        print(
+            f"{name:16s} Avg(e_c) {r['avg_e_c']:.2f}  Avg(e) {r['avg_e']:.2f}  Avg(e*) {r['avg_e_star']:.2f}  rho {rho}"
+        )
     print(f"report: {Path(args.out) / 'REPRODUCTION.md'} ({results['seconds'] / 60:.1f} min)")
     return 0
 

@@ -4,6 +4,7 @@ Three fully connected layers without biases and GELU activations (GELU(0) = 0), 
 feature gives exactly Delta K = 0, i.e. K = K_c "due to lack of information" (paper), in
 torch and in the exported ONNX graph alike.
 """
+
 from __future__ import annotations
 
 import torch

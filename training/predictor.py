@@ -1,4 +1,5 @@
 """Torch backend of dimenet.runtime.evaluation.predictor: a RUN_DIR as a Predictor (entry point `run_dir`)."""
+
 from __future__ import annotations
 
 from pathlib import Path

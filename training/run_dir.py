@@ -1,5 +1,6 @@
 """RUN_DIR layout written by `dimenet train`: weights.safetensors, spec.json (dimenet-model/1),
 history.json and curve.png. Loading never unpickles (safetensors only)."""
+
 from __future__ import annotations
 
 import io

@@ -17,6 +17,7 @@ Then the uncertainty model of Delta K (runtime/uncertainty.py) is fitted on thos
 frames, clean, reduced to 64 points, under several draws of the augmentation, with the
 points of one plane and with those of two objects under label noise.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -136,8 +137,9 @@ def frame_truth(frames: Dataset, cal_K, cal_rvec, cal_tvec) -> FrameTruth:
     return FrameTruth(cal_K, cal_rvec, cal_tvec, np.where(frames.valid[..., None], residual, 0.0))
 
 
-def resynthesise(frames: Dataset, truth: FrameTruth, rng: np.random.Generator,
-                 share: float) -> tuple[Dataset, np.ndarray]:
+def resynthesise(
+    frames: Dataset, truth: FrameTruth, rng: np.random.Generator, share: float
+) -> tuple[Dataset, np.ndarray]:
     """K-resynthesis augmentation: frame i re-imaged under the principal point of a random
     frame j of ``frames`` (its own focal length kept, so focus breathing stays tied to
     distance): x' = pi(K', pose*_i) + residual_i. The OIS state is independent of the
@@ -152,8 +154,14 @@ def resynthesise(frames: Dataset, truth: FrameTruth, rng: np.random.Generator,
     return replace(frames, points_2d=np.where(frames.valid[..., None], x_new, np.nan)), K_new
 
 
-def cluster_inference_points(frames: Dataset, candidates: np.ndarray, share: float, n_points: tuple,
-                             max_noise_px: float, rng: np.random.Generator) -> Dataset:
+def cluster_inference_points(
+    frames: Dataset,
+    candidates: np.ndarray,
+    share: float,
+    n_points: tuple,
+    max_noise_px: float,
+    rng: np.random.Generator,
+) -> Dataset:
     """Natural-object-like inference points in a random ``share`` of the frames: only the
     n ~ U(n_points) ``candidates`` ((F, P) bool, e.g. the frame's own inference points) nearest
     (px) to one or two random candidates stay inference points, and they get hand-labelling
@@ -165,7 +173,7 @@ def cluster_inference_points(frames: Dataset, candidates: np.ndarray, share: flo
         idx = np.flatnonzero(candidates[f])
         centres = points_2d[f, rng.choice(idx, rng.integers(1, 3), replace=False)]
         dist = np.linalg.norm(points_2d[f, idx, None] - centres, axis=-1).min(1)
-        keep = idx[np.argsort(dist)[:rng.integers(n_points[0], n_points[1] + 1)]]
+        keep = idx[np.argsort(dist)[: rng.integers(n_points[0], n_points[1] + 1)]]
         infer[f] = False
         infer[f, keep] = True
         points_2d[f, keep] += rng.normal(0.0, rng.uniform(0.0, max_noise_px), (len(keep), 2))
@@ -189,12 +197,14 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     # A frame the emptying left with too few points keeps its points (the runtime would fall back).
     too_few = emptied.infer_mask.sum(1) < MIN_INFER_POINTS
     kept = replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
-    return cluster_inference_points(kept, frames.infer_mask, config.cluster_share, config.cluster_points,
-                                    config.max_label_noise_px, rng)
+    return cluster_inference_points(
+        kept, frames.infer_mask, config.cluster_share, config.cluster_points, config.max_label_noise_px, rng
+    )
 
 
-def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, truth: FrameTruth,
-                            config: TrainConfig, rng: np.random.Generator) -> tuple[Uncertainty, dict]:
+def fit_network_uncertainty(
+    model: DimeNet, spec: ModelSpec, frames: Dataset, truth: FrameTruth, config: TrainConfig, rng: np.random.Generator
+) -> tuple[Uncertainty, dict]:
     """The uncertainty model of the trained network's K - K' on ``frames`` (the early-stopping
     frames, ``truth`` their calibration), each draw on the frames re-imaged by ``resynthesise``
     (every frame under another's principal point; K' the K it is then imaged under): so the
@@ -215,8 +225,9 @@ def fit_network_uncertainty(model: DimeNet, spec: ModelSpec, frames: Dataset, tr
     conditions += [(False, lambda ds: drop_inference_points(ds, config.min_points, rng))] * few
     conditions += [(True, lambda ds: augment(ds, config, spec.features.grid, rng))] * draws
     conditions += [(False, lambda ds: one_plane(ds, rng))] * few
-    conditions += [(True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames),
-                                               0.0, rng))] * draws
+    conditions += [
+        (True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0, rng))
+    ] * draws
     residuals, stats, noisy = [], [], []
     for added_noise, condition in conditions:
         reimaged, K_reimaged = resynthesise(frames, truth, rng, 1.0)
@@ -241,8 +252,9 @@ def _map_errors(draws: list, uncertainty: Uncertainty, spec: ModelSpec) -> tuple
         cov = uncertainty.covariance(pred.stats)
         for f in np.flatnonzero(pred.predicted):
             m = frames.infer_mask[f]
-            fit, _ = map_rectify(frames.points_2d[f][m], frames.points_3d[f][m], k_params(pred.K[f]), cov[f],
-                                 spec.K_bounds, spec.K_c)
+            fit, _ = map_rectify(
+                frames.points_2d[f][m], frames.points_3d[f][m], k_params(pred.K[f]), cov[f], spec.K_bounds, spec.K_c
+            )
             if fit is not None:
                 errors.append(fit.k - k_params(K_ref[f]))
                 sigma.append(np.sqrt(np.diag(fit.k_cov)))
@@ -294,8 +306,9 @@ def torch_threads(n: int):
         torch.set_num_threads(before)
 
 
-def train(dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset_sha256: str = "",
-          command: str = "") -> TrainResult:
+def train(
+    dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset_sha256: str = "", command: str = ""
+) -> TrainResult:
     """Train on the dataset's train split and write RUN_DIR (weights, spec.json, curve.png)."""
     with torch_threads(1):
         return _train(dataset, config, run_dir, dataset_sha256, command)
@@ -313,10 +326,14 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
     truth = frame_truth(train_frames, cal.K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx])
     # Re-imaging keeps a frame's own focal length, so its K* f stays the target of every draw.
     delta_f_star = torch.from_numpy(k_params(truth.K_star)[:, :2] - k_params(K_c)[:2])
-    val_sets = [val_frames, drop_inference_points(val_frames, config.min_points, np.random.default_rng(config.seed + 1))]
+    val_sets = [
+        val_frames,
+        drop_inference_points(val_frames, config.min_points, np.random.default_rng(config.seed + 1)),
+    ]
     image_size = dataset.image_size
     feats_of = lambda fr: torch.from_numpy(  # noqa: E731
-        grid_features(fr.points_2d, fr.points_3d, fr.infer_mask, K_c, image_size, spec_features).astype(np.float32))
+        grid_features(fr.points_2d, fr.points_3d, fr.infer_mask, K_c, image_size, spec_features).astype(np.float32)
+    )
     val_inputs = [(feats_of(v), *_tensors(v)) for v in val_sets]
     K_c_t = torch.from_numpy(K_c)
 
@@ -333,7 +350,7 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
         model.train()
         losses = []
         for i in range(0, len(order), config.batch_size):
-            b = order[i:i + config.batch_size]
+            b = order[i : i + config.batch_size]
             delta_k = model(feats[b])
             mse = reprojection_loss(delta_k, K_c_t, p2[b], p3[b], w[b])[0]
             loss = mse + config.focal_weight * focal_loss(delta_k, delta_f_star[b])
@@ -352,20 +369,33 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
             break
     model.load_state_dict(best[2])
     spec = ModelSpec(
-        features=spec_features, K_c=K_c, image_size=tuple(int(v) for v in image_size),
-        K_bounds=k_bounds(cal.K_star[dataset.frames_in("train")]), hidden=tuple(config.hidden),
-        provenance={"dataset_sha256": dataset_sha256, "seed": config.seed, "dimenet_version": __version__,
-                    "torch_version": torch.__version__, "config": asdict(config), "command": command,
-                    "best_epoch": best[1], "best_val_e_px": best[0]},
+        features=spec_features,
+        K_c=K_c,
+        image_size=tuple(int(v) for v in image_size),
+        K_bounds=k_bounds(cal.K_star[dataset.frames_in("train")]),
+        hidden=tuple(config.hidden),
+        provenance={
+            "dataset_sha256": dataset_sha256,
+            "seed": config.seed,
+            "dimenet_version": __version__,
+            "torch_version": torch.__version__,
+            "config": asdict(config),
+            "command": command,
+            "best_epoch": best[1],
+            "best_val_e_px": best[0],
+        },
     )
     val_truth = frame_truth(val_frames, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
-    uncertainty, val_coverage = fit_network_uncertainty(model, spec, val_frames, val_truth, config,
-                                                        np.random.default_rng(config.seed + 2))
-    spec = replace(spec, uncertainty=uncertainty,
-                   provenance={**spec.provenance, "uncertainty_val_coverage": val_coverage})
+    uncertainty, val_coverage = fit_network_uncertainty(
+        model, spec, val_frames, val_truth, config, np.random.default_rng(config.seed + 2)
+    )
+    spec = replace(
+        spec, uncertainty=uncertainty, provenance={**spec.provenance, "uncertainty_val_coverage": val_coverage}
+    )
     run_dir = write_run(run_dir, model, spec, history)
-    return TrainResult(run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0],
-                       seconds=time.monotonic() - start, history=history)
+    return TrainResult(
+        run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0], seconds=time.monotonic() - start, history=history
+    )
 
 
 def file_sha256(path: str | Path) -> str:

@@ -4,14 +4,16 @@ Each subcommand is a :class:`Command` registered under the ``dimenet.commands`` 
 group (see pyproject.toml), so training and export plug in without the runtime importing
 them. Bad input exits 2 with one line and no traceback.
 """
+
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional
 
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import DimenetError
@@ -57,13 +59,22 @@ def _commands() -> list[Command]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="dimenet", description="DIME-Net: rectify an OIS camera's K frame by frame.",
-                     epilog=EXAMPLE_MAIN, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = _Parser(
+        prog="dimenet",
+        description="DIME-Net: rectify an OIS camera's K frame by frame.",
+        epilog=EXAMPLE_MAIN,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--version", action="version", version=f"dimenet {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for cmd in _commands():
-        p = sub.add_parser(cmd.name, help=cmd.summary, description=cmd.summary,
-                           epilog=f"example:\n  {cmd.example}", formatter_class=argparse.RawDescriptionHelpFormatter)
+        p = sub.add_parser(
+            cmd.name,
+            help=cmd.summary,
+            description=cmd.summary,
+            epilog=f"example:\n  {cmd.example}",
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         cmd.add_arguments(p)
         p.set_defaults(_run=cmd.run)
     return parser
@@ -81,8 +92,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"dimenet: error: {exc}", file=sys.stderr)
         return 2
     except ImportError as exc:
-        print(f"dimenet: error: {exc.name or exc} is not installed; "
-              f"this command needs an extra: pip install 'dimenet-runtime[train,export]'", file=sys.stderr)
+        print(
+            f"dimenet: error: {exc.name or exc} is not installed; "
+            f"this command needs an extra: pip install 'dimenet-runtime[train,export]'",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         print("dimenet: interrupted", file=sys.stderr)
@@ -91,6 +105,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 def integer_at_least(minimum: int) -> Callable[[str], int]:
     """argparse type: an integer >= ``minimum``."""
+
     def parse(text: str) -> int:
         try:
             value = int(text)

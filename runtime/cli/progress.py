@@ -1,9 +1,11 @@
 """A dependency-free progress bar: drawn on a terminal's stderr, silent when piped."""
+
 from __future__ import annotations
 
 import sys
 import time
-from typing import Iterable, Iterator, Optional, TypeVar
+from collections.abc import Iterable, Iterator
+from typing import Optional, TypeVar
 
 T = TypeVar("T")
 

@@ -8,6 +8,7 @@ K_c: the mean of K* over the ``train`` frames, parameter by parameter (fx, fy, c
 This is the paper's "averaging a large number of K's under different OIS states"
 (Sec. III-B); it is what a phone SDK hands an app.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

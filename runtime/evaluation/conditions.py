@@ -6,6 +6,7 @@ Each function takes a Dataset and a ``numpy.random.Generator`` and returns a new
 (the input is never modified). Point dropping and cell emptying act on ``infer_mask`` only
 (the points the model may use); evaluation still uses every valid point (paper Sec. V-C).
 """
+
 from __future__ import annotations
 
 import math
@@ -122,8 +123,9 @@ def one_plane(ds: Dataset, rng: np.random.Generator) -> Dataset:
     return replace(ds, infer_mask=infer)
 
 
-def two_objects(ds: Dataset, rng: np.random.Generator, group_points: tuple = (60, 140),
-                n_points: tuple = (40, 100)) -> Dataset:
+def two_objects(
+    ds: Dataset, rng: np.random.Generator, group_points: tuple = (60, 140), n_points: tuple = (40, 100)
+) -> Dataset:
     """Keep, per frame, the inference points a user would label on two objects apart in the
     image (the paper's LEGO test: two buildings): around a uniformly chosen inference point and
     a second one drawn with probability proportional to its distance (px) from the first, the
@@ -146,7 +148,7 @@ def two_objects(ds: Dataset, rng: np.random.Generator, group_points: tuple = (60
         groups = set()
         for to_centre in (distance, np.linalg.norm(x - x[second], axis=1)):
             nearest = np.argsort(to_centre, kind="stable")
-            groups.update(nearest[:rng.integers(group_points[0], group_points[1] + 1)].tolist())
+            groups.update(nearest[: rng.integers(group_points[0], group_points[1] + 1)].tolist())
         groups = np.array(sorted(groups))
         keep = rng.choice(groups, min(len(groups), int(rng.integers(n_points[0], n_points[1] + 1))), replace=False)
         infer[f] = False

@@ -7,6 +7,7 @@ exactly ``points`` of them. Times are wall-clock microseconds per call (time.per
 the baseline, then ``rectify``, then (with ``batch`` > 1) ``rectify_batch`` each run over all
 frames in their own loop, after one untimed warm-up call of ``rectify``.
 """
+
 from __future__ import annotations
 
 import platform
@@ -36,14 +37,18 @@ def bench_frames(n_frames: int, n_points: int, image_size, *, seed: int = 0) -> 
     """(n_frames, n_points, 2) px and (n_frames, n_points, 3) mm correspondences from simulated frames."""
     profile = get_profile(BENCH_PROFILE)
     if tuple(image_size) != tuple(profile.image_size_px):
-        raise ModelError(f"the bench simulates {BENCH_PROFILE} frames of {profile.image_size_px[0]}x"
-                         f"{profile.image_size_px[1]} px; the model was trained for {image_size[0]}x{image_size[1]} px")
+        raise ModelError(
+            f"the bench simulates {BENCH_PROFILE} frames of {profile.image_size_px[0]}x"
+            f"{profile.image_size_px[1]} px; the model was trained for {image_size[0]}x{image_size[1]} px"
+        )
     ds = simulate(profile, seed=seed)
     counts = ds.valid.sum(1)
     usable = np.flatnonzero(counts >= n_points)
     if n_frames < 1 or n_points < 6 or len(usable) == 0:
-        raise InputError(f"--frames must be >= 1 and --points between 6 and {int(counts.max())} "
-                         f"(the simulated frames' points), got {n_frames} and {n_points}")
+        raise InputError(
+            f"--frames must be >= 1 and --points between 6 and {int(counts.max())} "
+            f"(the simulated frames' points), got {n_frames} and {n_points}"
+        )
     rng = np.random.default_rng(seed)
     picks = rng.choice(usable, n_frames)
     idx = [np.sort(rng.choice(np.flatnonzero(ds.valid[b]), n_points, replace=False)) for b in picks]
@@ -93,12 +98,21 @@ def _batch_rate(rectifier: Rectifier, p2, p3, batch: int, refine: bool) -> float
     valid = np.ones(p2.shape[:2], bool)
     start = time.perf_counter_ns()
     for i in range(0, len(p2), batch):
-        rectifier.rectify_batch(p2[i:i + batch], p3[i:i + batch], valid[i:i + batch], refine=refine)
+        rectifier.rectify_batch(p2[i : i + batch], p3[i : i + batch], valid[i : i + batch], refine=refine)
     return len(p2) / ((time.perf_counter_ns() - start) / 1e9)
 
 
-def run_bench(model: Optional[str] = None, *, frames: int = 2000, points: int = 320, threads: int = 1,
-              batch: int = 1, refine: bool = False, seed: int = 0, mode: str = "dimenet") -> dict:
+def run_bench(
+    model: Optional[str] = None,
+    *,
+    frames: int = 2000,
+    points: int = 320,
+    threads: int = 1,
+    batch: int = 1,
+    refine: bool = False,
+    seed: int = 0,
+    mode: str = "dimenet",
+) -> dict:
     """Benchmark a model (default: the bundled one) and return the report as a JSON-able dict."""
     for name, value in (("threads", threads), ("batch", batch)):
         if value < 1:
@@ -115,17 +129,27 @@ def run_bench(model: Optional[str] = None, *, frames: int = 2000, points: int = 
     baseline = _baseline_calls(spec.K_c, p2, p3)
     end_to_end, stages, fallbacks = _single_calls(rectifier, p2, p3, refine)
     report = {
-        "frames": frames, "points": points, "threads": threads, "refine": refine, "batch": batch, "mode": mode,
+        "frames": frames,
+        "points": points,
+        "threads": threads,
+        "refine": refine,
+        "batch": batch,
+        "mode": mode,
         "end_to_end_us": percentiles_us(end_to_end),
         "baseline_solvepnp_us": percentiles_us(baseline),
         "ratio_p50": float(np.median(end_to_end) / np.median(baseline)),
         "stages_us": {name: percentiles_us(v) for name, v in stages.items()},
         "single_frames_per_s": float(len(end_to_end) / (np.sum(end_to_end) / 1e6)),
         "fallbacks": fallbacks,
-        "session_create_ms": session_ms, "first_call_us": first_call_us,
-        "ort_version": ort.__version__, "providers": rectifier.model.providers,
-        "opencv_version": cv2.__version__, "numpy_version": np.__version__, "cpu_model": cpu_model(),
-        "model": rectifier.model.source, "model_sha256": rectifier.model.sha256,
+        "session_create_ms": session_ms,
+        "first_call_us": first_call_us,
+        "ort_version": ort.__version__,
+        "providers": rectifier.model.providers,
+        "opencv_version": cv2.__version__,
+        "numpy_version": np.__version__,
+        "cpu_model": cpu_model(),
+        "model": rectifier.model.source,
+        "model_sha256": rectifier.model.sha256,
     }
     if batch > 1:
         report["batch_frames_per_s"] = _batch_rate(rectifier, p2, p3, batch, refine)
@@ -137,9 +161,11 @@ def format_report(r: dict) -> str:
     """A human-readable summary of ``run_bench``'s report."""
     row = lambda name, s: f"  {name:<22} {s['p50']:9.1f} {s['p90']:9.1f} {s['p99']:9.1f} {s['max']:9.1f}"  # noqa: E731
     lines = [
-        f"{r['frames']} simulated {BENCH_PROFILE} frames x {r['points']} points, {r['threads']} thread(s), mode {r['mode']}"
+        f"{r['frames']} simulated {BENCH_PROFILE} frames x {r['points']} points, {r['threads']} thread(s), "
+        f"mode {r['mode']}"
         f"{', refine' if r['refine'] else ''}; model {r['model']} (sha256 {r['model_sha256'][:16]})",
-        f"onnxruntime {r['ort_version']} {','.join(r['providers'])}, OpenCV {r['opencv_version']}, CPU {r['cpu_model']}",
+        f"onnxruntime {r['ort_version']} {','.join(r['providers'])}, OpenCV {r['opencv_version']}, "
+        f"CPU {r['cpu_model']}",
         f"session creation {r['session_create_ms']:.1f} ms, first call {r['first_call_us']:.0f} µs",
         f"  {'µs':<22} {'p50':>9} {'p90':>9} {'p99':>9} {'max':>9}",
         *(row(f"stage {name}", s) for name, s in r["stages_us"].items()),

@@ -14,10 +14,12 @@ K* shares the frame's noise with the estimate: with every valid point inferring 
 frames), a data-dominated posterior and K* err together, so |K - K*| understates the error
 that the posterior describes.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Optional, Sequence, Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 
@@ -123,8 +125,15 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
     fallbacks = int((~prediction.predicted).sum())
     for f in np.flatnonzero(prediction.predicted):
         m = frames.infer_mask[f]
-        fit, reason = map_rectify(frames.points_2d[f][m], frames.points_3d[f][m], k_params(K[f]), cov[f],
-                                  predictor.spec.K_bounds, predictor.spec.K_c, uncertainty=uncertainty)
+        fit, reason = map_rectify(
+            frames.points_2d[f][m],
+            frames.points_3d[f][m],
+            k_params(K[f]),
+            cov[f],
+            predictor.spec.K_bounds,
+            predictor.spec.K_c,
+            uncertainty=uncertainty,
+        )
         if reason is None:
             K[f], cov[f] = k_matrix(fit.k), fit.k_cov
         else:
@@ -132,8 +141,14 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
     return MethodEstimate(K=K, cov=cov, fallbacks=fallbacks)
 
 
-def method_estimate(method: str, frames: Dataset, K_c: np.ndarray, K_star: np.ndarray,
-                    predictor: Optional[Predictor], prediction: Optional[KPrediction]) -> MethodEstimate:
+def method_estimate(
+    method: str,
+    frames: Dataset,
+    K_c: np.ndarray,
+    K_star: np.ndarray,
+    predictor: Optional[Predictor],
+    prediction: Optional[KPrediction],
+) -> MethodEstimate:
     """K per frame of one of METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``;
     ``prediction`` the predictor's on these frames)."""
     if method not in METHODS:
@@ -152,8 +167,14 @@ def method_estimate(method: str, frames: Dataset, K_c: np.ndarray, K_star: np.nd
     return map_estimate(frames, predictor, prediction)
 
 
-def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Union[Predictor, KPredictor, None] = None, *,
-             split: str = "test", methods: Sequence[str] = ()) -> Evaluation:
+def evaluate(
+    frames: Dataset,
+    K_c: np.ndarray,
+    predictor: Union[Predictor, KPredictor, None] = None,
+    *,
+    split: str = "test",
+    methods: Sequence[str] = (),
+) -> Evaluation:
     """Evaluate the given frames (already restricted to a split and any test condition): e with
     the predictor's K, and one row per method of ``methods`` (dimenet and map need a Predictor)."""
     if frames.n_frames == 0:
@@ -171,8 +192,11 @@ def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Union[Predictor, KPred
     rows, covered, covered_true, fallbacks = {}, {}, {}, {}
     for method in dict.fromkeys(methods):
         est = method_estimate(method, frames, K_c, errors.K_star, model, prediction)
-        e = errors.e_star if method == "oracle" else reprojection_error_under_k(
-            frames.points_2d, frames.points_3d, frames.valid, est.K)
+        e = (
+            errors.e_star
+            if method == "oracle"
+            else reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, est.K)
+        )
         mine = FrameErrors(scene=errors.scene, e_c=errors.e_c, e_star=errors.e_star, e=e, K_star=errors.K_star)
         rows[method] = {name: _summary(frames.scene == name, mine) for name in names}
         rows[method]["overall"] = _summary(np.ones(frames.n_frames, bool), mine)
@@ -182,8 +206,17 @@ def evaluate(frames: Dataset, K_c: np.ndarray, predictor: Union[Predictor, KPred
             covered[method] = coverage(k_params(est.K[ok]), k_params(errors.K_star[ok]), est.cov[ok])
             if frames.K_true is not None:
                 covered_true[method] = coverage(k_params(est.K[ok]), k_params(frames.K_true[ok]), est.cov[ok])
-    return Evaluation(split=split, K_c=np.asarray(K_c), scenes=scenes, overall=overall, frames=errors,
-                      methods=rows, coverage=covered, coverage_true=covered_true, fallbacks=fallbacks)
+    return Evaluation(
+        split=split,
+        K_c=np.asarray(K_c),
+        scenes=scenes,
+        overall=overall,
+        frames=errors,
+        methods=rows,
+        coverage=covered,
+        coverage_true=covered_true,
+        fallbacks=fallbacks,
+    )
 
 
 def format_table(ev: Evaluation) -> str:
@@ -192,25 +225,40 @@ def format_table(ev: Evaluation) -> str:
     pct = lambda v: "-" if v is None else f"{100 * v:.1f}%"  # noqa: E731
     rows = [("scene", "frames", "Avg(e_c)", "Avg(e)", "Avg(e*)", "rho")]
     for name, s in list(ev.scenes.items()) + [("overall", ev.overall)]:
-        rows.append((name, str(s.n_frames), fmt(s.avg_e_c, ".3f"), fmt(s.avg_e, ".3f"), fmt(s.avg_e_star, ".3f"),
-                     pct(s.rho)))
-    text = [f"split {ev.split}, errors in px, K_c fx={ev.K_c[0,0]:.2f} fy={ev.K_c[1,1]:.2f} cx={ev.K_c[0,2]:.2f} "
-            f"cy={ev.K_c[1,2]:.2f}", _aligned(rows)]
+        rows.append(
+            (name, str(s.n_frames), fmt(s.avg_e_c, ".3f"), fmt(s.avg_e, ".3f"), fmt(s.avg_e_star, ".3f"), pct(s.rho))
+        )
+    text = [
+        f"split {ev.split}, errors in px, K_c fx={ev.K_c[0, 0]:.2f} fy={ev.K_c[1, 1]:.2f} cx={ev.K_c[0, 2]:.2f} "
+        f"cy={ev.K_c[1, 2]:.2f}",
+        _aligned(rows),
+    ]
     if ev.methods:
         header = ("method", "scene", "frames", "Avg(e)", "rho", "fallbacks", "1-sigma coverage fx/fy/cx/cy vs K*")
         rows = [header + (("vs K_true",) if ev.coverage_true else ())]
         share = lambda cov: "-" if cov is None else "/".join(f"{100 * v:.0f}%" for v in cov.values())  # noqa: E731
         for method, scenes in ev.methods.items():
-            covs = [share(ev.coverage.get(method))] + ([share(ev.coverage_true.get(method))] if ev.coverage_true else [])
+            covs = [share(ev.coverage.get(method))] + (
+                [share(ev.coverage_true.get(method))] if ev.coverage_true else []
+            )
             for name, s in scenes.items():
-                rows.append((method, name, str(s.n_frames), fmt(s.avg_e, ".3f"), pct(s.rho),
-                             str(ev.fallbacks[method]) if name == "overall" else "",
-                             *(covs if name == "overall" else [""] * len(covs))))
+                rows.append(
+                    (
+                        method,
+                        name,
+                        str(s.n_frames),
+                        fmt(s.avg_e, ".3f"),
+                        pct(s.rho),
+                        str(ev.fallbacks[method]) if name == "overall" else "",
+                        *(covs if name == "overall" else [""] * len(covs)),
+                    )
+                )
         text += ["", _aligned(rows)]
     return "\n".join(text)
 
 
 def _aligned(rows: list) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return "\n".join("  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip()
-                     for r in rows)
+    return "\n".join(
+        "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))).rstrip() for r in rows
+    )

@@ -6,6 +6,7 @@ e = e(K predicted), e* = the joint (K*, pose) fit's error. Over a set of frames,
 rho = (Avg(e_c) - Avg(e)) / (Avg(e_c) - Avg(e*)): 0 means no better than K_c,
 1 means as good as per-frame calibration.
 """
+
 from __future__ import annotations
 
 from typing import Optional

@@ -4,6 +4,7 @@ A backend (the ONNX session in the runtime, or a torch RUN_DIR from dimenet.trai
 registered under the ``dimenet.predictors`` entry-point group) only maps features to
 Delta K; building the features and turning Delta K into K lives here once.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -51,8 +52,10 @@ class Predictor:
         """K and, with an uncertainty model, its covariance per frame from its inference points."""
         spec = self.spec
         if tuple(frames.image_size.tolist()) != tuple(spec.image_size):
-            raise ModelError(f"{self.source}: trained for {spec.image_size[0]}x{spec.image_size[1]} px images, "
-                             f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}")
+            raise ModelError(
+                f"{self.source}: trained for {spec.image_size[0]}x{spec.image_size[1]} px images, "
+                f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}"
+            )
         F = frames.n_frames
         K = np.broadcast_to(spec.K_c, (F, 3, 3)).copy()
         stats = np.full((F, len(STATISTICS)), np.nan)
@@ -60,17 +63,28 @@ class Predictor:
         usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
         if usable.any():
             sub = frames.select(usable)
-            feats, points = grid_features(sub.points_2d, sub.points_3d, sub.infer_mask, spec.K_c, spec.image_size,
-                                          spec.features, return_points=True)
+            feats, points = grid_features(
+                sub.points_2d,
+                sub.points_3d,
+                sub.infer_mask,
+                spec.K_c,
+                spec.image_size,
+                spec.features,
+                return_points=True,
+            )
             dk = np.asarray(self.delta_k(feats.astype(np.float32)), dtype=np.float64)
             K_pred = k_matrix(k_params(spec.K_c) + dk)
             ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
             rows = np.flatnonzero(usable)[ok]
             K[rows], predicted[rows] = K_pred[ok], True
             mask = sub.infer_mask
-            stats[rows] = input_statistics(feats, mask.sum(1), mean_residual_norms(points[:, :2], mask),
-                                           covariance_invariants_batch(sub.points_3d, mask),
-                                           len(spec.features.channels))[ok]
+            stats[rows] = input_statistics(
+                feats,
+                mask.sum(1),
+                mean_residual_norms(points[:, :2], mask),
+                covariance_invariants_batch(sub.points_3d, mask),
+                len(spec.features.channels),
+            )[ok]
         cov = None
         if spec.uncertainty is not None:
             cov = np.full((F, 4, 4), np.nan)

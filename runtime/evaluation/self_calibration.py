@@ -7,6 +7,7 @@ returning garbage: fewer than 6 inference points, (nearly) coplanar 3D points (o
 view cannot fix K), a fit that fails, or a K that is not a camera of this image (focal
 lengths not positive, principal point outside the image).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,8 +36,7 @@ def _implausible(K: np.ndarray, image_size) -> str | None:
     if not np.all(np.isfinite([fx, fy, cx, cy])):
         return "the fit diverged (K not finite)"
     if fx <= 0 or fy <= 0 or not (0 <= cx <= width and 0 <= cy <= height):
-        return (f"the fit gives no camera of this image (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, "
-                f"cy={cy:.1f} px)")
+        return f"the fit gives no camera of this image (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px)"
     return None
 
 

@@ -1,5 +1,6 @@
 """Fitting the network's uncertainty model (``rectify.uncertainty.Uncertainty``) after training,
 and measuring its 1 sigma coverage. The run-time half lives in ``dimenet.runtime.rectify.uncertainty``."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -49,8 +50,9 @@ def fit_uncertainty(residuals_px: np.ndarray, stats: np.ndarray) -> Uncertainty:
     if residuals_px.ndim != 2 or residuals_px.shape[1] != 4 or len(residuals_px) != len(stats):
         raise InputError(f"uncertainty: residuals must be (F, 4) with F = {len(stats)}, got {residuals_px.shape}")
     if len(residuals_px) < 4 * (len(STATISTICS) + 1) or not np.all(np.isfinite(residuals_px)):
-        raise InputError(f"uncertainty: needs >= {4 * (len(STATISTICS) + 1)} frames with finite residuals, "
-                         f"got {len(residuals_px)}")
+        raise InputError(
+            f"uncertainty: needs >= {4 * (len(STATISTICS) + 1)} frames with finite residuals, got {len(residuals_px)}"
+        )
     stats = np.asarray(stats, dtype=np.float64)
     if stats.shape != (len(residuals_px), len(STATISTICS)):
         raise InputError(f"uncertainty: statistics must be (F, {len(STATISTICS)}), got {stats.shape}")
@@ -64,20 +66,28 @@ def fit_uncertainty(residuals_px: np.ndarray, stats: np.ndarray) -> Uncertainty:
     return Uncertainty(coef=coef, correlation=second / np.outer(scale, scale))
 
 
-def fit_data_correlation(errors_px: np.ndarray, sigma_px: np.ndarray, variance_ratio: np.ndarray,
-                         noise_px: np.ndarray, noise_scale_px: float = NOISE_SCALE_PX) -> np.ndarray:
+def fit_data_correlation(
+    errors_px: np.ndarray,
+    sigma_px: np.ndarray,
+    variance_ratio: np.ndarray,
+    noise_px: np.ndarray,
+    noise_scale_px: float = NOISE_SCALE_PX,
+) -> np.ndarray:
     """Per parameter, the rho in [0, 1] with which 68.27 % of F MAP estimates lie within their
     widened 1 sigma (``Uncertainty.posterior_scale``): errors_px (F, 4) against a reference
     independent of the frames' noise, sigma_px (F, 4) the MAP posterior's standard deviations,
     variance_ratio (F, 4) its variances over the prior's, noise_px (F,) the frames' 2D noise.
     0 where the posterior already covers 68.27 %, 1 where even rho = 1 does not (the widening
     grows with rho, so bisection finds it)."""
-    errors_px, sigma_px, variance_ratio, noise_px = (np.asarray(a, dtype=np.float64)
-                                                     for a in (errors_px, sigma_px, variance_ratio, noise_px))
+    errors_px, sigma_px, variance_ratio, noise_px = (
+        np.asarray(a, dtype=np.float64) for a in (errors_px, sigma_px, variance_ratio, noise_px)
+    )
     F = len(errors_px)
     if F < 1 or any(a.shape != (F, 4) for a in (errors_px, sigma_px, variance_ratio)) or noise_px.shape != (F,):
-        raise InputError(f"data correlation: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
-                         f"got {errors_px.shape}, {sigma_px.shape}, {variance_ratio.shape}, {noise_px.shape}")
+        raise InputError(
+            f"data correlation: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
+            f"got {errors_px.shape}, {sigma_px.shape}, {variance_ratio.shape}, {noise_px.shape}"
+        )
     if not all(np.all(np.isfinite(a)) for a in (errors_px, sigma_px, variance_ratio, noise_px)):
         raise InputError("data correlation: every input must be finite")
     w = noise_px**2 / (noise_px**2 + noise_scale_px**2)

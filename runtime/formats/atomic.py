@@ -1,4 +1,5 @@
 """Atomic file writing: a temp file beside the target, then ``os.replace``."""
+
 from __future__ import annotations
 
 import os

@@ -5,12 +5,14 @@ file, read with ``allow_pickle=False``. Frames are F images, each with up to P
 correspondences (NaN-padded); 2D points are pixels (x right, y down), 3D points are
 millimetres in that frame's world frame {W}.
 """
+
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -50,13 +52,21 @@ class Dataset:
     def n_points(self) -> int:
         return int(self.points_2d.shape[1])
 
-    def select(self, frames: np.ndarray) -> "Dataset":
+    def select(self, frames: np.ndarray) -> Dataset:
         """The dataset restricted to ``frames`` (a boolean mask or index array over F)."""
         idx = np.arange(self.n_frames)[frames]
         take = lambda a: None if a is None else a[idx]  # noqa: E731
-        return replace(self, points_2d=self.points_2d[idx], points_3d=self.points_3d[idx],
-                       valid=self.valid[idx], infer_mask=self.infer_mask[idx], split=self.split[idx],
-                       scene=self.scene[idx], K_true=take(self.K_true), frame_id=take(self.frame_id))
+        return replace(
+            self,
+            points_2d=self.points_2d[idx],
+            points_3d=self.points_3d[idx],
+            valid=self.valid[idx],
+            infer_mask=self.infer_mask[idx],
+            split=self.split[idx],
+            scene=self.scene[idx],
+            K_true=take(self.K_true),
+            frame_id=take(self.frame_id),
+        )
 
     def frames_in(self, split: str) -> np.ndarray:
         """Boolean mask of the frames in ``split``."""
@@ -111,8 +121,11 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     unknown = sorted(keys - set(REQUIRED_KEYS) - set(OPTIONAL_KEYS))
     _require(not unknown, unknown[0] if unknown else "", "unknown key (format dimenet-dataset/1 does not define it)")
     fmt = np.asarray(arrays["format"])
-    _require(fmt.shape == () and fmt.dtype.kind == "U" and str(fmt) == FORMAT, "format",
-             f"must be exactly {FORMAT!r}, got {fmt!r}")
+    _require(
+        fmt.shape == () and fmt.dtype.kind == "U" and str(fmt) == FORMAT,
+        "format",
+        f"must be exactly {FORMAT!r}, got {fmt!r}",
+    )
     size = np.asarray(arrays["image_size"])
     _require(size.dtype.kind in "iu" and size.shape == (2,), "image_size", "must be 2 integers (width, height) px")
     _require(bool(np.all(size > 0)), "image_size", f"must be positive, got {size.tolist()}")
@@ -123,19 +136,37 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     p2 = _float_array(arrays, "points_2d", (F, P, 2))
     p3 = _float_array(arrays, "points_3d", (F, P, 3))
     valid = np.asarray(arrays["valid"])
-    _require(valid.dtype == bool and valid.shape == (F, P), "valid", f"must be bool of shape {(F, P)}, got {valid.dtype} {valid.shape}")
+    _require(
+        valid.dtype == bool and valid.shape == (F, P),
+        "valid",
+        f"must be bool of shape {(F, P)}, got {valid.dtype} {valid.shape}",
+    )
     infer = np.asarray(arrays["infer_mask"])
-    _require(infer.dtype == bool and infer.shape == (F, P), "infer_mask", f"must be bool of shape {(F, P)}, got {infer.dtype} {infer.shape}")
+    _require(
+        infer.dtype == bool and infer.shape == (F, P),
+        "infer_mask",
+        f"must be bool of shape {(F, P)}, got {infer.dtype} {infer.shape}",
+    )
     _require(not np.any(infer & ~valid), "infer_mask", "must be a subset of valid (a point to infer from is not valid)")
     bad = valid & ~(np.isfinite(p2).all(-1) & np.isfinite(p3).all(-1))
-    _require(not bad.any(), "points_2d/points_3d",
-             f"valid point has a non-finite coordinate (frame {np.argwhere(bad)[0][0] if bad.any() else 0})")
+    _require(
+        not bad.any(),
+        "points_2d/points_3d",
+        f"valid point has a non-finite coordinate (frame {np.argwhere(bad)[0][0] if bad.any() else 0})",
+    )
     counts = valid.sum(1)
-    _require(bool(np.all(counts >= MIN_POINTS_PER_FRAME)), "valid",
-             f"frame {int(np.argmin(counts))} has {int(counts.min())} valid points, needs >= {MIN_POINTS_PER_FRAME}")
+    _require(
+        bool(np.all(counts >= MIN_POINTS_PER_FRAME)),
+        "valid",
+        f"frame {int(np.argmin(counts))} has {int(counts.min())} valid points, needs >= {MIN_POINTS_PER_FRAME}",
+    )
     split = _string_array(arrays, "split", (F,))
     unknown_split = sorted(set(split.tolist()) - set(SPLITS))
-    _require(not unknown_split, "split", f"unknown split {unknown_split[0] if unknown_split else ''!r}; allowed: {', '.join(SPLITS)}")
+    _require(
+        not unknown_split,
+        "split",
+        f"unknown split {unknown_split[0] if unknown_split else ''!r}; allowed: {', '.join(SPLITS)}",
+    )
     scene = _string_array(arrays, "scene", (F,))
     _require(bool(np.all(np.char.str_len(scene) > 0)), "scene", "empty scene name")
     meta_raw = np.asarray(arrays["meta"])
@@ -145,13 +176,24 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     except json.JSONDecodeError as exc:
         raise DatasetError(f"meta: not valid JSON ({exc.msg})") from None
     _require(isinstance(meta, dict), "meta", "must be a JSON object")
-    out: dict[str, Any] = dict(image_size=size.astype(np.int64), points_2d=p2, points_3d=p3, valid=valid,
-                               infer_mask=infer, split=split, scene=scene, meta=meta)
+    out: dict[str, Any] = dict(
+        image_size=size.astype(np.int64),
+        points_2d=p2,
+        points_3d=p3,
+        valid=valid,
+        infer_mask=infer,
+        split=split,
+        scene=scene,
+        meta=meta,
+    )
     if "K_true" in arrays:
         K = _float_array(arrays, "K_true", (F, 3, 3))
         _require(bool(np.all(np.isfinite(K))), "K_true", "has non-finite entries")
-        _require(bool(np.all(K[:, 0, 0] > 0) and np.all(K[:, 1, 1] > 0) and np.allclose(K[:, 2], [0, 0, 1])),
-                 "K_true", "must be intrinsic matrices (positive focal lengths, last row 0 0 1)")
+        _require(
+            bool(np.all(K[:, 0, 0] > 0) and np.all(K[:, 1, 1] > 0) and np.allclose(K[:, 2], [0, 0, 1])),
+            "K_true",
+            "must be intrinsic matrices (positive focal lengths, last row 0 0 1)",
+        )
         out["K_true"] = K
     if "frame_id" in arrays:
         out["frame_id"] = _string_array(arrays, "frame_id", (F,))

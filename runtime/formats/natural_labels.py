@@ -6,6 +6,7 @@ window corners), coordinates in mm in the rig frame {W}. ``LABELS.csv``: header
 file name), pixels x right, y down in the photo's stored pixel frame (EXIF orientation not applied).
 Specified in models_spec/ingest.md.
 """
+
 from __future__ import annotations
 
 import csv
@@ -98,5 +99,7 @@ def read_labels(path: str | Path, obj: NaturalObject) -> dict[str, ImageLabels]:
         if index_of[point_id] in labelled:
             raise LabelsError(f"{path}:{line}: point {point_id!r} labelled twice in {image}")
         labelled[index_of[point_id]] = [_number(x, path, line, "x_px"), _number(y, path, line, "y_px")]
-    return {image: ImageLabels(index=np.array(list(points), dtype=np.int64), points_px=np.array(list(points.values())))
-            for image, points in per_image.items()}
+    return {
+        image: ImageLabels(index=np.array(list(points), dtype=np.int64), points_px=np.array(list(points.values())))
+        for image, points in per_image.items()
+    }

@@ -6,6 +6,7 @@ corner (i, j) sits at (i·square_mm, j·square_mm, 0) and corners are ordered ro
 (j outer, i inner), as ``cv2.findChessboardCorners(img, (nx, ny))`` returns them. In {W}
 a corner is R(rvec)·p + tvec_mm.
 """
+
 from __future__ import annotations
 
 import json
@@ -142,8 +143,11 @@ def _board_from_dict(d: Any, where: str) -> Board:
     if not isinstance(name, str) or not name.strip():
         raise _fail(f"{where}name", f"must be a non-empty string, got {name!r}")
     corners = d["inner_corners"]
-    if (not isinstance(corners, (list, tuple)) or len(corners) != 2
-            or any(isinstance(c, bool) or not isinstance(c, int) or c < 2 for c in corners)):
+    if (
+        not isinstance(corners, (list, tuple))
+        or len(corners) != 2
+        or any(isinstance(c, bool) or not isinstance(c, int) or c < 2 for c in corners)
+    ):
         raise _fail(f"{where}inner_corners", f"must be 2 integers >= 2 (nx, ny), got {corners!r}")
     square = _number(d["square_mm"], f"{where}square_mm")
     if square <= 0:
@@ -151,9 +155,14 @@ def _board_from_dict(d: Any, where: str) -> Board:
     aruco = _aruco_from_dict(d.get("aruco"), f"{where}aruco.")
     if aruco is not None and aruco.marker_mm >= square:
         raise _fail(f"{where}aruco.marker_mm", f"must be smaller than square_mm ({square}), got {aruco.marker_mm}")
-    return Board(name=name, inner_corners=(int(corners[0]), int(corners[1])), square_mm=square,
-                 rvec=_vector3(d["rvec"], f"{where}rvec"), tvec_mm=_vector3(d["tvec_mm"], f"{where}tvec_mm"),
-                 aruco=aruco)
+    return Board(
+        name=name,
+        inner_corners=(int(corners[0]), int(corners[1])),
+        square_mm=square,
+        rvec=_vector3(d["rvec"], f"{where}rvec"),
+        tvec_mm=_vector3(d["tvec_mm"], f"{where}tvec_mm"),
+        aruco=aruco,
+    )
 
 
 def rig_from_dict(d: Any) -> Rig:
@@ -176,12 +185,25 @@ def rig_from_dict(d: Any) -> Rig:
 
 def rig_to_dict(rig: Rig) -> dict:
     """The ``dimenet-rig/1`` mapping of a Rig (JSON-serialisable)."""
+
     def aruco(a: Optional[Aruco]) -> Optional[dict]:
         return None if a is None else {"dictionary": a.dictionary, "first_id": a.first_id, "marker_mm": a.marker_mm}
 
-    return {"format": FORMAT, "units": UNITS, "boards": [
-        {"name": b.name, "inner_corners": list(b.inner_corners), "square_mm": b.square_mm,
-         "rvec": list(b.rvec), "tvec_mm": list(b.tvec_mm), "aruco": aruco(b.aruco)} for b in rig.boards]}
+    return {
+        "format": FORMAT,
+        "units": UNITS,
+        "boards": [
+            {
+                "name": b.name,
+                "inner_corners": list(b.inner_corners),
+                "square_mm": b.square_mm,
+                "rvec": list(b.rvec),
+                "tvec_mm": list(b.tvec_mm),
+                "aruco": aruco(b.aruco),
+            }
+            for b in rig.boards
+        ],
+    }
 
 
 def _parse_json(text: str, source: str) -> Rig:

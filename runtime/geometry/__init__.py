@@ -33,6 +33,44 @@ from dimenet.runtime.geometry.rotation import (
     rvec_to_matrix,
     skew,
 )
-from dimenet.runtime.geometry.spread import PLANAR_RATIO, RIG_VIEW_RATIO, covariance_invariants, covariance_invariants_batch, spans_3d
+from dimenet.runtime.geometry.spread import (
+    PLANAR_RATIO,
+    RIG_VIEW_RATIO,
+    covariance_invariants,
+    covariance_invariants_batch,
+    spans_3d,
+)
 
-__all__ = ["MIN_DEPTH_MM", "k_params", "k_matrix", "frame_k_matrix", "to_camera", "project_camera", "project", "frame_residuals", "camera_xy_inverse_depth", "reprojection_errors", "mean_reprojection_error", "mean_over", "mean_residual_norms", "mean_reprojection_errors", "camera_centre", "facing", "FEW_POSES", "skew", "rvec_to_matrix", "rotation_matrices", "matrix_to_rvec", "left_update", "covariance_invariants", "covariance_invariants_batch", "spans_3d", "PLANAR_RATIO", "RIG_VIEW_RATIO", "check_not_degenerate", "solve_pnp_start", "dlt_camera", "frame_normal_equations"]
+__all__ = [
+    "MIN_DEPTH_MM",
+    "k_params",
+    "k_matrix",
+    "frame_k_matrix",
+    "to_camera",
+    "project_camera",
+    "project",
+    "frame_residuals",
+    "camera_xy_inverse_depth",
+    "reprojection_errors",
+    "mean_reprojection_error",
+    "mean_over",
+    "mean_residual_norms",
+    "mean_reprojection_errors",
+    "camera_centre",
+    "facing",
+    "FEW_POSES",
+    "skew",
+    "rvec_to_matrix",
+    "rotation_matrices",
+    "matrix_to_rvec",
+    "left_update",
+    "covariance_invariants",
+    "covariance_invariants_batch",
+    "spans_3d",
+    "PLANAR_RATIO",
+    "RIG_VIEW_RATIO",
+    "check_not_degenerate",
+    "solve_pnp_start",
+    "dlt_camera",
+    "frame_normal_equations",
+]

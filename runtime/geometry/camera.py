@@ -1,4 +1,5 @@
 """The pinhole camera: K as (fx, fy, cx, cy), projection {W} -> {C} -> pixels, reprojection residuals and errors."""
+
 from __future__ import annotations
 
 import cv2
@@ -55,8 +56,9 @@ def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.nda
     return project_camera(K, to_camera(points_3d, rvec, tvec))
 
 
-def frame_residuals(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray,
-                    tvec: np.ndarray) -> np.ndarray:
+def frame_residuals(
+    points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray, tvec: np.ndarray
+) -> np.ndarray:
     """One frame's reprojection residuals pi(K, R X + t) - x (N, 2) px, through OpenCV (few calls,
     for the runtime's hot path): points_2d (N, 2) px, points_3d (N, 3) mm float64, pose {W}->{C}
     as the rotation matrix R (3, 3) and tvec (3,) mm."""
@@ -84,8 +86,9 @@ def reprojection_errors(points_2d, points_3d, K, rvec, tvec) -> np.ndarray:
 def mean_reprojection_error(points_2d, points_3d, weights, K, rvec, tvec) -> np.ndarray:
     """Mean Euclidean reprojection error (px) over the points with weight > 0, shape (...)."""
     valid = np.asarray(weights) > 0
-    err = reprojection_errors(np.where(valid[..., None], points_2d, 0.0),
-                              np.where(valid[..., None], points_3d, 1.0), K, rvec, tvec)
+    err = reprojection_errors(
+        np.where(valid[..., None], points_2d, 0.0), np.where(valid[..., None], points_3d, 1.0), K, rvec, tvec
+    )
     return mean_over(err, valid)
 
 

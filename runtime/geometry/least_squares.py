@@ -8,6 +8,7 @@ keeps its own damping. Points with weight 0 have no effect (their values are ign
 Parameters: rotation as a left perturbation R <- exp(d) R, translation in mm, and K as
 (fx, fy, cx, cy) in px. Cost: sum_i w_i ||pi(K, R X_i + t) - x_i||^2 (px^2).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -65,8 +66,9 @@ def _jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
     return np.concatenate(cols, axis=-1) * sqrt_w[..., None, None]
 
 
-def fit(points_2d, points_3d, weights, K, rvec, tvec, *, fit_k: bool,
-        max_iterations: int = 50, tolerance: float = 1e-12) -> FitResult:
+def fit(
+    points_2d, points_3d, weights, K, rvec, tvec, *, fit_k: bool, max_iterations: int = 50, tolerance: float = 1e-12
+) -> FitResult:
     """Minimise the reprojection error of B frames from the given start.
 
     points_2d (B, N, 2) px; points_3d (B, N, 3) mm in {W}; weights (B, N) >= 0;
@@ -88,7 +90,7 @@ def fit(points_2d, points_3d, weights, K, rvec, tvec, *, fit_k: bool,
     cost = (r**2).sum((1, 2))
     active = np.ones(B, bool)
     it = 0
-    for it in range(1, max_iterations + 1):
+    for it in range(1, max_iterations + 1):  # noqa: B007 (it is the count reported)
         J = _jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
         H = np.einsum("bki,bkj->bij", J, J)
         g = np.einsum("bki,bk->bi", J, r.reshape(B, -1))

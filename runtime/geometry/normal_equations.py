@@ -1,4 +1,5 @@
 """One frame's Gauss-Newton normal equations over (pose, K), in closed form."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,8 +24,9 @@ def _jacobian_basis() -> np.ndarray:
 _JACOBIAN_BASIS = _jacobian_basis()
 
 
-def frame_normal_equations(xy_inv_z: np.ndarray, points_2d: np.ndarray,
-                           k) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+def frame_normal_equations(
+    xy_inv_z: np.ndarray, points_2d: np.ndarray, k
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """One frame's Gauss-Newton normal equations under the pinhole (fx, fy, cx, cy) px ``k``.
 
     xy_inv_z (3, N): the points in {C} as X, Y (mm) and 1/Z (1/mm) (``camera_xy_inverse_depth``);

@@ -1,4 +1,5 @@
 """Poses from correspondences: the closed-form starts (SQPnP, DLT) and the degeneracy check."""
+
 from __future__ import annotations
 
 import cv2
@@ -33,10 +34,14 @@ def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray)
     ok, rvec, tvec = cv2.solvePnP(
         np.ascontiguousarray(points_3d, dtype=np.float64),
         np.ascontiguousarray(points_2d, dtype=np.float64),
-        np.asarray(K, dtype=np.float64), None, flags=cv2.SOLVEPNP_SQPNP,
+        np.asarray(K, dtype=np.float64),
+        None,
+        flags=cv2.SOLVEPNP_SQPNP,
     )
-    if not ok or not ((cv2.checkRange(rvec)[0] and cv2.checkRange(tvec)[0])  # fast; refuses +DBL_MAX too
-                      or (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))):
+    if not ok or not (
+        (cv2.checkRange(rvec)[0] and cv2.checkRange(tvec)[0])  # fast; refuses +DBL_MAX too
+        or (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))
+    ):
         raise InputError("PnP failed: no camera pose explains these correspondences")
     return rvec.ravel(), tvec.ravel()
 

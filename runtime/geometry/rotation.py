@@ -1,4 +1,5 @@
 """Rotations: axis-angle rvec (rad) <-> 3x3 matrices, and the left pose update."""
+
 from __future__ import annotations
 
 import cv2

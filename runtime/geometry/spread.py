@@ -1,4 +1,5 @@
 """How points spread: covariance invariants of point sets, and whether they span 3D."""
+
 from __future__ import annotations
 
 import cv2

@@ -6,6 +6,7 @@ Renders ``--n`` photos into DIR first unless DIR already holds a ``truth.npz``; 
 (timed: photos/s) and prints the detection rate, identity errors, corner RMS against the true
 projections and the mean |K* - K_true| of the ingested frames (``render_truth.score``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,16 +41,23 @@ def main(argv=None) -> int:
     result = ingest([folder / str(f) for f in truth.frame_id], rig, workers=args.workers)
     seconds = time.monotonic() - start
     s = score(result.dataset, truth)
-    figures = {**asdict(s), "detection_rate": s.detection_rate, "workers": args.workers, "seconds": seconds,
-               "photos_per_s": s.photos / seconds}
+    figures = {
+        **asdict(s),
+        "detection_rate": s.detection_rate,
+        "workers": args.workers,
+        "seconds": seconds,
+        "photos_per_s": s.photos / seconds,
+    }
     if args.json:
         print(json.dumps(figures))
     else:
-        print(f"{s.photos} photos, {s.frames} frames: boards found {s.boards_found}/{s.boards_shown} "
-              f"({100 * s.detection_rate:.1f} %, + {s.extra_boards} not counted as whole), identity errors "
-              f"{s.identity_errors}, corner RMS {s.corner_rms_px:.3f} px (max {s.corner_max_px:.3f}), "
-              f"mean |K* - K_true| {s.k_error_px:.3f} px, {figures['photos_per_s']:.2f} photos/s "
-              f"with {args.workers} workers")
+        print(
+            f"{s.photos} photos, {s.frames} frames: boards found {s.boards_found}/{s.boards_shown} "
+            f"({100 * s.detection_rate:.1f} %, + {s.extra_boards} not counted as whole), identity errors "
+            f"{s.identity_errors}, corner RMS {s.corner_rms_px:.3f} px (max {s.corner_max_px:.3f}), "
+            f"mean |K* - K_true| {s.k_error_px:.3f} px, {figures['photos_per_s']:.2f} photos/s "
+            f"with {args.workers} workers"
+        )
     return 0
 
 

@@ -23,6 +23,7 @@ one keeps the corners found (the others NaN).
 Pixels: x right, y down, origin at the centre of the top-left pixel; a point at x in a copy
 reduced by an integer factor f (``INTER_AREA``) lies at f·(x + 0.5) − 0.5 natively.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -65,8 +66,9 @@ def charuco_board(board: Board) -> cv2.aruco.CharucoBoard:
     nx, ny = board.inner_corners
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, a.dictionary))
     n_markers = (nx + 1) * (ny + 1) // 2
-    return cv2.aruco.CharucoBoard((nx + 1, ny + 1), board.square_mm, a.marker_mm, dictionary,
-                                  np.arange(a.first_id, a.first_id + n_markers))
+    return cv2.aruco.CharucoBoard(
+        (nx + 1, ny + 1), board.square_mm, a.marker_mm, dictionary, np.arange(a.first_id, a.first_id + n_markers)
+    )
 
 
 def reduction(shape: tuple[int, ...], width_px: int) -> int:
@@ -109,8 +111,14 @@ def pattern_outline(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndar
     """(4, 2) px the board's outline MASK_MARGIN_SQUARES beyond its outer inner corners (perspective-exact)."""
     nx, ny = pattern
     margin = MASK_MARGIN_SQUARES
-    box = np.array([[[-margin, -margin]], [[nx - 1 + margin, -margin]], [[nx - 1 + margin, ny - 1 + margin]],
-                    [[-margin, ny - 1 + margin]]])
+    box = np.array(
+        [
+            [[-margin, -margin]],
+            [[nx - 1 + margin, -margin]],
+            [[nx - 1 + margin, ny - 1 + margin]],
+            [[-margin, ny - 1 + margin]],
+        ]
+    )
     return cv2.perspectiveTransform(box, grid_homography(corners_px, pattern)).reshape(4, 2)
 
 
@@ -126,7 +134,9 @@ def cascade(shape: tuple[int, ...]) -> list[tuple[int, str]]:
     return list(dict.fromkeys((reduction(shape, DETECT_WIDTHS_PX[k]), detector) for k, detector in CASCADE))
 
 
-def find_one(copies: dict[int, np.ndarray], pattern: tuple[int, int], steps: list[tuple[int, str]]) -> Optional[np.ndarray]:
+def find_one(
+    copies: dict[int, np.ndarray], pattern: tuple[int, int], steps: list[tuple[int, str]]
+) -> Optional[np.ndarray]:
     """Native px (nx·ny, 2) of one board found by the first of ``steps`` that succeeds, or None."""
     for factor, detector in steps:
         if detector == "classic":
@@ -138,8 +148,14 @@ def find_one(copies: dict[int, np.ndarray], pattern: tuple[int, int], steps: lis
     return None
 
 
-def find_plain(copies: dict[int, np.ndarray], pattern: tuple[int, int], max_count: int,
-               steps: list[tuple[int, str]], found_before: int, thorough: bool) -> list[np.ndarray]:
+def find_plain(
+    copies: dict[int, np.ndarray],
+    pattern: tuple[int, int],
+    max_count: int,
+    steps: list[tuple[int, str]],
+    found_before: int,
+    thorough: bool,
+) -> list[np.ndarray]:
     """Up to ``max_count`` boards of one pattern (native px, unrefined): find one, mask it, repeat.
 
     The fallback ``steps`` (after the first) are tried only while fewer than FALLBACK_BELOW boards are
@@ -175,8 +191,9 @@ def window_inside(corners_px: np.ndarray, half_px: int, shape: tuple[int, ...]) 
     return (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
 
 
-def refine(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int],
-           window_fraction: float = SUBPIX_WINDOW_FRACTION) -> np.ndarray:
+def refine(
+    gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], window_fraction: float = SUBPIX_WINDOW_FRACTION
+) -> np.ndarray:
     """Sub-pixel corners (nx·ny, 2) px on the native grey image (``cv2.cornerSubPix``).
 
     The half-window is ``window_fraction`` of the smallest corner spacing (clipped to SUBPIX_WINDOW_PX).
@@ -200,7 +217,9 @@ def grid_fit(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
     if np.isfinite(corners_px[:, 0]).sum() < 4:
         return np.full_like(grid, np.nan)
     H = grid_homography(corners_px, pattern)
-    return np.full_like(grid, np.nan) if H is None else cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H).reshape(-1, 2)
+    return (
+        np.full_like(grid, np.nan) if H is None else cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H).reshape(-1, 2)
+    )
 
 
 def off_grid(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
@@ -270,7 +289,8 @@ def find_charuco(gray: np.ndarray, rig: Rig) -> dict[int, np.ndarray]:
         if marker_ids is None:
             continue
         corners, ids, _, _ = cv2.aruco.CharucoDetector(charuco_board(board)).detectBoard(
-            small, markerCorners=marker_corners, markerIds=marker_ids)
+            small, markerCorners=marker_corners, markerIds=marker_ids
+        )
         if ids is None or len(ids) < MIN_CHARUCO_CORNERS:
             continue
         native = np.full((board.n_points, 2), np.nan)

@@ -18,6 +18,7 @@ identical, so a detection may be any of them, turned by any symmetry of its grid
 
 Pixels: x right, y down; 3D in mm in the rig frame {W}.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -73,15 +74,22 @@ def options(detection: Detection, rig: Rig) -> Options:
     if detection.board is not None:
         pairs = [(detection.board, np.arange(len(detection.corners_px)))]
     else:
-        pairs = [(b, perm) for b, board in enumerate(rig.boards)
-                 if board.aruco is None and board.inner_corners == detection.pattern
-                 for perm in grid_symmetries(detection.pattern)]
-    return Options(board=np.array([b for b, _ in pairs]), corners_px=np.stack([detection.corners_px[p] for _, p in pairs]),
-                   rig_index=np.stack([start[b] + np.arange(len(p)) for b, p in pairs]))
+        pairs = [
+            (b, perm)
+            for b, board in enumerate(rig.boards)
+            if board.aruco is None and board.inner_corners == detection.pattern
+            for perm in grid_symmetries(detection.pattern)
+        ]
+    return Options(
+        board=np.array([b for b, _ in pairs]),
+        corners_px=np.stack([detection.corners_px[p] for _, p in pairs]),
+        rig_index=np.stack([start[b] + np.arange(len(p)) for b, p in pairs]),
+    )
 
 
-def correspondences(opts: list[Options], labelling: tuple[int, ...], rig_points: np.ndarray, fixed_2d: np.ndarray,
-                    fixed_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def correspondences(
+    opts: list[Options], labelling: tuple[int, ...], rig_points: np.ndarray, fixed_2d: np.ndarray, fixed_3d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Under a labelling (one candidate index per detection): the found corners plus the fixed points,
     (n, 2) px and (n, 3) mm, and every rig corner's pixel (P, 2) in rig order, NaN where not found."""
     corners = np.full((len(rig_points), 2), np.nan)
@@ -118,20 +126,36 @@ def complete(seed: tuple[int, ...], opts: list[Options], predicted_px: np.ndarra
     return tuple(chosen[r] for r in range(len(opts)))
 
 
-def refit(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray,
-          tvec: np.ndarray) -> tuple[np.ndarray, least_squares.FitResult]:
+def refit(
+    points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
+) -> tuple[np.ndarray, least_squares.FitResult]:
     """Single-frame calibration (K and pose free, LM from the given start) of B labellings: points_2d
     (B, n, 2) px, points_3d (B, n, 3) mm. Returns the RMS (B,) px, inf where the points do not span 3D
     (K not observable), and the fit (K, pose)."""
-    fit = least_squares.fit(points_2d, points_3d, np.ones(points_2d.shape[:2]), np.broadcast_to(K, (len(rvec), 3, 3)),
-                            rvec, tvec, fit_k=True)
+    fit = least_squares.fit(
+        points_2d,
+        points_3d,
+        np.ones(points_2d.shape[:2]),
+        np.broadcast_to(K, (len(rvec), 3, 3)),
+        rvec,
+        tvec,
+        fit_k=True,
+    )
     err = reprojection_errors(points_2d, points_3d, fit.K, fit.rvec, fit.tvec)
     rms = np.sqrt(np.mean(err**2, axis=1))
     return np.where([spans_3d(p, RIG_VIEW_RATIO) for p in points_3d], rms, np.inf), fit
 
 
-def identify(detections: list[Detection], rig: Rig, K_rough: np.ndarray, fixed_2d: np.ndarray = np.empty((0, 2)),
-             fixed_3d: np.ndarray = np.empty((0, 3))) -> Identification:
+_NO_POINTS_2D, _NO_POINTS_3D = np.empty((0, 2)), np.empty((0, 3))  # no fixed correspondences
+
+
+def identify(
+    detections: list[Detection],
+    rig: Rig,
+    K_rough: np.ndarray,
+    fixed_2d: np.ndarray = _NO_POINTS_2D,
+    fixed_3d: np.ndarray = _NO_POINTS_3D,
+) -> Identification:
     """Label every detection with its rig board (see the module doc). ``fixed_2d`` (m, 2) px and
     ``fixed_3d`` (m, 3) mm are known correspondences (labelled natural points) used in every fit.
 
@@ -157,17 +181,30 @@ def identify(detections: list[Detection], rig: Rig, K_rough: np.ndarray, fixed_2
     if not best:
         raise IdentificationError("no labelling of the boards found gives a camera pose")
     p2, p3, corners = zip(*(correspondences(opts, lab, rig_points, fixed_2d, fixed_3d) for lab in best))
-    rms, fit = refit(np.stack(p2), np.stack(p3), K_rough, np.stack([scored[lab][1] for lab in best]),
-                     np.stack([scored[lab][2] for lab in best]))
+    rms, fit = refit(
+        np.stack(p2),
+        np.stack(p3),
+        K_rough,
+        np.stack([scored[lab][1] for lab in best]),
+        np.stack([scored[lab][2] for lab in best]),
+    )
     rank = np.argsort(rms)
     win = int(rank[0])
     if not np.isfinite(rms[win]):
         raise CalibrationError("the points found lie (nearly) in one plane: K is not observable from this photo")
     runner_up = float(rms[rank[1]]) if len(rank) > 1 else float("inf")
     if runner_up < AMBIGUITY_RATIO * rms[win]:
-        raise IdentificationError(f"ambiguous board identity: the best labelling leaves {rms[win]:.2f} px RMS, "
-                                  f"the next {runner_up:.2f} px (needs {AMBIGUITY_RATIO:g}x apart)")
+        raise IdentificationError(
+            f"ambiguous board identity: the best labelling leaves {rms[win]:.2f} px RMS, "
+            f"the next {runner_up:.2f} px (needs {AMBIGUITY_RATIO:g}x apart)"
+        )
     boards = dict(zip(order, (int(o.board[c]) for o, c in zip(opts, best[win]))))
-    return Identification(corners_px=corners[win], boards=tuple(boards[i] for i in range(len(detections))),
-                          K=fit.K[win], rvec=fit.rvec[win], tvec=fit.tvec[win], rms_px=float(rms[win]),
-                          runner_up_rms_px=runner_up)
+    return Identification(
+        corners_px=corners[win],
+        boards=tuple(boards[i] for i in range(len(detections))),
+        K=fit.K[win],
+        rvec=fit.rvec[win],
+        tvec=fit.tvec[win],
+        rms_px=float(rms[win]),
+        runner_up_rms_px=runner_up,
+    )

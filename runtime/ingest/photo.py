@@ -4,6 +4,7 @@ The EXIF orientation is reported, never applied: K belongs to the sensor's pixel
 photo of one camera keeps one image size and one pixel frame however the phone was held (a
 turned or upside-down photo is told apart by the board identification instead).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -32,10 +33,10 @@ def tiff_orientation(tiff: bytes) -> int:
     if order is None or len(tiff) < 8:
         return 1
     ifd = int.from_bytes(tiff[4:8], order)
-    count = int.from_bytes(tiff[ifd:ifd + 2], order) if ifd + 2 <= len(tiff) else 0
+    count = int.from_bytes(tiff[ifd : ifd + 2], order) if ifd + 2 <= len(tiff) else 0
     for entry in range(ifd + 2, min(ifd + 2 + 12 * count, len(tiff) - 11), 12):
-        if int.from_bytes(tiff[entry:entry + 2], order) == EXIF_ORIENTATION_TAG:
-            value = int.from_bytes(tiff[entry + 8:entry + 10], order)
+        if int.from_bytes(tiff[entry : entry + 2], order) == EXIF_ORIENTATION_TAG:
+            value = int.from_bytes(tiff[entry + 8 : entry + 10], order)
             return value if 1 <= value <= 8 else 1
     return 1
 
@@ -46,9 +47,9 @@ def exif_orientation(data: bytes) -> int:
         return 1
     pos = 2
     while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] not in (0xD9, 0xDA):
-        length = int.from_bytes(data[pos + 2:pos + 4], "big")
-        if data[pos + 1] == 0xE1 and data[pos + 4:pos + 10] == b"Exif\x00\x00":
-            return tiff_orientation(data[pos + 10:pos + 2 + length])
+        length = int.from_bytes(data[pos + 2 : pos + 4], "big")
+        if data[pos + 1] == 0xE1 and data[pos + 4 : pos + 10] == b"Exif\x00\x00":
+            return tiff_orientation(data[pos + 10 : pos + 2 + length])
         pos += 2 + length
     return 1
 

@@ -13,14 +13,16 @@ NaN where not found), then the object's points (OBJECT.csv order) where labelled
 frame every valid point is in ``infer_mask``; on a natural frame only the labelled points.
 ``frame_id`` is the photo's file name. Specified in models_spec/ingest.md.
 """
+
 from __future__ import annotations
 
 import hashlib
 import multiprocessing
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -93,11 +95,19 @@ def ingest_photo(path: Path, rig: Rig, labels: Optional[ImageLabels], object_poi
     n_points = int(np.isfinite(found.corners_px[:, 0]).sum()) + len(fixed_3d)
     if n_points < MIN_POINTS_PER_FRAME:
         return replace(result, skipped=f"{n_points} points found, a frame needs {MIN_POINTS_PER_FRAME}")
-    return replace(result, corners_px=found.corners_px, boards=tuple(sorted(found.boards)), K=found.K,
-                   rms_px=found.rms_px, runner_up_rms_px=found.runner_up_rms_px)
+    return replace(
+        result,
+        corners_px=found.corners_px,
+        boards=tuple(sorted(found.boards)),
+        K=found.K,
+        rms_px=found.rms_px,
+        runner_up_rms_px=found.runner_up_rms_px,
+    )
 
 
-def boards_in_view(rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+def boards_in_view(
+    rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, image_size: tuple[int, int]
+) -> np.ndarray:
     """(B,) whether each rig board, seen by the camera (K px, pose {W}->{C}), lies in front of it, faces it
     and has every corner at least IN_VIEW_MARGIN_PX inside the (width, height) image."""
     w, h = image_size
@@ -107,8 +117,13 @@ def boards_in_view(rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, 
         points = board.points()
         px = project(points, K, rvec, tvec)
         inside = np.all((px >= IN_VIEW_MARGIN_PX) & (px <= np.array([w - 1, h - 1]) - IN_VIEW_MARGIN_PX))
-        seen.append(bool(inside and np.all(to_camera(points, rvec, tvec)[:, 2] > 0)
-                         and facing(points[:1], -board.normal()[None], camera)[0]))
+        seen.append(
+            bool(
+                inside
+                and np.all(to_camera(points, rvec, tvec)[:, 2] > 0)
+                and facing(points[:1], -board.normal()[None], camera)[0]
+            )
+        )
     return np.array(seen)
 
 
@@ -127,14 +142,16 @@ def frame_split(result: PhotoResult, split: str) -> str:
     return "test" if result.labels is not None else auto_split(result.name)
 
 
-def _results(paths: list[Path], rig: Rig, labels: dict[str, ImageLabels], object_points_mm: np.ndarray,
-             workers: int) -> Iterator[PhotoResult]:
+def _results(
+    paths: list[Path], rig: Rig, labels: dict[str, ImageLabels], object_points_mm: np.ndarray, workers: int
+) -> Iterator[PhotoResult]:
     jobs = ([p, rig, labels.get(p.name), object_points_mm] for p in paths)
     if workers == 1:
         yield from (ingest_photo(*job) for job in jobs)
         return
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=cv2.setNumThreads, initargs=(1,)) as pool:
+    with ProcessPoolExecutor(
+        workers, mp_context=multiprocessing.get_context("spawn"), initializer=cv2.setNumThreads, initargs=(1,)
+    ) as pool:
         yield from pool.map(ingest_photo, *zip(*jobs))
 
 
@@ -149,7 +166,9 @@ def check_inputs(paths: list[Path], labels: dict[str, ImageLabels], split: str, 
         raise IngestError(f"workers must be >= 1, got {workers}")
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
-        raise IngestError(f"{missing[0]}: no such photo" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        raise IngestError(
+            f"{missing[0]}: no such photo" + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else "")
+        )
     names = [p.name for p in paths]
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
@@ -163,9 +182,16 @@ def assemble(results: list[PhotoResult], rig: Rig, obj: Optional[NaturalObject],
     """The dataset of the accepted photos, in order. A photo whose image size differs from the first
     accepted photo's is skipped (one dataset, one image size)."""
     size = next((r.image_size for r in results if r.skipped is None), None)
-    results = [replace(r, skipped=f"image size {r.image_size[0]}x{r.image_size[1]} px differs from the "
-                                  f"dataset's {size[0]}x{size[1]} px")
-               if r.skipped is None and r.image_size != size else r for r in results]
+    results = [
+        replace(
+            r,
+            skipped=f"image size {r.image_size[0]}x{r.image_size[1]} px differs from the "
+            f"dataset's {size[0]}x{size[1]} px",
+        )
+        if r.skipped is None and r.image_size != size
+        else r
+        for r in results
+    ]
     accepted = [r for r in results if r.skipped is None]
     splits = tuple(frame_split(r, split) if r.skipped is None else None for r in results)
     if not accepted:
@@ -184,18 +210,38 @@ def assemble(results: list[PhotoResult], rig: Rig, obj: Optional[NaturalObject],
     valid = np.isfinite(p2[..., 0])
     natural = np.array([r.labels is not None for r in accepted])
     infer = valid & np.where(natural[:, None], np.arange(P) >= n_rig, True)
-    meta = {"generator": GENERATOR, "version": __version__, "units": {"2d": "px", "3d": "mm"}, "rig": rig_to_dict(rig),
-            "object_points": [] if obj is None else list(obj.point_ids), "split": split}
-    dataset = Dataset(image_size=np.array(size, np.int64), points_2d=p2, points_3d=p3, valid=valid, infer_mask=infer,
-                      split=np.array([s for s in splits if s is not None]),
-                      scene=np.where(natural, "natural", "rig"), meta=meta,
-                      frame_id=np.array([r.name for r in accepted]))
+    meta = {
+        "generator": GENERATOR,
+        "version": __version__,
+        "units": {"2d": "px", "3d": "mm"},
+        "rig": rig_to_dict(rig),
+        "object_points": [] if obj is None else list(obj.point_ids),
+        "split": split,
+    }
+    dataset = Dataset(
+        image_size=np.array(size, np.int64),
+        points_2d=p2,
+        points_3d=p3,
+        valid=valid,
+        infer_mask=infer,
+        split=np.array([s for s in splits if s is not None]),
+        scene=np.where(natural, "natural", "rig"),
+        meta=meta,
+        frame_id=np.array([r.name for r in accepted]),
+    )
     return Ingestion(dataset=dataset, results=tuple(results), splits=splits)
 
 
-def ingest(paths: Iterable[str | Path], rig: Rig, *, split: str = "auto", obj: Optional[NaturalObject] = None,
-           labels: Optional[dict[str, ImageLabels]] = None, workers: int = 1,
-           progress: Callable[[Iterator[PhotoResult]], Iterable[PhotoResult]] = iter) -> Ingestion:
+def ingest(
+    paths: Iterable[str | Path],
+    rig: Rig,
+    *,
+    split: str = "auto",
+    obj: Optional[NaturalObject] = None,
+    labels: Optional[dict[str, ImageLabels]] = None,
+    workers: int = 1,
+    progress: Callable[[Iterator[PhotoResult]], Iterable[PhotoResult]] = iter,
+) -> Ingestion:
     """Ingest photos of ``rig`` (see the module doc); ``labels`` by photo file name need ``obj``.
 
     ``progress`` wraps the iterator of per-photo results (e.g. ``dimenet.runtime.cli.progress.progress``).
@@ -214,22 +260,35 @@ def ingest(paths: Iterable[str | Path], rig: Rig, *, split: str = "auto", obj: O
 def report(ingestion: Ingestion, rig: Rig) -> dict:
     """The JSON report: one entry per photo (boards, corners, labels, K as fx, fy, cx, cy, RMS, split or why
     skipped) and totals."""
+
     def finite(x: Optional[float]) -> Optional[float]:
         return None if x is None or not np.isfinite(x) else round(float(x), 4)
 
     photos = []
     for r, s in zip(ingestion.results, ingestion.splits):
-        photos.append({"photo": r.name, "scene": "natural" if r.labels is not None else "rig", "split": s,
-                       "boards": [rig.boards[b].name for b in r.boards],
-                       "corners": 0 if r.corners_px is None else int(np.isfinite(r.corners_px[:, 0]).sum()),
-                       "labels": 0 if r.labels is None else len(r.labels.index),
-                       "K_px": None if r.K is None else [round(float(v), 2) for v in k_params(r.K)], "rms_px": finite(r.rms_px),
-                       "runner_up_rms_px": finite(r.runner_up_rms_px), "exif_orientation": r.exif_orientation,
-                       "skipped": r.skipped})
+        photos.append(
+            {
+                "photo": r.name,
+                "scene": "natural" if r.labels is not None else "rig",
+                "split": s,
+                "boards": [rig.boards[b].name for b in r.boards],
+                "corners": 0 if r.corners_px is None else int(np.isfinite(r.corners_px[:, 0]).sum()),
+                "labels": 0 if r.labels is None else len(r.labels.index),
+                "K_px": None if r.K is None else [round(float(v), 2) for v in k_params(r.K)],
+                "rms_px": finite(r.rms_px),
+                "runner_up_rms_px": finite(r.runner_up_rms_px),
+                "exif_orientation": r.exif_orientation,
+                "skipped": r.skipped,
+            }
+        )
     ds = ingestion.dataset
-    totals = {"photos": len(photos), "frames": 0 if ds is None else ds.n_frames,
-              "skipped": sum(p["skipped"] is not None for p in photos),
-              "boards": sum(len(p["boards"]) for p in photos), "corners": sum(p["corners"] for p in photos),
-              "splits": {s: sum(p["split"] == s for p in photos) for s in ("train", "test")},
-              "image_size": None if ds is None else ds.image_size.tolist()}
+    totals = {
+        "photos": len(photos),
+        "frames": 0 if ds is None else ds.n_frames,
+        "skipped": sum(p["skipped"] is not None for p in photos),
+        "boards": sum(len(p["boards"]) for p in photos),
+        "corners": sum(p["corners"] for p in photos),
+        "splits": {s: sum(p["split"] == s for p in photos) for s in ("train", "test")},
+        "image_size": None if ds is None else ds.image_size.tolist(),
+    }
     return {"generator": GENERATOR, "version": __version__, "totals": totals, "photos": photos}

@@ -12,6 +12,7 @@ One implementation, numpy only, used by training, evaluation, export checks and 
 Variants (paper Table 3): A all five channels; B PMD only; C PMD + 1/Z; D PMD + X, Y;
 E X, Y, 1/Z only.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -68,7 +69,7 @@ class FeatureSpec:
         return {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "FeatureSpec":
+    def from_dict(cls, d: dict) -> FeatureSpec:
         return cls(grid=Grid.parse(d["grid"]), variant=d["variant"], scale={k: float(v) for k, v in d["scale"].items()})
 
 
@@ -113,8 +114,9 @@ def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec) -> None:
     pmd -= np.swapaxes(points_2d, 1, 2)
 
 
-def grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None,
-                  return_points: bool = False):
+def grid_features(
+    points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None, return_points: bool = False
+):
     """The flattened, scaled grid feature of F frames: (F, spec.size) float64.
 
     points_2d (F, N, 2) px; points_3d (F, N, 3) mm in {W}; mask (F, N) bool, the inference

@@ -5,6 +5,7 @@ u is the number of columns (along x), v the number of rows (along y); the cells 
 image into u x v equal rectangles (square for the paper's 8x6 on 4032x3024: 504 px).
 Cells are numbered in lexicographic (row, column) order: index = row * u + column.
 """
+
 from __future__ import annotations
 
 import re
@@ -32,7 +33,7 @@ class Grid:
         return f"{self.cols}x{self.rows}"
 
     @classmethod
-    def parse(cls, text: str) -> "Grid":
+    def parse(cls, text: str) -> Grid:
         """'8x6' -> Grid(cols=8, rows=6)."""
         m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
         if not m:
@@ -43,13 +44,15 @@ class Grid:
         """(..., N, 2) px -> (..., N) cell index; points on or past the border go to the edge cell
         (a NaN coordinate to the first cell)."""
         points_2d = np.asarray(points_2d)
-        scale, last, axes, dtype = self._cell_constants(float(image_size[0]), float(image_size[1]),
-                                                        points_2d.dtype, points_2d.ndim)
+        scale, last, axes, dtype = self._cell_constants(
+            float(image_size[0]), float(image_size[1]), points_2d.dtype, points_2d.ndim
+        )
         # Cell coordinates (x u / width, y v / height) in the points' float type, stored
         # coordinate-major, clamped to [0, u - 1] x [0, v - 1] (fmax sends NaN to 0), then
         # floored by the cast to integers (exact: they are >= 0).
-        xy = np.multiply(points_2d.transpose(axes), scale,
-                         out=np.empty(points_2d.shape[-1:] + points_2d.shape[:-1], dtype))
+        xy = np.multiply(
+            points_2d.transpose(axes), scale, out=np.empty(points_2d.shape[-1:] + points_2d.shape[:-1], dtype)
+        )
         np.fmax(xy, 0.0, out=xy)
         np.fmin(xy, last, out=xy)
         col, row = xy.astype(np.int64)
@@ -67,7 +70,9 @@ class Grid:
             constants = _CELL_CONSTANTS[key] = (
                 np.array([self.cols / width, self.rows / height], dtype).reshape(shape),
                 np.array([self.cols - 1, self.rows - 1], dtype).reshape(shape),
-                (ndim - 1,) + tuple(range(ndim - 1)), dtype)
+                (ndim - 1,) + tuple(range(ndim - 1)),
+                dtype,
+            )
         return constants
 
 

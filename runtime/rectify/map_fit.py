@@ -18,6 +18,7 @@ correlation with the data on noisy points when the uncertainty model has one (sp
 One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
 observable even from one planar view, where the data alone cannot fix it.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -66,9 +67,18 @@ class MapFit:
     noise_px: float
 
 
-def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
-            rvec: np.ndarray, tvec: np.ndarray, *, iterations: int = ITERATIONS,
-            K_start: np.ndarray | None = None, uncertainty: Uncertainty | None = None) -> MapFit:
+def map_fit(
+    points_2d: np.ndarray,
+    points_3d: np.ndarray,
+    k_net: np.ndarray,
+    cov_net: np.ndarray,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    *,
+    iterations: int = ITERATIONS,
+    K_start: np.ndarray | None = None,
+    uncertainty: Uncertainty | None = None,
+) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
     {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
@@ -109,16 +119,24 @@ def map_fit(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov
     if residuals is None:
         residuals = np.ascontiguousarray(r.T)
     k_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
-    noise_px = weight ** -0.5
+    noise_px = weight**-0.5
     if uncertainty is not None and uncertainty.widens:
         scale = np.array(uncertainty.posterior_scale((k_cov.diagonal() / cov_net.diagonal()).tolist(), noise_px))
         k_cov = k_cov * (scale[:, None] * scale)
-    return MapFit(k=k, rvec=cv2.Rodrigues(R)[0].ravel(), tvec=tvec, k_cov=k_cov, residuals=residuals, steps=steps,
-                  noise_px=noise_px)
+    return MapFit(
+        k=k,
+        rvec=cv2.Rodrigues(R)[0].ravel(),
+        tvec=tvec,
+        k_cov=k_cov,
+        residuals=residuals,
+        steps=steps,
+        noise_px=noise_px,
+    )
 
 
-def turned_to_principal_point(R: np.ndarray, tvec: np.ndarray, K_from: np.ndarray,
-                              k_to: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def turned_to_principal_point(
+    R: np.ndarray, tvec: np.ndarray, K_from: np.ndarray, k_to: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The pose {W}->{C} (R (3, 3), tvec (3,) mm) turned so that under k_to (4,) px its pixels
     are, to first order, where they were under K_from (3, 3) px up to scale: moving the principal
     point from c_from to c_to shifts the normalised coordinates by d = (c_from - c_to) / f_to,
@@ -142,9 +160,16 @@ def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarr
     return cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1]
 
 
-def map_rectify(points_2d: np.ndarray, points_3d: np.ndarray, k_net: np.ndarray, cov_net: np.ndarray,
-                k_bounds: np.ndarray, K_c: np.ndarray, pose=None,
-                uncertainty: Uncertainty | None = None) -> tuple[MapFit | None, str | None]:
+def map_rectify(
+    points_2d: np.ndarray,
+    points_3d: np.ndarray,
+    k_net: np.ndarray,
+    cov_net: np.ndarray,
+    k_bounds: np.ndarray,
+    K_c: np.ndarray,
+    pose=None,
+    uncertainty: Uncertainty | None = None,
+) -> tuple[MapFit | None, str | None]:
     """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
     checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
     (the turned C0 pose is not k_net's optimum, so the caller's own PnP under k_net is better)

@@ -7,13 +7,15 @@ an unreadable or corrupt file, a foreign model without the spec, a spec of anoth
 version, and a graph whose input or output does not match the spec. Needs onnxruntime only
 (never onnx, never torch). See models_spec/model-v1.md.
 """
+
 from __future__ import annotations
 
 import hashlib
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Optional
 
 import numpy as np
 import onnxruntime as ort
@@ -75,29 +77,38 @@ def _check_signature(session: ort.InferenceSession, spec: ModelSpec, source: str
     """ModelError unless the graph maps float features [batch, spec.features.size] to delta_k [batch, 4]."""
     inputs, outputs = session.get_inputs(), session.get_outputs()
     if [i.name for i in inputs] != [INPUT_NAME] or [o.name for o in outputs] != [OUTPUT_NAME]:
-        raise ModelError(f"{source}: the graph must map input {INPUT_NAME!r} to output {OUTPUT_NAME!r}, "
-                         f"it maps {[i.name for i in inputs]} to {[o.name for o in outputs]}")
+        raise ModelError(
+            f"{source}: the graph must map input {INPUT_NAME!r} to output {OUTPUT_NAME!r}, "
+            f"it maps {[i.name for i in inputs]} to {[o.name for o in outputs]}"
+        )
     size = spec.features.size
     shape = inputs[0].shape
     if inputs[0].type != "tensor(float)" or len(shape) != 2 or shape[1] != size:
-        raise ModelError(f"{source}: input {INPUT_NAME!r} is {inputs[0].type} {shape}, the spec's feature "
-                         f"({spec.features.variant}, grid {spec.features.grid}) needs tensor(float) [batch, {size}]")
+        raise ModelError(
+            f"{source}: input {INPUT_NAME!r} is {inputs[0].type} {shape}, the spec's feature "
+            f"({spec.features.variant}, grid {spec.features.grid}) needs tensor(float) [batch, {size}]"
+        )
     if len(outputs[0].shape) != 2 or outputs[0].shape[1] != 4:
         raise ModelError(f"{source}: output {OUTPUT_NAME!r} has shape {outputs[0].shape}, expected [batch, 4]")
 
 
-def onnx_model_from_bytes(blob: bytes, source: str, *, threads: int = 1,
-                          providers: Optional[Sequence[str]] = None) -> OnnxModel:
+def onnx_model_from_bytes(
+    blob: bytes, source: str, *, threads: int = 1, providers: Optional[Sequence[str]] = None
+) -> OnnxModel:
     """Create the ORT session from the model's bytes and read and validate its spec."""
     options = session_options(threads)
     try:
         session = ort.InferenceSession(blob, options, providers=list(providers or DEFAULT_PROVIDERS))
     except Exception as exc:  # ORT raises its own exception types for corrupt files and bad providers
-        raise ModelError(f"{source}: not a loadable ONNX model ({type(exc).__name__}: {str(exc).strip()[:300]})") from None
+        raise ModelError(
+            f"{source}: not a loadable ONNX model ({type(exc).__name__}: {str(exc).strip()[:300]})"
+        ) from None
     text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
     if text is None:
-        raise ModelError(f"{source}: no {METADATA_KEY!r} in the ONNX metadata: not a DIME-Net model "
-                         f"(export one with `dimenet export RUN_DIR --out model.onnx`)")
+        raise ModelError(
+            f"{source}: no {METADATA_KEY!r} in the ONNX metadata: not a DIME-Net model "
+            f"(export one with `dimenet export RUN_DIR --out model.onnx`)"
+        )
     spec = ModelSpec.from_json(text, source=source)
     _check_signature(session, spec, source)
     return OnnxModel(session=session, spec=spec, source=source, sha256=hashlib.sha256(blob).hexdigest())
@@ -107,7 +118,9 @@ def load_onnx_model(path: str | Path, *, threads: int = 1, providers: Optional[S
     """Load a ``dimenet-model/1`` .onnx file (see ``onnx_model_from_bytes``)."""
     path = Path(path)
     if path.is_dir():
-        raise ModelError(f"{path}: a folder, the runtime needs a .onnx file (`dimenet export RUN_DIR --out model.onnx`)")
+        raise ModelError(
+            f"{path}: a folder, the runtime needs a .onnx file (`dimenet export RUN_DIR --out model.onnx`)"
+        )
     if not path.is_file():
         raise ModelError(f"{path}: no such model file")
     return onnx_model_from_bytes(path.read_bytes(), str(path), threads=threads, providers=providers)

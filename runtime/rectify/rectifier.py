@@ -24,13 +24,15 @@ Delta K not finite; K outside the spec's ``K_bounds``; no pose under K; or
 e(K) > (1 + WORSE_RELATIVE) e(K_c) + WORSE_ABSOLUTE_PX, i.e. the predicted K fits the
 frame's own points worse than K_c by more than 5 % + 0.05 px.
 """
+
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -206,8 +208,10 @@ def _worse_one(e: float, e_c: float) -> bool:
 
 
 def _worse_reason(e: float, e_c: float) -> str:
-    return (f"the predicted K fits worse than K_c: {e:.3f} px vs {e_c:.3f} px "
-            f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX} px)")
+    return (
+        f"the predicted K fits worse than K_c: {e:.3f} px vs {e_c:.3f} px "
+        f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX} px)"
+    )
 
 
 def _implausible_reason(delta_k: np.ndarray, K: np.ndarray) -> str:
@@ -243,8 +247,14 @@ class Rectifier:
         self._K_c = np.ascontiguousarray(spec.K_c, dtype=np.float64)
 
     @classmethod
-    def load(cls, path: Optional[str | Path] = None, *, threads: int = 1,
-             providers: Optional[Sequence[str]] = None, mode: str = "dimenet") -> "Rectifier":
+    def load(
+        cls,
+        path: Optional[str | Path] = None,
+        *,
+        threads: int = 1,
+        providers: Optional[Sequence[str]] = None,
+        mode: str = "dimenet",
+    ) -> Rectifier:
         """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model.
         ``mode``: "dimenet" (the paper's method) or "map" (the network's K as a prior, fused
         with the frame's own points)."""
@@ -252,10 +262,16 @@ class Rectifier:
             return cls(load_onnx_model(path, threads=threads, providers=providers), mode)
         resource = asset(DEFAULT_MODEL)
         if not resource.is_file():
-            raise ModelError(f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
-                             f"pass a model file from `dimenet export`")
-        return cls(onnx_model_from_bytes(resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})",
-                                         threads=threads, providers=providers), mode)
+            raise ModelError(
+                f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
+                f"pass a model file from `dimenet export`"
+            )
+        return cls(
+            onnx_model_from_bytes(
+                resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})", threads=threads, providers=providers
+            ),
+            mode,
+        )
 
     @property
     def spec(self) -> ModelSpec:
@@ -264,8 +280,9 @@ class Rectifier:
     def _frame_covariance(self, feats: np.ndarray, n_points: int, pmd_error: float, invariants_3d: tuple) -> np.ndarray:
         """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count,
         mean PMD (px) and the ``covariance_invariants`` of its 3D points."""
-        return self._uncertainty.frame_covariance(n_points, occupied_cells(feats, self._n_channels)[0], pmd_error,
-                                                  thickness(*invariants_3d))
+        return self._uncertainty.frame_covariance(
+            n_points, occupied_cells(feats, self._n_channels)[0], pmd_error, thickness(*invariants_3d)
+        )
 
     def _plausible(self, delta_k: np.ndarray) -> np.ndarray:
         """(..., 4) px -> (...,) bool: K = K_c + Delta K is finite and inside K_bounds."""
@@ -275,14 +292,18 @@ class Rectifier:
         """Every point finite and inside the model's image (as ``_inside(...).all()``): (N, 2),
         (N, 3) float64 C-contiguous, or any leading dims. OpenCV's checks first (exact for all
         but the float extremes: checkRange refuses +DBL_MAX), numpy's when they say no."""
-        if cv2.checkRange(points_3d)[0] and cv2.countNonZero(
-                cv2.inRange(points_2d.reshape(-1, 1, 2), *self._image_bounds)) == points_2d.size // 2:
+        if (
+            cv2.checkRange(points_3d)[0]
+            and cv2.countNonZero(cv2.inRange(points_2d.reshape(-1, 1, 2), *self._image_bounds)) == points_2d.size // 2
+        ):
             return True
         return bool(self._inside(points_2d, points_3d).all())
 
     def _inside(self, points_2d: np.ndarray, points_3d: np.ndarray) -> np.ndarray:
         """(..., N) bool: finite 3D point and 2D point inside the model's image."""
-        return np.all((points_2d >= self._image_low) & (points_2d <= self._image_high), -1) & np.isfinite(points_3d).all(-1)
+        return np.all((points_2d >= self._image_low) & (points_2d <= self._image_high), -1) & np.isfinite(
+            points_3d
+        ).all(-1)
 
     def _raise_bad_values(self, points_2d, points_3d, valid, where: str) -> None:
         """InputError naming the first non-finite or outside-the-image point of one frame among
@@ -294,8 +315,10 @@ class Rectifier:
                 raise InputError(f"{where}{name}: point {i} is not finite ({a[i].tolist()})")
         i = int(np.argmax(valid & ~self._inside(points_2d, points_3d)))
         width, height = self.spec.image_size
-        raise InputError(f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
-                         f"outside the {width}x{height} px image the model was trained for")
+        raise InputError(
+            f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
+            f"outside the {width}x{height} px image the model was trained for"
+        )
 
     def _validated(self, points_2d, points_3d) -> tuple[np.ndarray, np.ndarray, tuple]:
         """One frame's points as float64 (N, 2) px and (N, 3) mm with the ``covariance_invariants``
@@ -324,13 +347,25 @@ class Rectifier:
         spec, K_c = self.model.spec, self._K_c
         rvec_c, tvec_c = _sqpnp(p2, p3, K_c)
         t2 = clock()
-        feats, points = grid_features(p2[None], p3[None], None, K_c, spec.image_size, spec.features,
-                                      poses=(rvec_c[None], tvec_c[None]), return_points=True)
+        feats, points = grid_features(
+            p2[None],
+            p3[None],
+            None,
+            K_c,
+            spec.image_size,
+            spec.features,
+            poses=(rvec_c[None], tvec_c[None]),
+            return_points=True,
+        )
         t3 = clock()
         dk = self.model.frame_delta_k(feats)
         t4 = clock()
-        timings = {"validate": (t1 - t0) / 1e3, "pnp_kc": (t2 - t1) / 1e3, "features": (t3 - t2) / 1e3,
-                   "model": (t4 - t3) / 1e3}  # microseconds
+        timings = {
+            "validate": (t1 - t0) / 1e3,
+            "pnp_kc": (t2 - t1) / 1e3,
+            "features": (t3 - t2) / 1e3,
+            "model": (t4 - t3) / 1e3,
+        }  # microseconds
         dk_list = dk.tolist()
         K = frame_k_matrix([c + d for c, d in zip(self._kc_list, dk_list)])
         plausible = all(low <= d <= high for d, (low, high) in zip(dk_list, self._dk_bounds))
@@ -342,8 +377,16 @@ class Rectifier:
         rvec, tvec, dimenet_kept = rvec_c, tvec_c, False  # dimenet_kept: map failed, DIME-Net's K stands
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
-            fit, why = map_rectify(p2, p3, self._kc_params + dk, covariance(), spec.K_bounds, K_c,
-                                   pose=(rvec_c, tvec_c), uncertainty=self._uncertainty)
+            fit, why = map_rectify(
+                p2,
+                p3,
+                self._kc_params + dk,
+                covariance(),
+                spec.K_bounds,
+                K_c,
+                pose=(rvec_c, tvec_c),
+                uncertainty=self._uncertainty,
+            )
             if why is None:
                 K, dk, rvec, tvec = frame_k_matrix(fit.k.tolist()), fit.k - self._kc_params, fit.rvec, fit.tvec
                 covariance, e = partial(np.array, fit.k_cov), _mean_norm(fit.residuals.T)
@@ -375,9 +418,17 @@ class Rectifier:
         if reason is not None and not dimenet_kept:
             K, dk, rvec, tvec, e, covariance = spec.K_c.copy(), np.zeros(4), rvec_c, tvec_c, e_c, None
         timings["check"] = (clock() - t4) / 1e3
-        return Rectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
-                             delta_k=dk, fallback=reason, timings_us=timings,
-                             covariance=covariance)
+        return Rectification(
+            K=K,
+            rvec=rvec,
+            tvec=tvec,
+            reprojection_error_px=e,
+            reprojection_error_kc_px=e_c,
+            delta_k=dk,
+            fallback=reason,
+            timings_us=timings,
+            covariance=covariance,
+        )
 
     def _validated_batch(self, points_2d, points_3d, valid, infer_mask):
         """Float64 arrays and bool masks of B frames, each frame's valid points ((N_b, 2), (N_b, 3))
@@ -396,8 +447,11 @@ class Rectifier:
             raise InputError(f"frame {b}: {int(counts[b])} valid points, rectification needs at least {MIN_POINTS}")
         every = bool(valid.all())
         mask = None if every else valid
-        inside = (self._all_inside(p2, p3) if every else
-                  self._all_inside(np.where(valid[..., None], p2, 0.0), np.where(valid[..., None], p3, 0.0)))
+        inside = (
+            self._all_inside(p2, p3)
+            if every
+            else self._all_inside(np.where(valid[..., None], p2, 0.0), np.where(valid[..., None], p3, 0.0))
+        )
         if not inside:
             for b in np.flatnonzero(np.any(valid & ~self._inside(p2, p3), 1)):
                 self._raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
@@ -425,7 +479,9 @@ class Rectifier:
                 reasons[b], infer[b] = f"no K inferred: {exc}", False
         return rvec, tvec, infer
 
-    def rectify_batch(self, points_2d, points_3d, valid, *, infer_mask=None, refine: bool = False) -> BatchRectification:
+    def rectify_batch(
+        self, points_2d, points_3d, valid, *, infer_mask=None, refine: bool = False
+    ) -> BatchRectification:
         """K and pose of B frames: points_2d (B, P, 2) px, points_3d (B, P, 3) mm, valid (B, P) bool.
 
         Features of all frames are computed together and the model runs once. Poses and
@@ -448,8 +504,9 @@ class Rectifier:
             rvec_i, tvec_i = rvec_c, tvec_c
         else:
             rvec_i, tvec_i, infer = self._inference_poses(p2, p3, infer, rvec_c, tvec_c, reasons)
-        feats, points = grid_features(p2, p3, infer, K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i),
-                                      return_points=True)
+        feats, points = grid_features(
+            p2, p3, infer, K_c, spec.image_size, spec.features, poses=(rvec_i, tvec_i), return_points=True
+        )
         dk = np.asarray(self.model.delta_k(feats.astype(np.float32)), dtype=np.float64)
         K = k_matrix(self._kc_params + dk)
         plausible = self._plausible(dk)
@@ -479,8 +536,9 @@ class Rectifier:
                 stats = input_statistics(feats[pending], infer[pending].sum(1), norms, inv, self._n_channels)
                 K_cov[pending] = self._uncertainty.covariance(stats)
         if self.mode == "map":
-            self._map_batch(p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov, rvec, tvec,
-                            reasons)
+            self._map_batch(
+                p2, p3, infer, frames, same_poses, (rvec_i, tvec_i), pending, dk, K, K_cov, rvec, tvec, reasons
+            )
         if refine:
             for b, (x, X) in enumerate(frames):
                 rvec_c[b], tvec_c[b] = _refine(x, X, K_c, rvec_c[b], tvec_c[b])
@@ -493,8 +551,14 @@ class Rectifier:
             e_c = mean_reprojection_errors(p2, p3, mask, K_c, rotation_matrices(rvec_c), tvec_c)
         e = e_c.copy()
         if pending.any():
-            e[pending] = mean_reprojection_errors(p2[pending], p3[pending], None if mask is None else mask[pending],
-                                                  K[pending], rotation_matrices(rvec[pending]), tvec[pending])
+            e[pending] = mean_reprojection_errors(
+                p2[pending],
+                p3[pending],
+                None if mask is None else mask[pending],
+                K[pending],
+                rotation_matrices(rvec[pending]),
+                tvec[pending],
+            )
         for b in np.flatnonzero(pending & _worse(e, e_c)):
             reasons[b] = _worse_reason(e[b], e_c[b])
         fell_back = np.array([r is not None and not r.startswith("map:") for r in reasons])
@@ -502,18 +566,35 @@ class Rectifier:
         rvec[fell_back], tvec[fell_back], e[fell_back] = rvec_c[fell_back], tvec_c[fell_back], e_c[fell_back]
         if K_cov is not None:
             K_cov[fell_back] = np.nan
-        return BatchRectification(K=K, rvec=rvec, tvec=tvec, reprojection_error_px=e, reprojection_error_kc_px=e_c,
-                                  delta_k=dk, fallback=tuple(reasons), K_cov=K_cov)
+        return BatchRectification(
+            K=K,
+            rvec=rvec,
+            tvec=tvec,
+            reprojection_error_px=e,
+            reprojection_error_kc_px=e_c,
+            delta_k=dk,
+            fallback=tuple(reasons),
+            K_cov=K_cov,
+        )
 
-    def _map_batch(self, p2, p3, infer, frames, same_poses, poses_c0, pending, dk, K, K_cov, rvec, tvec,
-                   reasons) -> None:
+    def _map_batch(
+        self, p2, p3, infer, frames, same_poses, poses_c0, pending, dk, K, K_cov, rvec, tvec, reasons
+    ) -> None:
         """Mode map of ``rectify_batch``, in place: each pending frame's MAP K (from its inference
         points and their C0 pose ``poses_c0``) and its pose on its valid points; a frame whose MAP
         fails keeps DIME-Net's K with a "map: ..." reason (still pending: the K_c check follows)."""
         for b in np.flatnonzero(pending):
             m = infer[b]
-            fit, why = map_rectify(p2[b][m], p3[b][m], self._kc_params + dk[b], K_cov[b], self.spec.K_bounds,
-                                   self._K_c, pose=(poses_c0[0][b], poses_c0[1][b]), uncertainty=self._uncertainty)
+            fit, why = map_rectify(
+                p2[b][m],
+                p3[b][m],
+                self._kc_params + dk[b],
+                K_cov[b],
+                self.spec.K_bounds,
+                self._K_c,
+                pose=(poses_c0[0][b], poses_c0[1][b]),
+                uncertainty=self._uncertainty,
+            )
             if why is not None:
                 reasons[b] = f"map: {why}; DIME-Net's K is returned"
                 continue

@@ -3,6 +3,7 @@ network input and its output into K. Written by training (RUN_DIR/spec.json), em
 export into the ONNX ``metadata_props`` under the key ``dimenet_model_spec``, read by the
 runtime. See models_spec/model-v1.md.
 """
+
 from __future__ import annotations
 
 import json
@@ -61,22 +62,32 @@ class ModelSpec:
         return json.dumps(self.to_dict(), indent=1, sort_keys=True)
 
     @classmethod
-    def from_dict(cls, d: dict, *, source: str = "model") -> "ModelSpec":
+    def from_dict(cls, d: dict, *, source: str = "model") -> ModelSpec:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise ModelError(f"{source}: not a {FORMAT} spec (format is {d.get('format') if isinstance(d, dict) else d!r})")
+            raise ModelError(
+                f"{source}: not a {FORMAT} spec (format is {d.get('format') if isinstance(d, dict) else d!r})"
+            )
         major = str(d.get("version", "")).split(".")[0]
         if major != VERSION.split(".")[0]:
-            raise ModelError(f"{source}: spec version {d.get('version')!r} is not supported (this runtime reads {VERSION.split('.')[0]}.x)")
+            raise ModelError(
+                f"{source}: spec version {d.get('version')!r} is not supported "
+                f"(this runtime reads {VERSION.split('.')[0]}.x)"
+            )
         try:
-            return cls(features=FeatureSpec.from_dict(d["features"]), K_c=k_matrix(np.asarray(d["K_c"], float)),
-                       image_size=tuple(int(v) for v in d["image_size"]), K_bounds=np.asarray(d["K_bounds"], float),
-                       hidden=tuple(int(h) for h in d["hidden"]), provenance=dict(d.get("provenance", {})),
-                       uncertainty=Uncertainty.from_dict(d["uncertainty"]) if "uncertainty" in d else None)
+            return cls(
+                features=FeatureSpec.from_dict(d["features"]),
+                K_c=k_matrix(np.asarray(d["K_c"], float)),
+                image_size=tuple(int(v) for v in d["image_size"]),
+                K_bounds=np.asarray(d["K_bounds"], float),
+                hidden=tuple(int(h) for h in d["hidden"]),
+                provenance=dict(d.get("provenance", {})),
+                uncertainty=Uncertainty.from_dict(d["uncertainty"]) if "uncertainty" in d else None,
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"{source}: malformed {FORMAT} spec ({type(exc).__name__}: {exc})") from None
 
     @classmethod
-    def from_json(cls, text: str, *, source: str = "model") -> "ModelSpec":
+    def from_json(cls, text: str, *, source: str = "model") -> ModelSpec:
         try:
             d = json.loads(text)
         except json.JSONDecodeError as exc:
@@ -84,7 +95,7 @@ class ModelSpec:
         return cls.from_dict(d, source=source)
 
     @classmethod
-    def read(cls, path: str | Path) -> "ModelSpec":
+    def read(cls, path: str | Path) -> ModelSpec:
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no model spec file")
@@ -93,8 +104,10 @@ class ModelSpec:
     def map_uncertainty(self, source: str) -> Uncertainty:
         """The uncertainty model that MAP rectification needs, or ModelError naming ``source``."""
         if self.uncertainty is None:
-            raise ModelError(f"{source}: its spec has no uncertainty model (spec 1.0), which mode 'map' needs: "
-                             f"re-export a model trained by this release")
+            raise ModelError(
+                f"{source}: its spec has no uncertainty model (spec 1.0), which mode 'map' needs: "
+                f"re-export a model trained by this release"
+            )
         return self.uncertainty
 
     def k_within_bounds(self, K: np.ndarray) -> np.ndarray:

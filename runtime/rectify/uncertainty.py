@@ -25,6 +25,7 @@ by which mode map widens its posterior: for an estimate weighting prior and data
 is scaled by w(s) = s^2 / (s^2 + s0^2) with s the frame's 2D noise (px, the MAP fit's) and
 s0 = NOISE_SCALE_PX: at corner-level noise (0.4 px) the two read independent information.
 """
+
 from __future__ import annotations
 
 import math
@@ -61,11 +62,14 @@ class Uncertainty:
 
     def __post_init__(self):
         if not set(self.statistics) <= set(STATISTICS) or len(set(self.statistics)) != len(self.statistics):
-            raise ValueError(f"uncertainty: statistics must be distinct names among {list(STATISTICS)}, "
-                             f"got {list(self.statistics)}")
+            raise ValueError(
+                f"uncertainty: statistics must be distinct names among {list(STATISTICS)}, got {list(self.statistics)}"
+            )
         if self.coef.shape != (4, 1 + len(self.statistics)) or self.correlation.shape != (4, 4):
-            raise ValueError(f"uncertainty: coef must be 4x{1 + len(self.statistics)} and correlation 4x4, "
-                             f"got {self.coef.shape} and {self.correlation.shape}")
+            raise ValueError(
+                f"uncertainty: coef must be 4x{1 + len(self.statistics)} and correlation 4x4, "
+                f"got {self.coef.shape} and {self.correlation.shape}"
+            )
         if not (np.all(np.isfinite(self.coef)) and np.all(np.isfinite(self.correlation))):
             raise ValueError("uncertainty: coef and correlation must be finite")
         if np.any(np.linalg.eigvalsh((self.correlation + self.correlation.T) / 2) <= 0):
@@ -85,28 +89,38 @@ class Uncertainty:
         return any(self._rho)
 
     def to_dict(self) -> dict:
-        return {"parameters": list(PARAMETERS), "statistics": ["1", *self.statistics],
-                "coef": self.coef.tolist(), "correlation": self.correlation.tolist(),
-                "data_correlation": self.data_correlation.tolist(), "noise_scale_px": self.noise_scale_px}
+        return {
+            "parameters": list(PARAMETERS),
+            "statistics": ["1", *self.statistics],
+            "coef": self.coef.tolist(),
+            "correlation": self.correlation.tolist(),
+            "data_correlation": self.data_correlation.tolist(),
+            "noise_scale_px": self.noise_scale_px,
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Uncertainty":
+    def from_dict(cls, d: dict) -> Uncertainty:
         names = d.get("statistics", ["1", *STATISTICS[:3]])  # 1.1 files: the first three
         if not names or names[0] != "1":
             raise ValueError(f"uncertainty: statistics must start with the intercept '1', got {names!r}")
-        return cls(coef=np.asarray(d["coef"], dtype=np.float64),
-                   correlation=np.asarray(d["correlation"], dtype=np.float64), statistics=tuple(names[1:]),
-                   data_correlation=np.asarray(d.get("data_correlation", np.zeros(4)), dtype=np.float64),
-                   noise_scale_px=float(d.get("noise_scale_px", NOISE_SCALE_PX)))
+        return cls(
+            coef=np.asarray(d["coef"], dtype=np.float64),
+            correlation=np.asarray(d["correlation"], dtype=np.float64),
+            statistics=tuple(names[1:]),
+            data_correlation=np.asarray(d.get("data_correlation", np.zeros(4)), dtype=np.float64),
+            noise_scale_px=float(d.get("noise_scale_px", NOISE_SCALE_PX)),
+        )
 
     def posterior_scale(self, variance_ratio, noise_px: float) -> list:
         """Per parameter, the factor on the MAP posterior's standard deviation for the network's
         correlation with the data: sqrt(1 + 2 rho_p w(s) sqrt(r_p (1 - r_p))), with r_p
         (sequence of 4) the posterior over the prior variance and s = noise_px the frame's 2D
         noise. Plain floats: one frame's four numbers."""
-        w = noise_px * noise_px / (noise_px * noise_px + self.noise_scale_px ** 2)
-        return [math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(max(r * (1.0 - r), 0.0))) if rho else 1.0
-                for rho, r in zip(self._rho, variance_ratio)]
+        w = noise_px * noise_px / (noise_px * noise_px + self.noise_scale_px**2)
+        return [
+            math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(max(r * (1.0 - r), 0.0))) if rho else 1.0
+            for rho, r in zip(self._rho, variance_ratio)
+        ]
 
     def sigma(self, stats: np.ndarray) -> np.ndarray:
         """(B, 4) frame statistics (``frame_statistics``) -> (B, 4) standard deviations of
@@ -116,8 +130,12 @@ class Uncertainty:
 
     def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float, thickness_3d: float) -> np.ndarray:
         """``covariance`` of one frame from its four numbers (the runtime's single-frame path)."""
-        all_z = (math.log(n_points), math.log(occupied), math.log(max(mean_pmd_px, D_FLOOR_PX)),
-                 math.log(max(thickness_3d, T_FLOOR)))
+        all_z = (
+            math.log(n_points),
+            math.log(occupied),
+            math.log(max(mean_pmd_px, D_FLOOR_PX)),
+            math.log(max(thickness_3d, T_FLOOR)),
+        )
         s = np.exp(self.coef @ np.array((1.0, *(all_z[c] for c in self._columns))))
         return np.outer(s, s) * self.correlation
 
@@ -154,8 +172,9 @@ def occupied_cells(features: np.ndarray, n_channels: int) -> np.ndarray:
     return features.reshape(len(features), -1, n_channels).any(-1).sum(-1)  # count_nonzero(axis) is slower
 
 
-def input_statistics(features: np.ndarray, n_points: np.ndarray, pmd_norms: np.ndarray, invariants_3d: tuple,
-                     n_channels: int) -> np.ndarray:
+def input_statistics(
+    features: np.ndarray, n_points: np.ndarray, pmd_norms: np.ndarray, invariants_3d: tuple, n_channels: int
+) -> np.ndarray:
     """(B, 4) statistics of B frames' inference points from what the caller has computed anyway:
     features (B, D) their grid features, n_points (B,) their count, pmd_norms (B,) px their mean
     PMD norm (``geometry.mean_residual_norms`` of the feature's PMD rows) and invariants_3d the

@@ -16,12 +16,14 @@ Pixels are x right, y down, origin at the centre of the top-left pixel (as in ``
 3D in mm in the rig frame {W}. The truth (``truth.npz``, see models_spec/ingest.md) holds per photo
 the true K (px), the pose {W}->{C}, every rig corner's true pixel and whether its board is seen.
 """
+
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -78,9 +80,12 @@ def scaled_profile(profile: DeviceProfile, factor: float) -> DeviceProfile:
     if not factor >= 1.0:
         raise InputError(f"scale factor must be >= 1, got {factor}")
     w, h = profile.image_size_px
-    return replace(profile, image_size_px=(round(w / factor), round(h / factor)),
-                   pixel_pitch_um=profile.pixel_pitch_um * factor,
-                   centre_offset_px=tuple(c / factor for c in profile.centre_offset_px))
+    return replace(
+        profile,
+        image_size_px=(round(w / factor), round(h / factor)),
+        pixel_pitch_um=profile.pixel_pitch_um * factor,
+        centre_offset_px=tuple(c / factor for c in profile.centre_offset_px),
+    )
 
 
 def paper_rect_mm(board: Board) -> tuple[float, float, float, float]:
@@ -100,6 +105,7 @@ def paper_corners_mm(board: Board) -> np.ndarray:
 
 def paper_scene(rig: Rig) -> Scene:
     """The rig's corners with each board's whole paper (pattern + margin) as its opaque surface."""
+
     def surface(board: Board) -> np.ndarray:
         c = paper_corners_mm(board)
         return np.stack([c[0], c[1] - c[0], c[3] - c[0]])
@@ -118,7 +124,9 @@ def board_count(rig: Rig, seen: np.ndarray) -> int:
     return len(np.unique(rig.board_of_point[seen]))
 
 
-def cover_rect(paper_px: np.ndarray, image_size: tuple[int, int], rng: np.random.Generator) -> tuple[int, int, int, int]:
+def cover_rect(
+    paper_px: np.ndarray, image_size: tuple[int, int], rng: np.random.Generator
+) -> tuple[int, int, int, int]:
     """An occluder (x0, y0, x1, y1 px, inclusive) hiding 40-100 % of a board's paper from one side."""
     w, h = image_size
     lo, hi = paper_px.min(0) - 5.0, paper_px.max(0) + 5.0
@@ -133,8 +141,12 @@ def cover_rect(paper_px: np.ndarray, image_size: tuple[int, int], rng: np.random
         x0 = cut[0]
     else:
         y0 = cut[1]
-    return (int(np.clip(np.floor(x0), 0, w - 1)), int(np.clip(np.floor(y0), 0, h - 1)),
-            int(np.clip(np.ceil(x1), 0, w - 1)), int(np.clip(np.ceil(y1), 0, h - 1)))
+    return (
+        int(np.clip(np.floor(x0), 0, w - 1)),
+        int(np.clip(np.floor(y0), 0, h - 1)),
+        int(np.clip(np.ceil(x1), 0, w - 1)),
+        int(np.clip(np.ceil(y1), 0, h - 1)),
+    )
 
 
 def pattern_quad_px(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -145,18 +157,19 @@ def pattern_quad_px(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndar
     return project(local @ board.rotation().T + np.asarray(board.tvec_mm), K, rvec, tvec)
 
 
-def covered_boards(rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-                   rect: tuple[int, int, int, int]) -> np.ndarray:
+def covered_boards(
+    rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, rect: tuple[int, int, int, int]
+) -> np.ndarray:
     """(P,) whether each corner's board has its printed pattern touched by the occluder (board lost)."""
     x0, y0, x1, y1 = rect
     box = np.array([[x0, y0], [x1 + 1, y0], [x1 + 1, y1 + 1], [x0, y1 + 1]], np.float32)
-    hit = [cv2.intersectConvexConvex(pattern_quad_px(b, K, rvec, tvec).astype(np.float32), box)[0] > 0
-           for b in rig.boards]
+    hit = [
+        cv2.intersectConvexConvex(pattern_quad_px(b, K, rvec, tvec).astype(np.float32), box)[0] > 0 for b in rig.boards
+    ]
     return np.asarray(hit)[rig.board_of_point]
 
 
-def plan_shot(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool,
-              covered: bool) -> Shot:
+def plan_shot(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool, covered: bool) -> Shot:
     """Pose, K and truth of one photo: the simulator's hand-held shot (``simulator.shoot``) of the rig's papers.
 
     A covered photo puts an occluder over part of one of >= 3 boards seen; every board whose printed
@@ -166,8 +179,9 @@ def plan_shot(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, ups
     min_boards = 3 if covered else 2
     pose = upside_down_pose if upside_down else sample_pose
     for _ in range(MAX_POSE_ATTEMPTS):
-        K, rvec, tvec, px, seen = shoot(scene, profile, rng,
-                                        lambda sc, s: rig_view_ok(sc, s) and board_count(rig, s) >= min_boards, pose)
+        K, rvec, tvec, px, seen = shoot(
+            scene, profile, rng, lambda sc, s: rig_view_ok(sc, s) and board_count(rig, s) >= min_boards, pose
+        )
         if not covered:
             return Shot(K, rvec, tvec, px, seen, upside_down, -1, None)
         board = int(rng.choice(np.unique(rig.board_of_point[seen])))
@@ -195,7 +209,7 @@ def pattern_image(board: Board, texels_per_square: int) -> tuple[int, np.ndarray
         if board.aruco is None:
             i = (np.arange(size[0]) - margin) // tps
             j = (np.arange(size[1]) - margin) // tps
-            black = ((i[None, :] + j[:, None]) % 2 == 0)
+            black = (i[None, :] + j[:, None]) % 2 == 0
             inside = ((i >= 0) & (i <= nx))[None, :] & ((j >= 0) & (j <= ny))[:, None]
             return tps, np.where(black & inside, 0, 255).astype(np.uint8)
         try:
@@ -217,10 +231,12 @@ def texels_per_square(board: Board, H: np.ndarray) -> int:
     """Texels per square (even) so that a texel is about one supersample at the board's largest scale."""
     nx, ny = board.inner_corners
     s = board.square_mm
-    j, i = np.mgrid[-1:ny + 1, -1:nx + 1]
+    j, i = np.mgrid[-1 : ny + 1, -1 : nx + 1]
     grid = cv2.perspectiveTransform(np.stack([i * s, j * s], -1).reshape(-1, 1, 2).astype(np.float64), H)
     grid = grid.reshape(ny + 2, nx + 2, 2)
-    step = max(np.linalg.norm(np.diff(grid, axis=0), axis=-1).max(), np.linalg.norm(np.diff(grid, axis=1), axis=-1).max())
+    step = max(
+        np.linalg.norm(np.diff(grid, axis=0), axis=-1).max(), np.linalg.norm(np.diff(grid, axis=1), axis=-1).max()
+    )
     return int(min(MAX_TEXELS_PER_SQUARE, 2 * np.ceil(SUPERSAMPLE * step / 2)))
 
 
@@ -234,8 +250,16 @@ def inverse_depth(board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarra
     return (np.float32(a[0]) * u[None, :] + np.float32(a[1]) * v[:, None] + np.float32(a[2])).astype(np.float32)
 
 
-def draw_board(canvas: np.ndarray, zbuf: np.ndarray, board: Board, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray,
-               white: float, black: float) -> None:
+def draw_board(
+    canvas: np.ndarray,
+    zbuf: np.ndarray,
+    board: Board,
+    K: np.ndarray,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    white: float,
+    black: float,
+) -> None:
     """Composite the board's paper onto ``canvas`` (h, w, 3) float32 in place, anti-aliased, depth-tested.
 
     ``zbuf`` (h, w) holds the inverse depth (1/mm, 0 = nothing) of what is drawn and is updated;
@@ -254,18 +278,21 @@ def draw_board(canvas: np.ndarray, zbuf: np.ndarray, board: Board, K: np.ndarray
     t = board.square_mm / tps
     texel_to_board = np.array([[t, 0.0, x0 + 0.5 * t], [0.0, t, y0 + 0.5 * t], [0.0, 0.0, 1.0]])
     ss = SUPERSAMPLE
-    sample_to_image = np.array([[1 / ss, 0.0, lo[0] + 0.5 / ss - 0.5], [0.0, 1 / ss, lo[1] + 0.5 / ss - 0.5], [0.0, 0.0, 1.0]])
+    sample_to_image = np.array(
+        [[1 / ss, 0.0, lo[0] + 0.5 / ss - 0.5], [0.0, 1 / ss, lo[1] + 0.5 / ss - 0.5], [0.0, 0.0, 1.0]]
+    )
     M = np.linalg.inv(sample_to_image) @ H @ texel_to_board
     src = np.dstack([pattern, np.full_like(pattern, 255)])
-    warped = cv2.warpPerspective(src, M, (ss * w, ss * h), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    warped = cv2.warpPerspective(
+        src, M, (ss * w, ss * h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     small = cv2.resize(warped, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
     inv = inverse_depth(board, K, rvec, tvec, lo, hi)
-    depth = zbuf[lo[1]:hi[1], lo[0]:hi[0]]
+    depth = zbuf[lo[1] : hi[1], lo[0] : hi[0]]
     front = (inv > depth).astype(np.float32)[..., None]
     ink, alpha = small[..., 0:1] * front, small[..., 1:2] * front
     depth[alpha[..., 0] > 0] = inv[alpha[..., 0] > 0]
-    roi = canvas[lo[1]:hi[1], lo[0]:hi[0]]
+    roi = canvas[lo[1] : hi[1], lo[0] : hi[0]]
     roi *= 1.0 - alpha
     roi += black * alpha + (white - black) * ink
 
@@ -315,8 +342,9 @@ def sensor(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
-def render_photo(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool = False,
-                 covered: bool = False) -> tuple[np.ndarray, Shot]:
+def render_photo(
+    rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool = False, covered: bool = False
+) -> tuple[np.ndarray, Shot]:
     """One photo (h, w, 3) uint8 BGR and its truth."""
     shot = plan_shot(rig, profile, rng, upside_down=upside_down, covered=covered)
     canvas = clutter(profile.image_size_px, rng)
@@ -332,7 +360,7 @@ def render_photo(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, 
         draw_board(canvas, zbuf, board, shot.K, shot.rvec, shot.tvec, white, white * float(rng.uniform(0.08, 0.18)))
     if shot.cover_px is not None:
         x0, y0, x1, y1 = shot.cover_px
-        canvas[y0:y1 + 1, x0:x1 + 1] = rng.uniform(30, 220, 3).astype(np.float32)
+        canvas[y0 : y1 + 1, x0 : x1 + 1] = rng.uniform(30, 220, 3).astype(np.float32)
     canvas *= rng.uniform(0.93, 1.07, 3).astype(np.float32)  # white balance
     return sensor(canvas, rng), shot
 
@@ -358,20 +386,37 @@ def encode(img: np.ndarray, fmt: str) -> bytes:
     return buf.tobytes()
 
 
-def truth_arrays(rig: Rig, profile: DeviceProfile, seed: int, files: list[str], shots: list[Shot]) -> dict[str, np.ndarray]:
+def truth_arrays(
+    rig: Rig, profile: DeviceProfile, seed: int, files: list[str], shots: list[Shot]
+) -> dict[str, np.ndarray]:
     """The ``truth.npz`` arrays (see models_spec/ingest.md)."""
-    meta = {"generator": GENERATOR, "version": __version__, "seed": int(seed), "profile": profile.name,
-            "device": asdict(profile), "rig": rig_to_dict(rig), "units": {"2d": "px", "3d": "mm"}}
-    return {"frame_id": np.array(files), "K": np.stack([s.K for s in shots]), "rvec": np.stack([s.rvec for s in shots]),
-            "tvec": np.stack([s.tvec for s in shots]), "corners_px": np.stack([s.corners_px for s in shots]),
-            "seen": np.stack([s.seen for s in shots]),
-            "board_of_point": rig.board_of_point, "upside_down": np.array([s.upside_down for s in shots]),
-            "covered_board": np.array([s.covered_board for s in shots], np.int64),
-            "image_size": np.array(profile.image_size_px, np.int64), "meta": np.array(json.dumps(meta, sort_keys=True))}
+    meta = {
+        "generator": GENERATOR,
+        "version": __version__,
+        "seed": int(seed),
+        "profile": profile.name,
+        "device": asdict(profile),
+        "rig": rig_to_dict(rig),
+        "units": {"2d": "px", "3d": "mm"},
+    }
+    return {
+        "frame_id": np.array(files),
+        "K": np.stack([s.K for s in shots]),
+        "rvec": np.stack([s.rvec for s in shots]),
+        "tvec": np.stack([s.tvec for s in shots]),
+        "corners_px": np.stack([s.corners_px for s in shots]),
+        "seen": np.stack([s.seen for s in shots]),
+        "board_of_point": rig.board_of_point,
+        "upside_down": np.array([s.upside_down for s in shots]),
+        "covered_board": np.array([s.covered_board for s in shots], np.int64),
+        "image_size": np.array(profile.image_size_px, np.int64),
+        "meta": np.array(json.dumps(meta, sort_keys=True)),
+    }
 
 
-def write_render(out_dir: str | Path, rig: Rig, profile: DeviceProfile, n: int, *, seed: int = 0, fmt: str = "jpg",
-                 progress=iter) -> Path:
+def write_render(
+    out_dir: str | Path, rig: Rig, profile: DeviceProfile, n: int, *, seed: int = 0, fmt: str = "jpg", progress=iter
+) -> Path:
     """Render ``n`` photos into ``out_dir`` as photo-0000.<fmt>, … and write ``truth.npz``; returns its path.
 
     ``progress`` wraps the photo iterator (e.g. ``dimenet.runtime.cli.progress.progress``).
@@ -386,7 +431,7 @@ def write_render(out_dir: str | Path, rig: Rig, profile: DeviceProfile, n: int, 
     for k, (img, shot) in enumerate(progress(photos)):
         name = f"photo-{k:04d}.{fmt}"
         data = encode(img, fmt)
-        atomic_write(out / name, lambda f: f.write(data))
+        atomic_write(out / name, lambda f, data=data: f.write(data))
         files.append(name)
         shots.append(shot)
     arrays = truth_arrays(rig, profile, seed, files, shots)

@@ -4,6 +4,7 @@ Scores: boards found among those the renderer shows whole, boards put on the wro
 turned the wrong way, corner error (px) against the true projections, and the per-frame K* of
 the ingested points against the renderer's K.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -90,8 +91,14 @@ def score(dataset: Dataset, truth: Truth) -> IngestScore:
                 errors.append(err)
     err = np.concatenate(errors) if errors else np.array([np.nan])
     K_star = oracle_fit(dataset.points_2d, dataset.points_3d, dataset.valid)[0]
-    return IngestScore(photos=len(truth.frame_id), frames=dataset.n_frames, boards_shown=int(shown.sum()),
-                       boards_found=int((found & shown).sum()), extra_boards=int((found & ~shown).sum()),
-                       identity_errors=identity_errors, corner_rms_px=float(np.sqrt(np.mean(err**2))),
-                       corner_max_px=float(err.max()),
-                       k_error_px=float(np.abs(k_params(K_star) - k_params(truth.K[rows])).mean()))
+    return IngestScore(
+        photos=len(truth.frame_id),
+        frames=dataset.n_frames,
+        boards_shown=int(shown.sum()),
+        boards_found=int((found & shown).sum()),
+        extra_boards=int((found & ~shown).sum()),
+        identity_errors=identity_errors,
+        corner_rms_px=float(np.sqrt(np.mean(err**2))),
+        corner_max_px=float(err.max()),
+        k_error_px=float(np.abs(k_params(K_star) - k_params(truth.K[rows])).mean()),
+    )

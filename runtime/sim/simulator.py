@@ -14,6 +14,7 @@ Physics (see models_spec/simulator.md for every parameter, value and source):
 ``simulate`` returns a ``dimenet-dataset/1`` Dataset: the rig frames in the train/test splits
 of the paper's Table 1 and, optionally, natural-scene frames (paper's LEGO test) in test.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
@@ -69,17 +70,44 @@ class DeviceProfile:
         return np.array([(w - 1) / 2.0, (h - 1) / 2.0]) + np.asarray(self.centre_offset_px)
 
 
-PROFILES = {p.name: p for p in (
-    DeviceProfile(name="galaxy-s8", focal_length_mm=4.25, pixel_pitch_um=1.4, shake_sigma_deg=1.4,
-                  ois_stroke_deg=1.5, corner_sigma_px=0.36, n_train=185, n_test=47,
-                  centre_offset_px=(9.0, -6.0)),
-    DeviceProfile(name="iphone-12-pro", focal_length_mm=4.2, pixel_pitch_um=1.4, shake_sigma_deg=0.77,
-                  ois_stroke_deg=1.0, corner_sigma_px=0.37, n_train=164, n_test=42,
-                  centre_offset_px=(-7.0, 5.0)),
-    DeviceProfile(name="ipad-mini-6", focal_length_mm=4.0, pixel_pitch_um=1.3, shake_sigma_deg=0.5,
-                  ois_stroke_deg=0.8, corner_sigma_px=0.26, n_train=224, n_test=57,
-                  centre_offset_px=(5.0, 8.0)),
-)}
+PROFILES = {
+    p.name: p
+    for p in (
+        DeviceProfile(
+            name="galaxy-s8",
+            focal_length_mm=4.25,
+            pixel_pitch_um=1.4,
+            shake_sigma_deg=1.4,
+            ois_stroke_deg=1.5,
+            corner_sigma_px=0.36,
+            n_train=185,
+            n_test=47,
+            centre_offset_px=(9.0, -6.0),
+        ),
+        DeviceProfile(
+            name="iphone-12-pro",
+            focal_length_mm=4.2,
+            pixel_pitch_um=1.4,
+            shake_sigma_deg=0.77,
+            ois_stroke_deg=1.0,
+            corner_sigma_px=0.37,
+            n_train=164,
+            n_test=42,
+            centre_offset_px=(-7.0, 5.0),
+        ),
+        DeviceProfile(
+            name="ipad-mini-6",
+            focal_length_mm=4.0,
+            pixel_pitch_um=1.3,
+            shake_sigma_deg=0.5,
+            ois_stroke_deg=0.8,
+            corner_sigma_px=0.26,
+            n_train=224,
+            n_test=57,
+            centre_offset_px=(5.0, 8.0),
+        ),
+    )
+}
 
 
 def get_profile(name: str) -> DeviceProfile:
@@ -187,8 +215,12 @@ def occluded(points_mm: np.ndarray, camera_mm: np.ndarray, surfaces: np.ndarray)
 def rig_scene(rig: Rig) -> Scene:
     """The rig's corners; a board is seen from its printed side, -normal."""
     normals = np.concatenate([np.tile(-b.normal(), (b.n_points, 1)) for b in rig.boards])
-    return Scene(points=rig.points(), normals=normals, group=rig.board_of_point,
-                 surfaces=np.stack([board_surface(b) for b in rig.boards]))
+    return Scene(
+        points=rig.points(),
+        normals=normals,
+        group=rig.board_of_point,
+        surfaces=np.stack([board_surface(b) for b in rig.boards]),
+    )
 
 
 def _face(origin, u_axis, v_axis, st_mm) -> np.ndarray:
@@ -224,8 +256,12 @@ def buildings() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     ex, ey, ez = np.eye(3)
     # Left building: front face 140 x 210 mm, inner (right) side face 100 mm deep.
-    front = [*_rect(0, 0, 140, 210), *(c for s in (20, 90) for t in (20, 70, 120) for c in _rect(s, t, 30, 30)),
-             *_rect(55, 160, 30, 50), (70, 8)]
+    front = [
+        *_rect(0, 0, 140, 210),
+        *(c for s in (20, 90) for t in (20, 70, 120) for c in _rect(s, t, 30, 30)),
+        *_rect(55, 160, 30, 50),
+        (70, 8),
+    ]
     side = [(100, 0), (100, 210), *(c for t in (20, 70, 120) for c in _rect(35, t, 30, 30))]
     left = [(_face((-300, -80, -50), ex, ey, front), -ez), (_face((-160, -80, -50), ez, ey, side), ex)]
     # Right building: front face 100 x 120 mm, inner (left) side face 80 mm deep.
@@ -235,21 +271,30 @@ def buildings() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     parts = left + right
     points = np.concatenate([p for p, _ in parts])
     normals = np.concatenate([np.tile(n, (len(p), 1)) for p, n in parts])
-    surfaces = np.concatenate([box_surfaces((-300, -80, -50), (-160, 130, 50)),
-                               box_surfaces((160, 10, -30), (260, 130, 50))])
+    surfaces = np.concatenate(
+        [box_surfaces((-300, -80, -50), (-160, 130, 50)), box_surfaces((160, 10, -30), (260, 130, 50))]
+    )
     return points, normals, surfaces
 
 
 def natural_scene(board: Board) -> Scene:
     """The LEGO test set-up: ``board``'s pattern facing the camera at the origin, buildings beside it."""
-    middle = replace(board, rvec=(0.0, 0.0, 0.0),
-                     tvec_mm=(-(board.inner_corners[0] - 1) * board.square_mm / 2.0,
-                              -(board.inner_corners[1] - 1) * board.square_mm / 2.0, 0.0))
+    middle = replace(
+        board,
+        rvec=(0.0, 0.0, 0.0),
+        tvec_mm=(
+            -(board.inner_corners[0] - 1) * board.square_mm / 2.0,
+            -(board.inner_corners[1] - 1) * board.square_mm / 2.0,
+            0.0,
+        ),
+    )
     features, feature_normals, boxes = buildings()
-    return Scene(points=np.concatenate([middle.points(), features]),
-                 normals=np.concatenate([np.tile(-middle.normal(), (middle.n_points, 1)), feature_normals]),
-                 group=np.r_[np.zeros(middle.n_points, np.int64), np.full(len(features), -1)],
-                 surfaces=np.concatenate([board_surface(middle)[None], boxes]))
+    return Scene(
+        points=np.concatenate([middle.points(), features]),
+        normals=np.concatenate([np.tile(-middle.normal(), (middle.n_points, 1)), feature_normals]),
+        group=np.r_[np.zeros(middle.n_points, np.int64), np.full(len(features), -1)],
+        surfaces=np.concatenate([board_surface(middle)[None], boxes]),
+    )
 
 
 def visible(scene: Scene, profile: DeviceProfile, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray):
@@ -257,8 +302,12 @@ def visible(scene: Scene, profile: DeviceProfile, K: np.ndarray, rvec: np.ndarra
     hidden behind a surface, inside the image; a board with any corner unseen is lost entirely."""
     camera = camera_centre(rvec, tvec)
     px = project(scene.points, K, rvec, tvec)
-    seen = ((to_camera(scene.points, rvec, tvec)[:, 2] > 0) & in_image(px, profile)
-            & facing(scene.points, scene.normals, camera) & ~occluded(scene.points, camera, scene.surfaces))
+    seen = (
+        (to_camera(scene.points, rvec, tvec)[:, 2] > 0)
+        & in_image(px, profile)
+        & facing(scene.points, scene.normals, camera)
+        & ~occluded(scene.points, camera, scene.surfaces)
+    )
     for g in np.unique(scene.group[scene.group >= 0]):
         board = scene.group == g
         seen[board] = seen[board].all()
@@ -275,8 +324,13 @@ def natural_view_ok(scene: Scene, seen: np.ndarray) -> bool:
     return bool(seen[scene.group < 0].all())
 
 
-def shoot(scene: Scene, profile: DeviceProfile, rng: np.random.Generator, usable: Callable[[Scene, np.ndarray], bool],
-          pose: Callable = sample_pose):
+def shoot(
+    scene: Scene,
+    profile: DeviceProfile,
+    rng: np.random.Generator,
+    usable: Callable[[Scene, np.ndarray], bool],
+    pose: Callable = sample_pose,
+):
     """One hand-held photo: OIS and AF state, then poses ``pose(profile, centre, rng)`` until ``usable``.
 
     Returns K_true (px), the pose {W}->{C} (rvec, tvec mm), the scene's pixels (N, 2) and which are seen (N,).
@@ -290,12 +344,20 @@ def shoot(scene: Scene, profile: DeviceProfile, rng: np.random.Generator, usable
         px, seen = visible(scene, profile, K, rvec, tvec)
         if usable(scene, seen):
             return K, rvec, tvec, px, seen
-    raise RigError(f"no hand-held pose out of {MAX_POSE_ATTEMPTS} gives a usable view of the scene "
-                   f"with profile {profile.name!r}: does the rig fit the camera's view?")
+    raise RigError(
+        f"no hand-held pose out of {MAX_POSE_ATTEMPTS} gives a usable view of the scene "
+        f"with profile {profile.name!r}: does the rig fit the camera's view?"
+    )
 
 
-def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frames: int = 0,
-             planar_frames: int = 0, rig: Optional[Rig] = None) -> Dataset:
+def simulate(
+    profile: Union[str, DeviceProfile],
+    *,
+    seed: int = 0,
+    natural_frames: int = 0,
+    planar_frames: int = 0,
+    rig: Optional[Rig] = None,
+) -> Dataset:
     """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
     test frames, then ``planar_frames`` planar test frames.
 
@@ -341,13 +403,27 @@ def simulate(profile: Union[str, DeviceProfile], *, seed: int = 0, natural_frame
         p3[k, :n][seen] = rig_set.points[seen]
         board = rng.choice(np.unique(rig_set.group[seen]))
         valid[k, :n], infer[k, :n] = seen, seen & (rig_set.group == board)
-    meta = {"generator": GENERATOR, "version": __version__, "profile": profile.name, "seed": int(seed),
-            "natural_frames": int(natural_frames), "planar_frames": int(planar_frames), "units": {"2d": "px", "3d": "mm"},
-            "device": asdict(profile), "rig": rig_to_dict(rig), "natural_board": rig.boards[0].name}
+    meta = {
+        "generator": GENERATOR,
+        "version": __version__,
+        "profile": profile.name,
+        "seed": int(seed),
+        "natural_frames": int(natural_frames),
+        "planar_frames": int(planar_frames),
+        "units": {"2d": "px", "3d": "mm"},
+        "device": asdict(profile),
+        "rig": rig_to_dict(rig),
+        "natural_board": rig.boards[0].name,
+    }
     return Dataset(
-        image_size=np.array(profile.image_size_px, np.int64), points_2d=p2, points_3d=p3, valid=valid,
+        image_size=np.array(profile.image_size_px, np.int64),
+        points_2d=p2,
+        points_3d=p3,
+        valid=valid,
         infer_mask=infer,
         split=np.array(["train"] * profile.n_train + ["test"] * (profile.n_test + natural_frames + planar_frames)),
-        scene=np.array(["rig"] * n_rig + ["natural"] * natural_frames + ["planar"] * planar_frames), meta=meta,
+        scene=np.array(["rig"] * n_rig + ["natural"] * natural_frames + ["planar"] * planar_frames),
+        meta=meta,
         K_true=K_true,
-        frame_id=np.array([f"{profile.name}-{k:04d}" for k in range(F)]))
+        frame_id=np.array([f"{profile.name}-{k:04d}" for k in range(F)]),
+    )

@@ -1,4 +1,5 @@
 """`dimenet calibrate`: per-frame K*, pose and e*, and the prior K_c from the train frames."""
+
 from __future__ import annotations
 
 import argparse
@@ -19,8 +20,11 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate_dataset(ds)
     write_calibration(cal, args.out)
     fx, fy, cx, cy = k_params(cal.K_c)
-    print(f"K_c from {int(ds.frames_in('train').sum())} train frames: fx={fx:.2f} fy={fy:.2f} cx={cx:.2f} cy={cy:.2f} px; "
-          f"mean e* over {ds.n_frames} frames {cal.e_star.mean():.3f} px -> {args.out}")
+    print(
+        f"K_c from {int(ds.frames_in('train').sum())} train frames: "
+        f"fx={fx:.2f} fy={fy:.2f} cx={cx:.2f} cy={cy:.2f} px; "
+        f"mean e* over {ds.n_frames} frames {cal.e_star.mean():.3f} px -> {args.out}"
+    )
     return 0
 
 

@@ -1,5 +1,6 @@
 """`dimenet evaluate`: e_c, e* (and e, rho with a model) per scene on one split; with
 ``--methods``, one row per method (kc, self, dimenet, map, oracle) and scene."""
+
 from __future__ import annotations
 
 import argparse
@@ -24,13 +25,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drop", type=int, metavar="N", help="keep N uniformly drawn inference points per frame")
     p.add_argument("--noise-2d", type=positive_float, default=0.0, metavar="PX", help="extra 2D Gaussian noise, px")
     p.add_argument("--noise-3d", type=positive_float, default=0.0, metavar="MM", help="extra 3D Gaussian noise, mm")
-    p.add_argument("--eta", type=positive_float, default=0.0, metavar="FRACTION",
-                   help="empty this fraction of the occupied grid cells (paper Table 2)")
+    p.add_argument(
+        "--eta",
+        type=positive_float,
+        default=0.0,
+        metavar="FRACTION",
+        help="empty this fraction of the occupied grid cells (paper Table 2)",
+    )
     p.add_argument("--grid", help="grid (columns x rows) for --eta (default: the model's, else 8x6)")
     p.add_argument("--seed", type=int, default=0, help="seed of the test conditions (default 0)")
-    p.add_argument("--methods", type=_methods, default=(), metavar="M1,M2",
-                   help=f"compare methods, comma-separated from {','.join(METHODS)} (dimenet and map need --model): "
-                        "rho per method and scene, and the 1-sigma coverage of K's uncertainty")
+    p.add_argument(
+        "--methods",
+        type=_methods,
+        default=(),
+        metavar="M1,M2",
+        help=f"compare methods, comma-separated from {','.join(METHODS)} (dimenet and map need --model): "
+        "rho per method and scene, and the 1-sigma coverage of K's uncertainty",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
@@ -38,7 +49,9 @@ def _methods(text: str) -> tuple:
     names = tuple(m.strip() for m in text.split(",") if m.strip())
     unknown = [m for m in names if m not in METHODS]
     if unknown or not names:
-        raise argparse.ArgumentTypeError(f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(METHODS)})")
+        raise argparse.ArgumentTypeError(
+            f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(METHODS)})"
+        )
     return names
 
 
@@ -68,7 +81,9 @@ def run(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="evaluate",
     summary="Report Avg(e_c) and Avg(e*) per scene (and Avg(e), rho with a model) on one split, in px.",
-    example="dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --methods kc,self,dimenet,map,oracle --json",
+    example=(
+        "dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --methods kc,self,dimenet,map,oracle --json"
+    ),
     add_arguments=add_arguments,
     run=run,
 )

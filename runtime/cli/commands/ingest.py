@@ -1,4 +1,5 @@
 """`dimenet ingest`: photos of the rig (and of a natural object with labelled points) -> a dataset."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,15 +18,28 @@ from dimenet.runtime.ingest.pipeline import SPLITS, ingest, report
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("photos", nargs="+", metavar="PHOTO", help="photos of the rig (JPEG, PNG, TIFF, ...); frames keep this order")
+    p.add_argument(
+        "photos", nargs="+", metavar="PHOTO", help="photos of the rig (JPEG, PNG, TIFF, ...); frames keep this order"
+    )
     p.add_argument("--rig", required=True, help="rig file (dimenet-rig/1 JSON), or `paper` for the bundled paper rig")
-    p.add_argument("--out", required=True, help="dataset file to write (dimenet-dataset/1 .npz); the report goes "
-                                               "beside it as <name>.report.json")
-    p.add_argument("--split", choices=SPLITS, default="auto",
-                   help="split of every frame; auto (default): 80/20 train/test by file-name hash, natural photos test")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="dataset file to write (dimenet-dataset/1 .npz); the report goes beside it as <name>.report.json",
+    )
+    p.add_argument(
+        "--split",
+        choices=SPLITS,
+        default="auto",
+        help="split of every frame; auto (default): 80/20 train/test by file-name hash, natural photos test",
+    )
     p.add_argument("--labels", metavar="LABELS.csv", help="hand-labelled natural points: image,point_id,x_px,y_px")
-    p.add_argument("--object", metavar="OBJECT.csv", help="the natural object's points in the rig frame: point_id,X_mm,Y_mm,Z_mm")
-    p.add_argument("--workers", type=integer_at_least(1), default=1, help="photos processed in parallel (processes; default 1)")
+    p.add_argument(
+        "--object", metavar="OBJECT.csv", help="the natural object's points in the rig frame: point_id,X_mm,Y_mm,Z_mm"
+    )
+    p.add_argument(
+        "--workers", type=integer_at_least(1), default=1, help="photos processed in parallel (processes; default 1)"
+    )
 
 
 def report_path(out: str | Path) -> Path:
@@ -40,8 +54,10 @@ def photo_line(p: dict) -> str:
         return f"{p['photo']}  skipped: {p['skipped']}"
     labels = f" + {p['labels']} labels" if p["labels"] else ""
     exif = f"  (EXIF orientation {p['exif_orientation']} not applied)" if p["exif_orientation"] != 1 else ""
-    return (f"{p['photo']}  {p['split']}  {len(p['boards'])} boards ({', '.join(p['boards'])})  {p['corners']} corners"
-            f"{labels}  RMS {p['rms_px']:.3f} px{exif}")
+    return (
+        f"{p['photo']}  {p['split']}  {len(p['boards'])} boards ({', '.join(p['boards'])})  {p['corners']} corners"
+        f"{labels}  RMS {p['rms_px']:.3f} px{exif}"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,8 +67,15 @@ def run(args: argparse.Namespace) -> int:
     obj = read_object(args.object) if args.object else None
     labels = read_labels(args.labels, obj) if obj is not None else None
     start = time.monotonic()
-    result = ingest(args.photos, rig, split=args.split, obj=obj, labels=labels, workers=args.workers,
-                    progress=lambda items: progress(items, total=len(args.photos), desc="ingest"))
+    result = ingest(
+        args.photos,
+        rig,
+        split=args.split,
+        obj=obj,
+        labels=labels,
+        workers=args.workers,
+        progress=lambda items: progress(items, total=len(args.photos), desc="ingest"),
+    )
     seconds = time.monotonic() - start
     rep = report(result, rig)
     where = atomic_write_text(report_path(args.out), json.dumps(rep, indent=1) + "\n")
@@ -62,16 +85,18 @@ def run(args: argparse.Namespace) -> int:
         raise IngestError(f"no photo gave a frame (report: {where})")
     path = write_dataset(result.dataset, args.out)
     t = rep["totals"]
-    print(f"{t['frames']} frames ({t['splits']['train']} train, {t['splits']['test']} test) from {t['photos']} photos, "
-          f"{t['skipped']} skipped; {t['boards']} boards, {t['corners']} corners; "
-          f"{t['photos'] / seconds:.1f} photos/s -> {path} (report: {where})")
+    print(
+        f"{t['frames']} frames ({t['splits']['train']} train, {t['splits']['test']} test) from {t['photos']} photos, "
+        f"{t['skipped']} skipped; {t['boards']} boards, {t['corners']} corners; "
+        f"{t['photos'] / seconds:.1f} photos/s -> {path} (report: {where})"
+    )
     return 0
 
 
 COMMAND = Command(
     name="ingest",
     summary="Turn photos of the rig (and of a natural object with labelled points) into a dataset: find, refine "
-            "and identify every board, fit each photo's K, report per photo.",
+    "and identify every board, fit each photo's K, report per photo.",
     example="dimenet ingest photos/*.jpg --rig paper --out s8-photos.npz --workers 2",
     add_arguments=add_arguments,
     run=run,

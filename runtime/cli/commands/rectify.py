@@ -3,6 +3,7 @@
 Each frame's K is inferred from its ``infer_mask`` points (what the model may see, as in
 evaluation); its pose and errors use all its valid points under K and under K_c.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,15 +25,24 @@ EXAMPLE_DATA = "example_frames.npz"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="?", help="dataset file (dimenet-dataset/1 .npz)")
-    p.add_argument("--example", action="store_true",
-                   help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)")
+    p.add_argument(
+        "--example",
+        action="store_true",
+        help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)",
+    )
     p.add_argument("--model", help="a .onnx from `dimenet export` (default: the bundled model)")
-    p.add_argument("--mode", choices=MODES, default="dimenet",
-                   help="dimenet (default): the network's K; map: the network's K as a prior fused with the frame's "
-                        "points (needs a model with an uncertainty model, spec >= 1.1)")
-    p.add_argument("--out", metavar="RESULT.npz",
-                   help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov "
-                        "per frame")
+    p.add_argument(
+        "--mode",
+        choices=MODES,
+        default="dimenet",
+        help="dimenet (default): the network's K; map: the network's K as a prior fused with the frame's "
+        "points (needs a model with an uncertainty model, spec >= 1.1)",
+    )
+    p.add_argument(
+        "--out",
+        metavar="RESULT.npz",
+        help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov per frame",
+    )
     p.add_argument("--refine", action="store_true", help="polish poses with cv2.solvePnPRefineLM (e as in evaluate)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
@@ -41,9 +51,16 @@ def result_arrays(frames: Dataset, res: BatchRectification) -> dict:
     """The RESULT.npz arrays (plain dtypes, no pickle): fallback '' where K is the model's; K_cov
     (F, 4, 4) px^2, NaN where K is K_c's, only when the model has an uncertainty model."""
     frame_id = frames.frame_id if frames.frame_id is not None else np.arange(frames.n_frames).astype(str)
-    arrays = {"frame_id": np.asarray(frame_id), "K": res.K, "rvec": res.rvec, "tvec": res.tvec,
-              "e": res.reprojection_error_px, "e_c": res.reprojection_error_kc_px, "delta_k": res.delta_k,
-              "fallback": np.array([r or "" for r in res.fallback])}
+    arrays = {
+        "frame_id": np.asarray(frame_id),
+        "K": res.K,
+        "rvec": res.rvec,
+        "tvec": res.tvec,
+        "e": res.reprojection_error_px,
+        "e_c": res.reprojection_error_kc_px,
+        "delta_k": res.delta_k,
+        "fallback": np.array([r or "" for r in res.fallback]),
+    }
     if res.K_cov is not None:
         arrays["K_cov"] = res.K_cov
     return arrays
@@ -58,23 +75,39 @@ def _k_sigma(arrays: dict, i: int) -> list | None:
 
 def _summary(arrays: dict) -> dict:
     avg_e_c, avg_e = float(arrays["e_c"].mean()), float(arrays["e"].mean())
-    return {"n_frames": len(arrays["e"]), "avg_e_c_px": avg_e_c, "avg_e_px": avg_e,
-            "fallbacks": int((arrays["fallback"] != "").sum())}
+    return {
+        "n_frames": len(arrays["e"]),
+        "avg_e_c_px": avg_e_c,
+        "avg_e_px": avg_e,
+        "fallbacks": int((arrays["fallback"] != "").sum()),
+    }
 
 
 def _table(frames: Dataset, arrays: dict, source: str) -> str:
     rows = [("frame", "scene", "points", "e_c (px)", "e (px)", "fx", "fy", "cx", "cy", "fallback")]
     for i, fid in enumerate(arrays["frame_id"]):
-        rows.append((str(fid), str(frames.scene[i]), str(int(frames.valid[i].sum())), f"{arrays['e_c'][i]:.3f}",
-                     f"{arrays['e'][i]:.3f}", *(f"{v:.1f}" for v in k_params(arrays["K"][i])),
-                     arrays["fallback"][i] or "-"))
+        rows.append(
+            (
+                str(fid),
+                str(frames.scene[i]),
+                str(int(frames.valid[i].sum())),
+                f"{arrays['e_c'][i]:.3f}",
+                f"{arrays['e'][i]:.3f}",
+                *(f"{v:.1f}" for v in k_params(arrays["K"][i])),
+                arrays["fallback"][i] or "-",
+            )
+        )
     widths = [max(len(r[c]) for r in rows) for c in range(len(rows[0]) - 1)]
-    lines = ["  ".join([c.ljust(w) if j < 2 else c.rjust(w) for j, (c, w) in enumerate(zip(r, widths))] + [r[-1]])
-             for r in rows]
+    lines = [
+        "  ".join([c.ljust(w) if j < 2 else c.rjust(w) for j, (c, w) in enumerate(zip(r, widths))] + [r[-1]])
+        for r in rows
+    ]
     s = _summary(arrays)
     change = 100.0 * (s["avg_e_px"] - s["avg_e_c_px"]) / s["avg_e_c_px"]
-    lines.append(f"{s['n_frames']} frames: Avg(e_c) {s['avg_e_c_px']:.3f} px -> Avg(e) {s['avg_e_px']:.3f} px "
-                 f"({change:+.1f} %), {s['fallbacks']} fallbacks; model {source}")
+    lines.append(
+        f"{s['n_frames']} frames: Avg(e_c) {s['avg_e_c_px']:.3f} px -> Avg(e) {s['avg_e_px']:.3f} px "
+        f"({change:+.1f} %), {s['fallbacks']} fallbacks; model {source}"
+    )
     return "\n".join(lines)
 
 
@@ -92,21 +125,41 @@ def run(args: argparse.Namespace) -> int:
     rectifier = Rectifier.load(args.model, mode=args.mode)
     size = tuple(int(v) for v in frames.image_size)
     if size != tuple(rectifier.spec.image_size):
-        raise ModelError(f"{rectifier.model.source}: trained for {rectifier.spec.image_size[0]}x"
-                         f"{rectifier.spec.image_size[1]} px images, the dataset has {size[0]}x{size[1]}")
-    res = rectifier.rectify_batch(frames.points_2d, frames.points_3d, frames.valid,
-                                  infer_mask=frames.infer_mask, refine=args.refine)
+        raise ModelError(
+            f"{rectifier.model.source}: trained for {rectifier.spec.image_size[0]}x"
+            f"{rectifier.spec.image_size[1]} px images, the dataset has {size[0]}x{size[1]}"
+        )
+    res = rectifier.rectify_batch(
+        frames.points_2d, frames.points_3d, frames.valid, infer_mask=frames.infer_mask, refine=args.refine
+    )
     arrays = result_arrays(frames, res)
     if args.out:
         atomic_write(args.out, lambda f: np.savez(f, **arrays))
     if args.json:
-        per_frame = [{"frame_id": str(arrays["frame_id"][i]), "scene": str(frames.scene[i]),
-                      "e_c_px": float(arrays["e_c"][i]), "e_px": float(arrays["e"][i]),
-                      "K": k_params(arrays["K"][i]).tolist(), "K_sigma_px": _k_sigma(arrays, i),
-                      "fallback": arrays["fallback"][i] or None}
-                     for i in range(frames.n_frames)]
-        print(json.dumps({"model": rectifier.model.source, "model_sha256": rectifier.model.sha256,
-                          "mode": args.mode, "refine": args.refine, "frames": per_frame, "summary": _summary(arrays)}))
+        per_frame = [
+            {
+                "frame_id": str(arrays["frame_id"][i]),
+                "scene": str(frames.scene[i]),
+                "e_c_px": float(arrays["e_c"][i]),
+                "e_px": float(arrays["e"][i]),
+                "K": k_params(arrays["K"][i]).tolist(),
+                "K_sigma_px": _k_sigma(arrays, i),
+                "fallback": arrays["fallback"][i] or None,
+            }
+            for i in range(frames.n_frames)
+        ]
+        print(
+            json.dumps(
+                {
+                    "model": rectifier.model.source,
+                    "model_sha256": rectifier.model.sha256,
+                    "mode": args.mode,
+                    "refine": args.refine,
+                    "frames": per_frame,
+                    "summary": _summary(arrays),
+                }
+            )
+        )
     else:
         print(_table(frames, arrays, f"{rectifier.model.source}, mode {args.mode}"))
         if args.out:
@@ -118,7 +171,7 @@ COMMAND = Command(
     name="rectify",
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
     example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz   "
-            "(or: dimenet rectify --example)",
+    "(or: dimenet rectify --example)",
     add_arguments=add_arguments,
     run=run,
 )

@@ -1,4 +1,5 @@
 """`dimenet render`: photos of the rig through the simulator's OIS camera, with their truth (for testing ingest)."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,26 +16,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", required=True, choices=sorted(PROFILES), help="simulated device")
     p.add_argument("--n", type=integer_at_least(1), required=True, help="number of photos")
     p.add_argument("--out", required=True, help=f"folder for photo-0000.<format>, ... and {TRUTH_FILE}")
-    p.add_argument("--seed", type=integer_at_least(0), default=0, help="random seed (default 0); same seed, same photos")
+    p.add_argument(
+        "--seed", type=integer_at_least(0), default=0, help="random seed (default 0); same seed, same photos"
+    )
     p.add_argument("--format", choices=FORMATS, default="jpg", help="photo format (default jpg)")
-    p.add_argument("--scale", type=positive_float, default=1.0,
-                   help="render this many times fewer pixels per side, same field of view (default 1: full size)")
+    p.add_argument(
+        "--scale",
+        type=positive_float,
+        default=1.0,
+        help="render this many times fewer pixels per side, same field of view (default 1: full size)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     profile = scaled_profile(get_profile(args.profile), args.scale)
-    truth = write_render(args.out, rig_from_argument(args.rig), profile, args.n, seed=args.seed, fmt=args.format,
-                         progress=lambda items: progress(items, total=args.n, desc="render"))
+    truth = write_render(
+        args.out,
+        rig_from_argument(args.rig),
+        profile,
+        args.n,
+        seed=args.seed,
+        fmt=args.format,
+        progress=lambda items: progress(items, total=args.n, desc="render"),
+    )
     w, h = profile.image_size_px
-    print(f"{args.n} photos of {w}x{h} px ({args.profile}, seed {args.seed}; every 5th from the 2nd upside down, "
-          f"every 5th from the 4th with a board covered) -> {args.out} (truth: {truth})")
+    print(
+        f"{args.n} photos of {w}x{h} px ({args.profile}, seed {args.seed}; every 5th from the 2nd upside down, "
+        f"every 5th from the 4th with a board covered) -> {args.out} (truth: {truth})"
+    )
     return 0
 
 
 COMMAND = Command(
     name="render",
     summary="Render photos of a rig through the simulator's OIS camera (clutter, blur, noise, vignetting), "
-            "with the true corners and K per photo, to test `dimenet ingest` end to end.",
+    "with the true corners and K per photo, to test `dimenet ingest` end to end.",
     example="dimenet render --rig paper --profile galaxy-s8 --n 30 --out shots",
     add_arguments=add_arguments,
     run=run,

@@ -1,4 +1,5 @@
 """`dimenet simulate`: write a simulated OIS dataset (rig frames, optionally natural-scene and planar frames)."""
+
 from __future__ import annotations
 
 import argparse
@@ -13,22 +14,31 @@ from dimenet.runtime.sim.simulator import PROFILES, simulate
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", required=True, choices=sorted(PROFILES), help="simulated device")
     p.add_argument("--seed", type=integer_at_least(0), default=0, help="random seed (default 0); same seed, same file")
-    p.add_argument("--natural-frames", type=integer_at_least(0), default=0,
-                   help="natural-scene (LEGO buildings) test frames to add (the paper has 34; default 0)")
-    p.add_argument("--planar-frames", type=integer_at_least(0), default=0,
-                   help="planar test frames to add: rig photos whose K is inferred from one board only (default 0)")
+    p.add_argument(
+        "--natural-frames",
+        type=integer_at_least(0),
+        default=0,
+        help="natural-scene (LEGO buildings) test frames to add (the paper has 34; default 0)",
+    )
+    p.add_argument(
+        "--planar-frames",
+        type=integer_at_least(0),
+        default=0,
+        help="planar test frames to add: rig photos whose K is inferred from one board only (default 0)",
+    )
     p.add_argument("--out", required=True, help="dataset file to write (dimenet-dataset/1 .npz)")
 
 
 def run(args: argparse.Namespace) -> int:
-    ds = simulate(args.profile, seed=args.seed, natural_frames=args.natural_frames,
-                  planar_frames=args.planar_frames)
+    ds = simulate(args.profile, seed=args.seed, natural_frames=args.natural_frames, planar_frames=args.planar_frames)
     path = write_dataset(ds, args.out)
     rig, test = ds.scene == "rig", ds.frames_in("test")
-    print(f"{args.profile} seed {args.seed}: {int(np.sum(rig & ds.frames_in('train')))} train + "
-          f"{int(np.sum(rig & test))} test rig frames, {int(np.sum(ds.scene == 'natural'))} natural and "
-          f"{int(np.sum(ds.scene == 'planar'))} planar test frames, "
-          f"{ds.n_points} points per frame ({int(ds.valid.sum())} valid in all) -> {path}")
+    print(
+        f"{args.profile} seed {args.seed}: {int(np.sum(rig & ds.frames_in('train')))} train + "
+        f"{int(np.sum(rig & test))} test rig frames, {int(np.sum(ds.scene == 'natural'))} natural and "
+        f"{int(np.sum(ds.scene == 'planar'))} planar test frames, "
+        f"{ds.n_points} points per frame ({int(ds.valid.sum())} valid in all) -> {path}"
+    )
     return 0
 
 
