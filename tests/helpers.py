@@ -1,10 +1,23 @@
-"""Small synthetic scenes for unit tests (no simulator needed)."""
+"""Plain helpers shared by the test modules (fixtures live in conftest.py).
+
+``K_TEST`` and ``random_frames``: small synthetic scenes (no simulator needed). ``model_spec``,
+``random_torch_model`` and ``random_model_file``: a random-init DimeNet exported to ONNX (needs
+torch and onnx, else the calling test is skipped). ``constant_uncertainty`` and
+``point_thickness``: uncertainty-model helpers. ``importable``: whether modules can be imported.
+"""
 
 from __future__ import annotations
 
+from importlib import import_module
+
 import numpy as np
+import pytest
 
 from dimenet.runtime import geometry as g
+from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
+from dimenet.runtime.rectify.features import FeatureSpec
+from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.uncertainty import Uncertainty, thickness
 
 K_TEST = np.array([[3000.0, 0.0, 2016.0], [0.0, 3010.0, 1512.0], [0.0, 0.0, 1.0]])
 
@@ -19,3 +32,58 @@ def random_frames(rng, frames=4, points=60, noise_px=0.0, K=K_TEST, planar=False
     tvec = np.c_[rng.normal(0, 30, (frames, 2)), rng.uniform(400, 900, frames)]
     x = g.project(X, K, rvec, tvec) + rng.normal(0, noise_px, (frames, points, 2))
     return x, X, K, rvec, tvec
+
+
+def importable(*names) -> bool:
+    try:
+        for name in names:
+            import_module(name)
+    except ImportError:
+        return False
+    return True
+
+
+def model_spec(dataset, *, bounds_margin: float = 1.0) -> ModelSpec:
+    """A spec for a simulated dataset: K_c the mean true K of its train frames, K_bounds their
+    range widened by bounds_margin times its span on each side (as training does with K*)."""
+    p = k_params(dataset.K_true[dataset.frames_in("train")])
+    span = p.max(0) - p.min(0)
+    bounds = np.stack([p.min(0) - bounds_margin * span, p.max(0) + bounds_margin * span], -1)
+    return ModelSpec(
+        features=FeatureSpec(),
+        K_c=k_matrix(p.mean(0)),
+        image_size=tuple(int(v) for v in dataset.image_size),
+        K_bounds=bounds,
+        hidden=(256, 128),
+        provenance={"note": "random-init test model"},
+    )
+
+
+def random_torch_model(spec: ModelSpec, *, seed: int = 0, weight_scale: float = 1.0):
+    torch = pytest.importorskip("torch")
+    from dimenet.training.model import DimeNet
+
+    torch.manual_seed(seed)
+    model = DimeNet(spec.features.size, spec.hidden).eval()
+    with torch.no_grad():
+        model.fc3.weight.mul_(weight_scale)
+    return model
+
+
+def random_model_file(path, spec: ModelSpec, *, seed: int = 0, weight_scale: float = 1.0):
+    """Export a random-init DimeNet (last layer scaled by weight_scale) to ``path``."""
+    pytest.importorskip("onnx")
+    from dimenet.export.onnx_export import export_model
+
+    path.write_bytes(export_model(random_torch_model(spec, seed=seed, weight_scale=weight_scale), spec))
+    return path
+
+
+def constant_uncertainty(sigma_px: float) -> Uncertainty:
+    coef = np.zeros((4, 5))
+    coef[:, 0] = np.log(sigma_px)
+    return Uncertainty(coef=coef, correlation=np.eye(4))
+
+
+def point_thickness(points_3d: np.ndarray) -> float:
+    return thickness(*covariance_invariants(np.ascontiguousarray(points_3d, dtype=np.float64)))

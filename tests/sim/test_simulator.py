@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from dimenet.runtime import __version__
-from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
 from dimenet.runtime.formats.dataset import read_dataset, write_dataset
@@ -162,30 +161,13 @@ def test_unknown_profile_and_bad_counts_raise_input_error():
     assert set(PROFILES) == {"galaxy-s8", "iphone-12-pro", "ipad-mini-6"}
 
 
-def test_cli_simulate_writes_a_dataset(tmp_path, capsys):
-    out = tmp_path / "ipad.npz"
-    assert (
-        main(
-            [
-                "simulate",
-                "--profile",
-                "ipad-mini-6",
-                "--seed",
-                "4",
-                "--natural-frames",
-                "2",
-                "--planar-frames",
-                "1",
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
-    line = capsys.readouterr().out.strip()
-    assert "224 train + 57 test rig frames, 2 natural and 1 planar test frames" in line and str(out) in line
-    ds = read_dataset(out)
-    assert ds.meta["seed"] == 4 and ds.n_frames == 224 + 57 + 2 + 1
-    assert main(["simulate", "--profile", "pixel-9", "--out", str(out)]) == 2
-    assert main(["simulate", "--profile", "ipad-mini-6", "--natural-frames", "-3", "--out", str(out)]) == 2
-    assert "natural-frames" in capsys.readouterr().err
+def test_planar_frames_infer_from_one_board_and_leave_the_other_frames_alone():
+    plain = simulate("galaxy-s8", seed=5, natural_frames=2)
+    ds = simulate("galaxy-s8", seed=5, natural_frames=2, planar_frames=4)
+    np.testing.assert_array_equal(ds.points_2d[: plain.n_frames], plain.points_2d)
+    planar = ds.scene == "planar"
+    assert planar.sum() == 4 and np.all(ds.split[planar] == "test") and ds.meta["planar_frames"] == 4
+    for f in np.flatnonzero(planar):
+        X = ds.points_3d[f][ds.infer_mask[f]]
+        assert np.linalg.svd(X - X.mean(0), compute_uv=False)[2] < 1e-6  # one board: coplanar
+        assert ds.valid[f].sum() > ds.infer_mask[f].sum() >= 6

@@ -2,9 +2,17 @@ import json
 
 import numpy as np
 import pytest
+from helpers import point_thickness
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy, two_objects
+from dimenet.runtime.evaluation.conditions import (
+    add_noise,
+    drop_inference_points,
+    empty_cells,
+    occupancy,
+    one_plane,
+    two_objects,
+)
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.rectify.grid import Grid
 
@@ -215,3 +223,13 @@ def test_two_objects_keeps_frames_with_too_few_points():
     )
     np.testing.assert_array_equal(out.infer_mask[1], one[1])  # one point: unchanged
     np.testing.assert_array_equal(out.infer_mask[0], ds.infer_mask[0])  # 4 points, all in both groups
+
+
+def test_one_plane_keeps_the_inference_points_of_one_board(s8_dataset):
+    frames = s8_dataset.select(np.flatnonzero(s8_dataset.scene == "rig")[:6])
+    planes = one_plane(frames, np.random.default_rng(0))
+    for f in range(frames.n_frames):
+        kept = planes.infer_mask[f]
+        assert np.all(frames.infer_mask[f] >= kept) and 4 <= kept.sum() < frames.infer_mask[f].sum()
+        assert point_thickness(np.ascontiguousarray(frames.points_3d[f][kept])) < 1e-9
+        assert point_thickness(np.ascontiguousarray(frames.points_3d[f][frames.infer_mask[f]])) > 1e-3

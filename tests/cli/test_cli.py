@@ -11,7 +11,7 @@ import pytest
 
 from dimenet.runtime.cli.main import build_parser, main
 from dimenet.runtime.evaluation.methods import evaluate
-from dimenet.runtime.evaluation.metrics import reduction_ratio
+from dimenet.runtime.formats.dataset import read_dataset, write_dataset
 
 COMMANDS = ["simulate", "calibrate", "evaluate", "train", "reproduce", "export", "rectify", "bench", "render", "ingest"]
 
@@ -62,7 +62,6 @@ def test_non_conforming_dataset_is_named(tmp_path):
 
 
 def test_simulate_calibrate_evaluate_json(tmp_path, s8_dataset, s8_calibration):
-    from dimenet.runtime.formats.dataset import write_dataset
 
     data = write_dataset(s8_dataset, tmp_path / "s8.npz")
     assert main(["calibrate", str(data), "--out", str(tmp_path / "cal.npz")]) == 0
@@ -78,17 +77,6 @@ def test_simulate_calibrate_evaluate_json(tmp_path, s8_dataset, s8_calibration):
     ev = evaluate(test, s8_calibration.K_c)
     assert rig["avg_e_c"] == pytest.approx(ev.scenes["rig"].avg_e_c, rel=1e-9)
     assert set(report["scenes"]) == {"rig", "natural"} and "overall" in report
-
-
-def test_rho_hand_computed_and_k_c_as_the_prediction_gives_zero(s8_dataset, s8_calibration):
-    assert reduction_ratio(3.44, 0.68, 0.45) == pytest.approx((3.44 - 0.68) / (3.44 - 0.45))
-    assert reduction_ratio(1.0, 0.5, 1.0) is None  # no gap between K_c and the oracle: undefined
-    test = s8_dataset.select(s8_dataset.frames_in("test") & (s8_dataset.scene == "rig"))
-    K_c = s8_calibration.K_c
-    ev = evaluate(test, K_c, lambda frames: np.broadcast_to(K_c, (frames.n_frames, 3, 3)))
-    assert ev.overall.rho == pytest.approx(0.0, abs=1e-12)
-    oracle = evaluate(test, K_c, lambda frames: frames.K_true)
-    assert oracle.overall.rho > 0.9  # the true K nearly closes the gap to per-frame calibration
 
 
 def test_ingest_bad_input_exits_2_with_one_line(tmp_path):
@@ -117,3 +105,32 @@ def test_ingest_bad_input_exits_2_with_one_line(tmp_path):
         )
     report = json.loads((tmp_path / "d.report.json").read_text())
     assert "broken.jpg: cannot decode" in report["photos"][0]["skipped"]
+
+
+def test_cli_simulate_writes_a_dataset(tmp_path, capsys):
+    out = tmp_path / "ipad.npz"
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                "ipad-mini-6",
+                "--seed",
+                "4",
+                "--natural-frames",
+                "2",
+                "--planar-frames",
+                "1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    line = capsys.readouterr().out.strip()
+    assert "224 train + 57 test rig frames, 2 natural and 1 planar test frames" in line and str(out) in line
+    ds = read_dataset(out)
+    assert ds.meta["seed"] == 4 and ds.n_frames == 224 + 57 + 2 + 1
+    assert main(["simulate", "--profile", "pixel-9", "--out", str(out)]) == 2
+    assert main(["simulate", "--profile", "ipad-mini-6", "--natural-frames", "-3", "--out", str(out)]) == 2
+    assert "natural-frames" in capsys.readouterr().err

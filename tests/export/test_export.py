@@ -1,7 +1,7 @@
 """Export of the MLP to ONNX (`dimenet export`) and the runtime's ONNX model loader.
 
-``model_spec`` and ``random_model_file`` are shared with test_rectifier.py and test_bench.py:
-a random-init DimeNet exported to ONNX (needs torch and onnx, else the test is skipped).
+``model_spec`` and ``random_torch_model`` (helpers.py): a random-init DimeNet exported to ONNX
+(needs torch and onnx, else the test is skipped).
 """
 
 from __future__ import annotations
@@ -11,51 +11,15 @@ import os
 
 import numpy as np
 import pytest
+from helpers import model_spec, random_torch_model
 
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.evaluation.predictor import load_predictor
-from dimenet.runtime.geometry import k_matrix, k_params
-from dimenet.runtime.rectify.features import FeatureSpec, grid_features
+from dimenet.runtime.rectify.features import grid_features
 from dimenet.runtime.rectify.model import INPUT_NAME, OUTPUT_NAME, load_onnx_model
 from dimenet.runtime.rectify.spec import FORMAT, METADATA_KEY, ModelSpec
 from dimenet.runtime.sim.simulator import simulate
-
-
-def model_spec(dataset, *, bounds_margin: float = 1.0) -> ModelSpec:
-    """A spec for a simulated dataset: K_c the mean true K of its train frames, K_bounds their
-    range widened by bounds_margin times its span on each side (as training does with K*)."""
-    p = k_params(dataset.K_true[dataset.frames_in("train")])
-    span = p.max(0) - p.min(0)
-    bounds = np.stack([p.min(0) - bounds_margin * span, p.max(0) + bounds_margin * span], -1)
-    return ModelSpec(
-        features=FeatureSpec(),
-        K_c=k_matrix(p.mean(0)),
-        image_size=tuple(int(v) for v in dataset.image_size),
-        K_bounds=bounds,
-        hidden=(256, 128),
-        provenance={"note": "random-init test model"},
-    )
-
-
-def random_torch_model(spec: ModelSpec, *, seed: int = 0, weight_scale: float = 1.0):
-    torch = pytest.importorskip("torch")
-    from dimenet.training.model import DimeNet
-
-    torch.manual_seed(seed)
-    model = DimeNet(spec.features.size, spec.hidden).eval()
-    with torch.no_grad():
-        model.fc3.weight.mul_(weight_scale)
-    return model
-
-
-def random_model_file(path, spec: ModelSpec, *, seed: int = 0, weight_scale: float = 1.0):
-    """Export a random-init DimeNet (last layer scaled by weight_scale) to ``path``."""
-    pytest.importorskip("onnx")
-    from dimenet.export.onnx_export import export_model
-
-    path.write_bytes(export_model(random_torch_model(spec, seed=seed, weight_scale=weight_scale), spec))
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -55,17 +55,24 @@ def test_mean_reprojection_error_hand_computed():
     X = np.array([[0.0, 0.0, 1000.0], [100.0, 50.0, 1000.0]])
     exact = g.project(X, K_TEST, np.zeros(3), np.zeros(3))
     x = exact + np.array([[3.0, 4.0], [0.0, 0.0]])
-    assert g.mean_reprojection_error(x, X, np.ones(2), K_TEST, np.zeros(3), np.zeros(3)) == pytest.approx(2.5)
-    # A weight-0 point does not count.
-    assert g.mean_reprojection_error(x, X, np.array([0.0, 1.0]), K_TEST, np.zeros(3), np.zeros(3)) == pytest.approx(0.0)
+    pose = np.zeros((1, 3))
+    assert g.mean_reprojection_error(x[None], X[None], None, K_TEST, pose, pose) == pytest.approx([2.5])
+    # A point outside ``valid`` does not count, whatever its values.
+    x_nan = np.where([[True], [False]], np.nan, x)[None]
+    valid = np.array([[False, True]])
+    assert g.mean_reprojection_error(x_nan, X[None], valid, K_TEST, pose, pose) == pytest.approx([0.0])
 
-    # The batched, coordinate-major version agrees, with and without a mask.
-    x2, X2, R = np.stack([x, x]), np.stack([X, X]), np.stack([np.eye(3)] * 2)
-    np.testing.assert_allclose(g.mean_reprojection_errors(x2, X2, None, K_TEST, R, np.zeros((2, 3))), [2.5, 2.5])
+    # B frames at once, with and without a mask, and one K per frame.
+    x2, X2, poses = np.stack([x, x]), np.stack([X, X]), np.zeros((2, 3))
+    np.testing.assert_allclose(g.mean_reprojection_error(x2, X2, None, K_TEST, poses, poses), [2.5, 2.5])
     mask = np.array([[True, True], [False, True]])
     np.testing.assert_allclose(
-        g.mean_reprojection_errors(x2, X2, mask, K_TEST, R, np.zeros((2, 3))), [2.5, 0.0], atol=1e-12
+        g.mean_reprojection_error(x2, X2, mask, np.stack([K_TEST] * 2), poses, poses), [2.5, 0.0], atol=1e-12
     )
+    # The per-point errors and the residuals behind them.
+    np.testing.assert_allclose(g.reprojection_errors(x, X, K_TEST, np.zeros(3), np.zeros(3)), [5.0, 0.0], atol=1e-9)
+    residuals = g.reprojection_residuals(x, X, K_TEST, np.eye(3), np.zeros(3))
+    np.testing.assert_allclose(residuals, [[-3.0, 0.0], [-4.0, 0.0]], atol=1e-9)
 
 
 def test_mean_residual_norms_hand_computed():
@@ -96,7 +103,7 @@ def test_degenerate_configurations_are_named(kind):
     X = np.zeros((8, 3)) if kind == "coincide" else np.c_[np.arange(8.0), np.arange(8.0), 500 + np.arange(8.0)]
     x = np.c_[np.arange(8.0), np.arange(8.0) * 2]
     with pytest.raises(InputError, match=kind):
-        g.check_not_degenerate(X, x)
+        g.check_not_degenerate(x, X)
 
 
 def test_covariance_invariants_match_numpy():

@@ -1,7 +1,7 @@
 """Photos -> dataset: rendered photos of the rig go through `ingest` and are scored against the renderer's truth.
 
 The photos are rendered at 1/3 of the Galaxy S8's 4032x3024 px (same field of view) to keep the
-suite fast; the 12 MP figures come from ``python -m dimenet.runtime.ingest.bench``.
+suite fast; the 12 MP figures come from ``dimenet bench --ingest``.
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ def _scene(seed, frames=2, points=10, noise_px=0.4, planar=False):
 
 
 def _pose(x, X, K, w):
-    return torch.cat(bpnp.solve_pnp(x, X, K, w), -1)  # (B, 6): rvec rad, tvec mm
+    return torch.cat(bpnp.solve_pnp(x, X, w, K), -1)  # (B, 6): rvec rad, tvec mm
 
 
 def _implicit_jacobians(x, X, K, w):
@@ -86,7 +86,7 @@ def test_gradcheck_points_and_k():
     w[1, 3] = 2.5  # a non-uniform weight
     inputs = tuple(v.clone().requires_grad_() for v in (x, X, K))
     # Tight tolerances: d rvec / d x is ~1e-4 rad/px, so the default atol=1e-5 would prove nothing.
-    assert torch.autograd.gradcheck(lambda a, b, c: bpnp.solve_pnp(a, b, c, w), inputs, eps=1e-4, atol=1e-9, rtol=1e-6)
+    assert torch.autograd.gradcheck(lambda a, b, c: bpnp.solve_pnp(a, b, w, c), inputs, eps=1e-4, atol=1e-9, rtol=1e-6)
 
 
 @pytest.mark.parametrize("which, h", [(0, 1e-2), (1, 1e-2), (2, 0.5)])
@@ -222,7 +222,7 @@ def test_singular_frame_raises_input_error_naming_it(kind):
     x, X, K, w = _scene(seed=12, frames=3, points=10)
     _spoil(kind, x, X, K, w)
     with pytest.raises(InputError, match="frame 1"):
-        bpnp.solve_pnp(x.requires_grad_(), X, K, w)
+        bpnp.solve_pnp(x.requires_grad_(), X, w, K)
 
 
 def test_singular_hessian_is_caught_after_the_solve():
@@ -242,7 +242,7 @@ def test_bad_dtype_or_shape_raises(bad):
     else:
         X = X[:, :7]
     with pytest.raises(InputError):
-        bpnp.solve_pnp(x, X, K, w)
+        bpnp.solve_pnp(x, X, w, K)
 
 
 def test_project_matches_runtime_geometry_and_is_differentiable():

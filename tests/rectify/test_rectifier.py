@@ -1,58 +1,27 @@
-"""The torch-free runtime: Rectifier.rectify / rectify_batch, its input checks, fallbacks and `dimenet rectify`.
+"""The torch-free runtime: Rectifier.rectify / rectify_batch, its input checks and fallbacks.
 
-The model is a random-init DimeNet exported to ONNX (needs torch and onnx), else the bundled
-default model; without either the tests are skipped.
+The model (conftest.py's ``model_path``) is a random-init DimeNet exported to ONNX (needs torch and
+onnx), else the bundled default model; without either the tests are skipped. `dimenet rectify`:
+tests/cli/test_rectify_command.py.
 """
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from dataclasses import replace
-from importlib import import_module
 from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
-from test_export import model_spec, random_model_file
+from helpers import model_spec, random_model_file
 
-from dimenet.runtime.assets import asset
-from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
-from dimenet.runtime.formats.dataset import write_dataset
-from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
+from dimenet.runtime.geometry import check_not_degenerate, covariance_invariants, k_matrix, k_params
+from dimenet.runtime.rectify import checks
 from dimenet.runtime.rectify import rectifier as rectifier_module
 from dimenet.runtime.rectify.features import grid_features
 from dimenet.runtime.rectify.rectifier import Rectifier
-from dimenet.runtime.sim.simulator import simulate
-
-
-@pytest.fixture(scope="module")
-def frames():
-    """Simulated galaxy-s8 frames: rig frames (NaN-padded) and natural frames (infer_mask < valid)."""
-    return simulate("galaxy-s8", seed=7, natural_frames=3)
-
-
-def importable(*names) -> bool:
-    try:
-        for name in names:
-            import_module(name)
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory, frames):
-    """A random-init model exported for these frames, else None (the bundled default model)."""
-    if importable("torch", "onnx"):
-        return random_model_file(tmp_path_factory.mktemp("model") / "random.onnx", model_spec(frames))
-    if not asset(rectifier_module.DEFAULT_MODEL).is_file():
-        pytest.skip("needs torch and onnx to export a test model, or the bundled default model")
-    return None
 
 
 @pytest.fixture(scope="module")
@@ -190,16 +159,13 @@ def test_spread_tests_of_one_frame_and_of_a_batch_agree_and_imply_the_exact_chec
     points = np.stack(frames)
     passed = np.ones(len(points), bool)
     for D in (3, 2):
-        batch = rectifier_module._spread_frames(points[..., :D], None)[0]
-        single = [
-            rectifier_module._well_spread(f, covariance_invariants(f))
-            for f in map(np.ascontiguousarray, points[..., :D])
-        ]
+        batch = checks.spread_frames(points[..., :D], None)[0]
+        single = [checks.well_spread(f, covariance_invariants(f)) for f in map(np.ascontiguousarray, points[..., :D])]
         assert batch.tolist() == single
         assert single[:2] == [True, True] and single[3:] == [False, False]
         passed &= single
     for f in points[passed]:
-        rectifier_module.check_not_degenerate(f, f[:, :2])  # raises when the cheap test was wrong
+        check_not_degenerate(f[:, :2], f)  # raises when the cheap test was wrong
 
 
 def test_bad_frames_of_a_batch_are_named(rectifier, frames, monkeypatch):
@@ -262,67 +228,3 @@ def test_missing_bundled_model_is_a_model_error(monkeypatch):
     monkeypatch.setattr(rectifier_module, "DEFAULT_MODEL", "absent_model.onnx")
     with pytest.raises(ModelError, match="no bundled default model"):
         Rectifier.load()
-
-
-def test_runtime_and_its_commands_never_import_torch_or_onnx():
-    code = (
-        "import sys\n"
-        "import dimenet.runtime, dimenet.runtime.rectify.rectifier, dimenet.runtime.rectify.model\n"
-        "import dimenet.runtime.evaluation.latency\n"
-        "from dimenet.runtime.cli.main import main\n"
-        "for cmd in ('rectify', 'bench'):\n"
-        "    try:\n"
-        "        main([cmd, '--help'])\n"
-        "    except SystemExit as exc:\n"
-        "        assert exc.code == 0, exc.code\n"
-        "heavy = sorted(m for m in ('torch', 'onnx') if m in sys.modules)\n"
-        "assert not heavy, heavy\n"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert "dimenet rectify" in done.stdout and "dimenet bench" in done.stdout
-
-
-def test_rectify_command_on_the_example_and_on_a_dataset(model_path, frames, tmp_path, capsys):
-    model = [] if model_path is None else ["--model", str(model_path)]
-    out = tmp_path / "result.npz"
-    assert main(["rectify", "--example", *model, "--out", str(out), "--json"]) == 0
-    report = json.loads(capsys.readouterr().out)
-    assert len(report["frames"]) == 8 and report["summary"]["n_frames"] == 8
-    with np.load(out, allow_pickle=False) as npz:
-        assert npz["K"].shape == (8, 3, 3) and npz["fallback"].dtype.kind == "U"
-        assert np.all(np.isfinite(npz["e"])) and np.all(np.isfinite(npz["e_c"]))
-        np.testing.assert_allclose(npz["e"], [f["e_px"] for f in report["frames"]])
-    data = tmp_path / "natural.npz"
-    write_dataset(frames.select(frames.scene == "natural"), data)
-    assert main(["rectify", str(data), *model]) == 0
-    assert "3 frames: Avg(e_c)" in capsys.readouterr().out
-    other = replace(frames.select(frames.scene == "natural"), image_size=np.array([4000, 3000]))
-    write_dataset(other, tmp_path / "other.npz")
-    assert main(["rectify", str(tmp_path / "other.npz"), *model]) == 2
-    assert "trained for 4032x3024 px images" in capsys.readouterr().err
-    assert main(["rectify"]) == 2
-
-
-def test_rectify_command_mode_map_writes_k_cov(model_path, tmp_path, capsys):
-    """The bundled model carries an uncertainty model: mode map fits the frames' points at least
-    as well as mode dimenet and reports K_cov (npz) and its standard deviations (JSON)."""
-    results = {}
-    for mode in ("dimenet", "map"):
-        out = tmp_path / f"{mode}.npz"
-        assert main(["rectify", "--example", "--mode", mode, "--out", str(out), "--json"]) == 0
-        report = json.loads(capsys.readouterr().out)
-        assert report["mode"] == mode and report["summary"]["fallbacks"] == 0
-        with np.load(out, allow_pickle=False) as npz:
-            results[mode] = {k: npz[k] for k in npz.files}
-        for i, frame in enumerate(report["frames"]):
-            np.testing.assert_allclose(frame["K_sigma_px"], np.sqrt(np.diag(results[mode]["K_cov"][i])))
-            assert all(s > 0 for s in frame["K_sigma_px"])
-    assert results["map"]["e"].mean() < results["dimenet"]["e"].mean()
-    assert np.all(
-        np.diagonal(results["map"]["K_cov"], axis1=1, axis2=2)
-        < np.diagonal(results["dimenet"]["K_cov"], axis1=1, axis2=2)
-    )  # the data add information
-    if model_path is not None:  # a model without an uncertainty model cannot fuse: one line, exit 2
-        assert main(["rectify", "--example", "--model", str(model_path), "--mode", "map"]) == 2
-        assert "no uncertainty model" in capsys.readouterr().err

@@ -4,16 +4,10 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
-import pytest
-from test_rectifier import frames, model_path  # noqa: F401  (module fixtures)
-
 from dimenet.runtime.cli.main import main
-from dimenet.runtime.errors import InputError
-from dimenet.runtime.evaluation.latency import bench_frames, percentiles_us
 
 
-def test_bench_json_reports_every_key(model_path, capsys):  # noqa: F811
+def test_bench_json_reports_every_key(model_path, capsys):
     model = [] if model_path is None else ["--model", str(model_path)]
     assert main(["bench", *model, "--frames", "12", "--points", "64", "--batch", "4", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
@@ -25,17 +19,15 @@ def test_bench_json_reports_every_key(model_path, capsys):  # noqa: F811
     assert report["frames"] == 12 and report["points"] == 64
 
 
-def test_budget_exceeded_exits_1_and_refine_adds_its_stage(model_path, capsys):  # noqa: F811
+def test_budget_exceeded_exits_1_and_refine_adds_its_stage(model_path, capsys):
     model = [] if model_path is None else ["--model", str(model_path)]
     assert main(["bench", *model, "--frames", "3", "--points", "32", "--refine", "--budget-ms", "0.000001"]) == 1
     out = capsys.readouterr().out
     assert "stage refine" in out and "exceeds the budget" in out
 
 
-def test_bench_frames_have_exactly_the_requested_points():
-    p2, p3 = bench_frames(5, 100, (4032, 3024))
-    assert p2.shape == (5, 100, 2) and p3.shape == (5, 100, 3)
-    assert np.all(np.isfinite(p2)) and np.all(np.isfinite(p3))
-    with pytest.raises(InputError, match="--points"):
-        bench_frames(5, 1000, (4032, 3024))
-    assert percentiles_us([1.0, 2.0, 3.0])["max"] == 3.0
+def test_bench_map_mode_times_its_map_stage(map_model, capsys):
+    _, path = map_model
+    assert main(["bench", "--model", str(path), "--mode", "map", "--frames", "6", "--points", "64", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["mode"] == "map" and "map" in report["stages_us"] and report["ratio_p50"] > 0

@@ -1,0 +1,63 @@
+"""`dimenet bench --ingest` and `--bpnp`: one command, options refused outside their bench, and
+--bpnp's one-line error without torch (no timing assertions)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from dimenet.runtime.cli.main import main
+
+
+def run_without_torch(*args: str) -> subprocess.CompletedProcess:
+    code = (
+        "import sys; sys.modules['torch'] = None\n"  # import torch raises ImportError, as without the extra
+        "from dimenet.runtime.cli.main import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
+
+
+def test_bench_help_shows_every_bench_and_ends_with_their_examples(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "--ingest DIR" in out and "--bpnp" in out and "(default 2000; with --bpnp 32)" in out
+    example = out[out.index("example:") :].splitlines()[1:]
+    assert [line.split()[:3] for line in example] == [
+        ["dimenet", "bench", "--points"],
+        ["dimenet", "bench", "--ingest"],
+        ["dimenet", "bench", "--bpnp"],
+    ]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--ingest", "shots", "--bpnp"], "--ingest and --bpnp exclude each other"),
+        (["--bpnp", "--model", "m.onnx"], "--model applies only to the latency bench"),
+        (["--ingest", "shots", "--frames", "3"], "--frames applies only to the latency bench"),
+        (["--n", "3"], "--n applies only to --ingest"),
+        (["--repeats", "3"], "--repeats applies only to --bpnp"),
+        (["--ingest", "shots", "--n", "0"], "--n: must be >= 1"),
+    ],
+)
+def test_bench_refuses_an_option_of_another_bench_in_one_line(args, message, capsys):
+    assert main(["bench", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def test_bench_bpnp_without_torch_is_one_line_naming_the_train_extra():
+    done = run_without_torch("bench", "--bpnp", "--repeats", "1")
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert "--bpnp needs the train extra" in lines[0] and "torch" in lines[0]
+
+
+def test_bench_without_torch_still_runs_its_help():
+    done = run_without_torch("bench", "--help")
+    assert done.returncode == 0 and "dimenet bench --bpnp" in done.stdout, done.stderr

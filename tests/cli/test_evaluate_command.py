@@ -1,0 +1,37 @@
+"""`dimenet evaluate --methods`: JSON and table output, and its one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.sim.simulator import simulate
+
+
+def test_evaluate_methods_json_and_table(map_model, tmp_path, capsys):
+    frames, path = map_model
+    data = write_dataset(frames, tmp_path / "d.npz")
+    assert main(["evaluate", str(data), "--model", str(path), "--methods", "kc,self,dimenet,map,oracle", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    methods = out["methods"]
+    assert list(methods) == ["kc", "self", "dimenet", "map", "oracle"]
+    assert set(methods["map"]) == {"rig", "natural", "planar", "overall"}
+    assert methods["kc"]["overall"]["rho"] == pytest.approx(0.0, abs=1e-12)
+    assert methods["oracle"]["overall"]["rho"] == pytest.approx(1.0, abs=1e-12)
+    assert methods["self"]["rig"]["rho"] > 0.95
+    assert methods["dimenet"]["overall"]["avg_e"] == pytest.approx(out["overall"]["avg_e"])
+    assert out["fallbacks"]["self"] >= 2  # the planar frames
+    assert set(out["coverage"]) == {"dimenet", "map"} and set(out["coverage"]["map"]) == {"fx", "fy", "cx", "cy"}
+    assert main(["evaluate", str(data), "--model", str(path), "--methods", "self,map"]) == 0
+    assert "1-sigma coverage" in capsys.readouterr().out
+
+
+def test_evaluate_methods_errors_exit_2(tmp_path, capsys):
+    data = write_dataset(simulate("galaxy-s8", seed=1), tmp_path / "d.npz")
+    for argv, message in ((["--methods", "map"], "needs --model"), (["--methods", "kc,fast"], "unknown method 'fast'")):
+        assert main(["evaluate", str(data), *argv]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1
