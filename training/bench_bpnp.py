@@ -1,6 +1,6 @@
 """Benchmark of the BPnP layer: forward + backward of B frames x N points, single-threaded.
 
-    python -m dimenet.training.bench_bpnp [--frames 32] [--points 320] [--repeats 200] [--json]
+    dimenet bench --bpnp [--frames 32] [--points 320] [--repeats 200] [--baseline-repeats 10] [--json]
 
 Times ``dimenet.training.bpnp.solve_pnp`` and, for scale, a BPnP_fast-style baseline
 (see ``_BaselineBPnP``) on the same synthetic scene, and reports the median wall times.
@@ -8,8 +8,6 @@ Times ``dimenet.training.bpnp.solve_pnp`` and, for scale, a BPnP_fast-style base
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import time
 
@@ -102,8 +100,8 @@ def run(frames: int, points: int, repeats: int, baseline_repeats: int) -> dict:
     upstream = torch.from_numpy(np.random.default_rng(1).normal(size=(frames, 6)))
 
     def exact():
-        inputs = [v.clone().requires_grad_() for v in (x, X, K)]
-        rvec, tvec = solve_pnp(*inputs, w)
+        x_, X_, K_ = (v.clone().requires_grad_() for v in (x, X, K))
+        rvec, tvec = solve_pnp(x_, X_, w, K_)
         (torch.cat([rvec, tvec], -1) * upstream).sum().backward()
 
     def baseline():
@@ -128,28 +126,15 @@ def run(frames: int, points: int, repeats: int, baseline_repeats: int) -> dict:
     }
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=32)
-    parser.add_argument("--points", type=int, default=320)
-    parser.add_argument("--repeats", type=int, default=200)
-    parser.add_argument("--baseline-repeats", type=int, default=10)
-    parser.add_argument("--json", action="store_true", help="print the result as JSON")
-    args = parser.parse_args(argv)
-    result = run(args.frames, args.points, args.repeats, args.baseline_repeats)
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return
-    print(f"B={result['frames']} frames x N={result['points']} points, forward+backward, 1 thread")
-    print(
-        f"  exact BPnP (this package): median {result['median_ms']:.2f} ms over {result['repeats']} runs "
-        f"(target <= {result['target_ms']:.0f} ms)"
+def format_report(result: dict) -> str:
+    """The lines of the result of ``run``."""
+    return "\n".join(
+        [
+            f"B={result['frames']} frames x N={result['points']} points, forward+backward, 1 thread",
+            f"  exact BPnP (this package): median {result['median_ms']:.2f} ms over {result['repeats']} runs "
+            f"(target <= {result['target_ms']:.0f} ms)",
+            f"  {result['baseline']}: median {result['baseline_median_ms']:.1f} ms over {result['baseline_repeats']} "
+            "runs",
+            f"  speed-up: {result['speedup']:.1f}x",
+        ]
     )
-    print(
-        f"  {result['baseline']}: median {result['baseline_median_ms']:.1f} ms over {result['baseline_repeats']} runs"
-    )
-    print(f"  speed-up: {result['speedup']:.1f}x")
-
-
-if __name__ == "__main__":
-    main()

@@ -3,30 +3,39 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import shlex
 import sys
 
 from dimenet.runtime.cli.main import Command
 
-# TrainConfig's default, repeated here so that `dimenet train --help` needs no torch.
-TRAIN_DEFAULT_FOCAL_WEIGHT = 0.03
+from .config import ReproduceConfig, TrainConfig
+
+# The defaults --help states are the dataclasses' own (training/config.py imports no torch).
+TRAIN_DEFAULTS = TrainConfig()
+REPRODUCE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(ReproduceConfig) if f.name != "out_dir"}
 
 
 def _add_train(p: argparse.ArgumentParser) -> None:
+    d = TRAIN_DEFAULTS
     p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz) with a train split")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png")
-    p.add_argument("--grid", default="8x6", help="grid, columns x rows (default 8x6)")
-    p.add_argument("--features", default="A", choices="ABCDE", help="feature variant of paper Table 3 (default A)")
-    p.add_argument("--epochs", type=int, default=600, help="epochs (default 600; the best val epoch is kept)")
-    p.add_argument("--seed", type=int, default=0, help="seed: same seed, same model (default 0)")
+    p.add_argument("--grid", default=d.grid, help=f"grid, columns x rows (default {d.grid})")
+    p.add_argument(
+        "--features", default=d.variant, choices="ABCDE", help=f"feature variant of paper Table 3 (default {d.variant})"
+    )
+    p.add_argument(
+        "--epochs", type=int, default=d.epochs, help=f"epochs (default {d.epochs}; the best val epoch is kept)"
+    )
+    p.add_argument("--seed", type=int, default=d.seed, help=f"seed: same seed, same model (default {d.seed})")
     p.add_argument(
         "--focal-weight",
         type=float,
-        default=TRAIN_DEFAULT_FOCAL_WEIGHT,
+        default=d.focal_weight,
         metavar="W",
         help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
-        f"each frame's K* (default {TRAIN_DEFAULT_FOCAL_WEIGHT}; 0: the paper's loss alone)",
+        f"each frame's K* (default {d.focal_weight}; 0: the paper's loss alone)",
     )
 
 
@@ -34,7 +43,7 @@ def _run_train(args: argparse.Namespace) -> int:
     from dimenet.runtime.errors import InputError
     from dimenet.runtime.formats.dataset import read_dataset
 
-    from .trainer import TrainConfig, file_sha256, train
+    from .trainer import file_sha256, train
 
     if args.epochs < 1:
         raise InputError(f"--epochs must be >= 1, got {args.epochs}")
@@ -68,12 +77,20 @@ TRAIN = Command(
 
 
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
+    d = REPRODUCE_DEFAULTS
     p.add_argument("--out", required=True, metavar="DIR", help="folder for REPRODUCTION.md, results.json, plots, runs/")
-    p.add_argument("--epochs", type=int, default=600, help="epochs of the three device models (default 600)")
     p.add_argument(
-        "--ablation-epochs", type=int, default=150, help="epochs of the Table 2/3 ablation models (default 150)"
+        "--epochs", type=int, default=d["epochs"], help=f"epochs of the three device models (default {d['epochs']})"
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of simulation, training and conditions (default 0)")
+    p.add_argument(
+        "--ablation-epochs",
+        type=int,
+        default=d["ablation_epochs"],
+        help=f"epochs of the Table 2/3 ablation models (default {d['ablation_epochs']})",
+    )
+    p.add_argument(
+        "--seed", type=int, default=d["seed"], help=f"seed of simulation, training and conditions (default {d['seed']})"
+    )
 
 
 def _run_reproduce(args: argparse.Namespace) -> int:
@@ -81,7 +98,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
 
     from dimenet.runtime.errors import InputError
 
-    from .reproduce import ReproduceConfig, run
+    from .reproduce import run
 
     if args.epochs < 1 or args.ablation_epochs < 1:
         raise InputError("--epochs and --ablation-epochs must be >= 1")

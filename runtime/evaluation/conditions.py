@@ -16,7 +16,8 @@ from numbers import Real
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.formats.dataset import MIN_POINTS_PER_FRAME, Dataset
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.rectify.grid import Grid
 
 
@@ -46,8 +47,8 @@ def drop_inference_points(ds: Dataset, n, rng: np.random.Generator) -> Dataset:
     ``n`` is one integer or one per frame."""
     _check_generator(rng)
     ns = _per_frame(n, ds)
-    if isinstance(n, bool) or ns.dtype.kind not in "iu" or np.any(ns < MIN_POINTS_PER_FRAME):
-        raise InputError(f"n must be an integer >= {MIN_POINTS_PER_FRAME} (a pose needs them), got {n!r}")
+    if isinstance(n, bool) or ns.dtype.kind not in "iu" or np.any(ns < MIN_POINTS):
+        raise InputError(f"n must be an integer >= {MIN_POINTS} (a pose needs them), got {n!r}")
     infer = ds.infer_mask.copy()
     for f in range(ds.n_frames):
         idx = np.flatnonzero(infer[f])
@@ -100,27 +101,53 @@ def empty_cells(ds: Dataset, eta, grid: Grid, rng: np.random.Generator) -> Datas
 PLANE_TOLERANCE = 1e-3  # of the distance between a point and its nearest neighbour: "on the plane"
 
 
+def _keep_in_each_frame(ds: Dataset, points: np.ndarray, min_points: int, choose) -> Dataset:
+    """Per frame with at least ``min_points`` inference points, keep those that
+    ``choose(points[f, inference])`` selects (a boolean mask or indices over them), or all of
+    them where it returns None. Frames are visited in order, so the draws of ``choose`` are too."""
+    infer = ds.infer_mask.copy()
+    for f in range(ds.n_frames):
+        idx = np.flatnonzero(infer[f])
+        if len(idx) < min_points:
+            continue
+        keep = choose(points[f, idx])
+        if keep is not None:
+            infer[f] = False
+            infer[f, idx[keep]] = True
+    return replace(ds, infer_mask=infer)
+
+
+def _on_one_plane(X: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+    """Mask of the points X (N, 3) on the plane of a random one and its three nearest; None if collinear."""
+    distance = np.linalg.norm(X - X[rng.integers(len(X))], axis=1)
+    near = np.argsort(distance)[:4]
+    centre = X[near].mean(0)
+    _, s, vt = np.linalg.svd(X[near] - centre)
+    if s[1] <= 1e-6 * s[0]:
+        return None
+    return np.abs((X - centre) @ vt[2]) <= PLANE_TOLERANCE * distance[near[1]]
+
+
 def one_plane(ds: Dataset, rng: np.random.Generator) -> Dataset:
     """Keep, per frame, the inference points on one plane: that through a uniformly chosen
     inference point and its three nearest ones (in 3D), within PLANE_TOLERANCE of the distance
     to the nearest. Frames with fewer than four inference points, or where those four are
     collinear, keep their points."""
     _check_generator(rng)
-    infer = ds.infer_mask.copy()
-    for f in range(ds.n_frames):
-        idx = np.flatnonzero(infer[f])
-        if len(idx) < 4:
-            continue
-        X = ds.points_3d[f, idx]
-        distance = np.linalg.norm(X - X[rng.integers(len(idx))], axis=1)
-        near = np.argsort(distance)[:4]
-        centre = X[near].mean(0)
-        _, s, vt = np.linalg.svd(X[near] - centre)
-        if s[1] <= 1e-6 * s[0]:
-            continue
-        on_plane = np.abs((X - centre) @ vt[2]) <= PLANE_TOLERANCE * distance[near[1]]
-        infer[f, idx[~on_plane]] = False
-    return replace(ds, infer_mask=infer)
+    return _keep_in_each_frame(ds, ds.points_3d, 4, lambda X: _on_one_plane(X, rng))
+
+
+def _on_two_objects(x: np.ndarray, rng: np.random.Generator, group_points: tuple, n_points: tuple) -> np.ndarray:
+    """Indices of the points x (N, 2) px that two_objects keeps."""
+    first = rng.integers(len(x))
+    distance = np.linalg.norm(x - x[first], axis=1)
+    second = rng.choice(len(x), p=distance / distance.sum()) if distance.sum() > 0 else first
+    groups = set()
+    for to_centre in (distance, np.linalg.norm(x - x[second], axis=1)):
+        nearest = np.argsort(to_centre, kind="stable")
+        groups.update(nearest[: rng.integers(group_points[0], group_points[1] + 1)].tolist())
+    groups = np.array(sorted(groups))
+    return rng.choice(groups, min(len(groups), int(rng.integers(n_points[0], n_points[1] + 1))), replace=False)
 
 
 def two_objects(
@@ -134,26 +161,9 @@ def two_objects(
     them. Label noise is ``add_noise``'s."""
     _check_generator(rng)
     for name, (low, high) in (("group_points", group_points), ("n_points", n_points)):
-        if not MIN_POINTS_PER_FRAME <= low <= high:
-            raise InputError(f"{name} must be a range ({MIN_POINTS_PER_FRAME} <= low <= high), got {(low, high)!r}")
-    infer = ds.infer_mask.copy()
-    for f in range(ds.n_frames):
-        idx = np.flatnonzero(infer[f])
-        if len(idx) < 2:
-            continue
-        x = ds.points_2d[f, idx]
-        first = rng.integers(len(idx))
-        distance = np.linalg.norm(x - x[first], axis=1)
-        second = rng.choice(len(idx), p=distance / distance.sum()) if distance.sum() > 0 else first
-        groups = set()
-        for to_centre in (distance, np.linalg.norm(x - x[second], axis=1)):
-            nearest = np.argsort(to_centre, kind="stable")
-            groups.update(nearest[: rng.integers(group_points[0], group_points[1] + 1)].tolist())
-        groups = np.array(sorted(groups))
-        keep = rng.choice(groups, min(len(groups), int(rng.integers(n_points[0], n_points[1] + 1))), replace=False)
-        infer[f] = False
-        infer[f, idx[keep]] = True
-    return replace(ds, infer_mask=infer)
+        if not MIN_POINTS <= low <= high:
+            raise InputError(f"{name} must be a range ({MIN_POINTS} <= low <= high), got {(low, high)!r}")
+    return _keep_in_each_frame(ds, ds.points_2d, 2, lambda x: _on_two_objects(x, rng, group_points, n_points))
 
 
 def occupancy(ds: Dataset, grid: Grid) -> float:

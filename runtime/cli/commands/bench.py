@@ -1,54 +1,164 @@
-"""`dimenet bench`: latency of the runtime against cv2.solvePnP ITERATIVE under K_c (see runtime/bench.py)."""
+"""`dimenet bench`: latency of the runtime against cv2.solvePnP ITERATIVE under K_c
+(runtime/evaluation/latency.py); with ``--ingest DIR``, `dimenet ingest` on rendered full-size
+photos against the renderer's truth (runtime/ingest/bench.py); with ``--bpnp``, forward +
+backward of the BPnP layer against a BPnP_fast-style baseline (training/bench_bpnp.py: needs
+the train extra, imported only then, so the runtime never imports torch)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 
-from dimenet.runtime.cli.main import Command, positive_float
+from dimenet.runtime.cli.main import CliError, Command, integer_at_least, positive_float
+from dimenet.runtime.errors import InputError
 from dimenet.runtime.evaluation.latency import format_report, run_bench
+from dimenet.runtime.sim.simulator import PROFILES
+
+# Each bench's options and their defaults. The parser's defaults are None, so that an option
+# given to a bench it does not belong to is refused instead of ignored.
+LATENCY = {
+    "model": None,
+    "mode": "dimenet",
+    "points": 320,
+    "frames": 2000,
+    "threads": 1,
+    "batch": 1,
+    "budget_ms": None,
+    "refine": False,
+}
+INGEST = {"n": 30, "seed": 1, "profile": "galaxy-s8", "workers": 2}
+BPNP = {"frames": 32, "points": 320, "repeats": 200, "baseline_repeats": 10}
+BENCHES = {"the latency bench (without --ingest or --bpnp)": LATENCY, "--ingest": INGEST, "--bpnp": BPNP}
+
+
+def _default(name: str) -> str:
+    """The help's "default X" of a latency option, with its --bpnp default where that differs."""
+    bpnp = f"; with --bpnp {BPNP[name]}" if name in BPNP and BPNP[name] != LATENCY[name] else ""
+    return f"default {LATENCY[name]}{bpnp}"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", help="a .onnx from `dimenet export` (default: the bundled model)")
-    p.add_argument("--points", type=int, default=320, help="correspondences per frame (default 320)")
-    p.add_argument("--frames", type=int, default=2000, help="frames to time (default 2000)")
-    p.add_argument("--threads", type=int, default=1, help="ONNX Runtime and OpenCV threads (default 1)")
-    p.add_argument("--batch", type=int, default=1, help="also time rectify_batch on batches of B frames")
-    p.add_argument("--budget-ms", type=positive_float, metavar="X", help="exit 1 when the end-to-end p99 exceeds X ms")
-    p.add_argument("--refine", action="store_true", help="polish poses with cv2.solvePnPRefineLM")
-    p.add_argument(
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    latency = p.add_argument_group(
+        "latency bench (the default)", "the runtime's stages and end to end against cv2.solvePnP ITERATIVE under K_c"
+    )
+    latency.add_argument("--model", help="a .onnx from `dimenet export` (default: the bundled model)")
+    latency.add_argument("--points", type=int, help=f"correspondences per frame ({_default('points')})")
+    latency.add_argument("--frames", type=int, help=f"frames to time ({_default('frames')})")
+    latency.add_argument("--threads", type=int, help=f"ONNX Runtime and OpenCV threads ({_default('threads')})")
+    latency.add_argument("--batch", type=int, help="also time rectify_batch on batches of B frames")
+    latency.add_argument(
+        "--budget-ms", type=positive_float, metavar="X", help="exit 1 when the end-to-end p99 exceeds X ms"
+    )
+    latency.add_argument("--refine", action="store_true", default=None, help="polish poses with cv2.solvePnPRefineLM")
+    latency.add_argument(
         "--mode",
         choices=("dimenet", "map"),
-        default="dimenet",
-        help="rectification mode: the paper's method or the MAP fusion with the frame (default dimenet)",
+        help=f"rectification mode: the paper's method or the MAP fusion with the frame ({_default('mode')})",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    ingest = p.add_argument_group(
+        "ingest bench (--ingest DIR)",
+        "`dimenet ingest` on rendered full-size photos of the paper's rig, scored against the truth",
+    )
+    ingest.add_argument(
+        "--ingest", metavar="DIR", help="folder of rendered photos (rendered there first if it has no truth.npz)"
+    )
+    ingest.add_argument("--n", type=integer_at_least(1), help=f"photos to render (default {INGEST['n']})")
+    ingest.add_argument("--seed", type=int, help=f"render seed (default {INGEST['seed']})")
+    ingest.add_argument("--profile", choices=sorted(PROFILES), help=f"device profile (default {INGEST['profile']})")
+    ingest.add_argument(
+        "--workers", type=integer_at_least(1), help=f"ingest worker processes (default {INGEST['workers']})"
+    )
+    bpnp = p.add_argument_group(
+        "BPnP bench (--bpnp; needs the train extra)",
+        "forward + backward of the training's BPnP layer on B frames x N points (--frames, --points), "
+        "1 thread, against a BPnP_fast-style baseline",
+    )
+    bpnp.add_argument("--bpnp", action="store_true", help="time the BPnP layer instead of the runtime")
+    bpnp.add_argument(
+        "--repeats", type=integer_at_least(1), help=f"timed runs of the layer (default {BPNP['repeats']})"
+    )
+    bpnp.add_argument(
+        "--baseline-repeats",
+        type=integer_at_least(1),
+        help=f"timed runs of the baseline (default {BPNP['baseline_repeats']})",
+    )
+
+
+def _options(args: argparse.Namespace, bench: dict) -> dict:
+    """The options of one bench, defaults filled in; one of another bench given is a CliError."""
+    for name in dict.fromkeys(n for options in BENCHES.values() for n in options):
+        if name not in bench and getattr(args, name) is not None:
+            owners = " or ".join(phrase for phrase, options in BENCHES.items() if name in options)
+            raise CliError(f"dimenet bench: --{name.replace('_', '-')} applies only to {owners}")
+    return {name: default if getattr(args, name) is None else getattr(args, name) for name, default in bench.items()}
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.ingest is not None and args.bpnp:
+        raise CliError("dimenet bench: --ingest and --bpnp exclude each other")
+    if args.ingest is not None:
+        return _run_ingest(args)
+    if args.bpnp:
+        return _run_bpnp(args)
+    return _run_latency(args)
+
+
+def _run_latency(args: argparse.Namespace) -> int:
+    o = _options(args, LATENCY)
     report = run_bench(
-        args.model,
-        frames=args.frames,
-        points=args.points,
-        threads=args.threads,
-        batch=args.batch,
-        refine=args.refine,
-        mode=args.mode,
+        o["model"],
+        frames=o["frames"],
+        points=o["points"],
+        threads=o["threads"],
+        batch=o["batch"],
+        refine=o["refine"],
+        mode=o["mode"],
     )
-    over = args.budget_ms is not None and report["end_to_end_us"]["p99"] > 1e3 * args.budget_ms
-    if args.budget_ms is not None:
-        report["budget_ms"], report["within_budget"] = args.budget_ms, not over
+    budget = o["budget_ms"]
+    over = budget is not None and report["end_to_end_us"]["p99"] > 1e3 * budget
+    if budget is not None:
+        report["budget_ms"], report["within_budget"] = budget, not over
     print(json.dumps(report, indent=1) if args.json else format_report(report))
     if over and not args.json:
-        print(f"end-to-end p99 {report['end_to_end_us']['p99'] / 1e3:.3f} ms exceeds the budget of {args.budget_ms} ms")
+        print(f"end-to-end p99 {report['end_to_end_us']['p99'] / 1e3:.3f} ms exceeds the budget of {budget} ms")
     return 1 if over else 0
+
+
+def _run_ingest(args: argparse.Namespace) -> int:
+    from dimenet.runtime.ingest.bench import format_ingest_report, run_ingest_bench
+
+    o = _options(args, INGEST)
+    figures = run_ingest_bench(args.ingest, **o)
+    print(json.dumps(figures) if args.json else format_ingest_report(figures))
+    return 0
+
+
+def _run_bpnp(args: argparse.Namespace) -> int:
+    o = _options(args, BPNP)
+    for name in ("frames", "points"):
+        if o[name] < 1:
+            raise InputError(f"--{name} must be >= 1, got {o[name]}")
+    try:
+        from dimenet.training.bench_bpnp import format_report as format_bpnp_report
+        from dimenet.training.bench_bpnp import run as run_bpnp
+    except ImportError as exc:
+        raise CliError(
+            f"dimenet bench: --bpnp needs the train extra ({exc.name or exc} is not installed): "
+            "pip install 'dimenet-runtime[train]'"
+        ) from None
+    result = run_bpnp(o["frames"], o["points"], o["repeats"], o["baseline_repeats"])
+    print(json.dumps(result, indent=2) if args.json else format_bpnp_report(result))
+    return 0
 
 
 COMMAND = Command(
     name="bench",
-    summary="Time rectification per stage and end to end (p50/p90/p99/max, µs) against cv2.solvePnP ITERATIVE.",
-    example="dimenet bench --points 320 --frames 2000 --threads 1 --batch 64 --budget-ms 0.5 --json",
+    summary="Time rectification per stage and end to end (p50/p90/p99/max, µs) against cv2.solvePnP ITERATIVE; "
+    "--ingest: photo ingest against the renderer's truth; --bpnp: the BPnP layer.",
+    example="dimenet bench --points 320 --frames 2000 --threads 1 --batch 64 --budget-ms 0.5 --json\n"
+    "  dimenet bench --ingest shots --n 30 --seed 1 --profile galaxy-s8 --workers 2\n"
+    "  dimenet bench --bpnp --frames 32 --points 320 --repeats 200",
     add_arguments=add_arguments,
     run=run,
 )

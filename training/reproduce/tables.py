@@ -1,0 +1,133 @@
+"""The paper's tables on the simulated profiles: simulate, train the models, evaluate every case,
+and write results.json, the plots and REPRODUCTION.md (report.py) into OUT_DIR."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dimenet.runtime.cli.progress import progress
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
+from dimenet.runtime.evaluation.methods import METHODS, evaluate
+from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.sim.simulator import simulate
+
+from ..config import ReproduceConfig, TrainConfig
+from ..trainer import train
+from .paper import DEVICES, ETAS, GRIDS, NATURAL_FRAMES, NOISE_2D_PX, NOISE_3D_MM, PLANAR_FRAMES, POINTS, VARIANTS
+from .report import plot_eta, plot_methods, plot_points, report
+
+
+def _row(ev) -> dict:
+    s = ev.overall
+    return {"n_frames": s.n_frames, "avg_e_c": s.avg_e_c, "avg_e": s.avg_e, "avg_e_star": s.avg_e_star, "rho": s.rho}
+
+
+def _rig_test(ds: Dataset) -> Dataset:
+    return ds.select(ds.frames_in("test") & (ds.scene == "rig"))
+
+
+def run(config: ReproduceConfig) -> dict:
+    """Train, evaluate and write the report; returns the results dictionary."""
+    start = time.monotonic()
+    out = Path(config.out_dir)
+    runs = out / "runs"
+    data = {
+        d: simulate(
+            d,
+            seed=config.seed,
+            natural_frames=NATURAL_FRAMES if d == "galaxy-s8" else 0,
+            planar_frames=PLANAR_FRAMES if d == "galaxy-s8" else 0,
+        )
+        for d in DEVICES
+    }
+    jobs = [(d, "8x6", "A", config.epochs) for d in DEVICES]
+    jobs += [("galaxy-s8", "8x6", v, config.ablation_epochs) for v in VARIANTS[1:]]
+    jobs += [("galaxy-s8", g, "A", config.ablation_epochs) for g in GRIDS[:2]]
+    predictors, train_seconds = {}, {}
+    for device, grid, variant, epochs in progress(jobs, desc="reproduce: training"):
+        name = f"{device}-{grid}-{variant}"
+        t0 = time.monotonic()
+        cfg = TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed)
+        predictors[name] = load_predictor(train(data[device], cfg, runs / name).run_dir)
+        train_seconds[name] = time.monotonic() - t0
+
+    def ev(frames, name):
+        p = predictors[name]
+        return evaluate(frames, p.spec.K_c, p.predict_k)
+
+    rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
+    s8 = data["galaxy-s8"]
+    s8_rig = _rig_test(s8)
+    results: dict = {"train_seconds": train_seconds}
+    t5 = {d: _row(ev(_rig_test(data[d]), f"{d}-8x6-A")) for d in DEVICES}
+    natural = s8.select(s8.frames_in("test") & (s8.scene == "natural"))
+    if natural.n_frames:
+        t5["galaxy-s8 (N)"] = _row(ev(natural, "galaxy-s8-8x6-A"))
+    results["table5"] = t5
+    t4 = {"clean": {}, "noisy": {}}
+    noisy = add_noise(s8_rig, NOISE_2D_PX, NOISE_3D_MM, rng(1))
+    for n in POINTS:
+        t4["clean"][n] = _row(ev(drop_inference_points(s8_rig, n, rng(2)), "galaxy-s8-8x6-A"))
+        t4["noisy"][n] = _row(ev(drop_inference_points(noisy, n, rng(3)), "galaxy-s8-8x6-A"))
+    results["table4"] = t4
+    results["table3"] = {v: _row(ev(s8_rig, f"galaxy-s8-8x6-{v}")) for v in VARIANTS}
+    t2 = {}
+    for g in GRIDS:
+        grid = Grid.parse(g)
+        t2[g] = []
+        for k, eta in enumerate(ETAS):
+            frames = empty_cells(s8_rig, eta, grid, rng(10 + k)) if eta else s8_rig
+            t2[g].append({"eta": eta, "gamma": occupancy(frames, grid), **_row(ev(frames, f"galaxy-s8-{g}-A"))})
+    results["table2"] = t2
+    results["baselines"] = _baselines(data, predictors, config)
+    results["seconds"] = time.monotonic() - start
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
+    atomic_write(out / "rho_vs_points.png", lambda f: f.write(plot_points(t4)))
+    atomic_write(out / "e_vs_eta.png", lambda f: f.write(plot_eta(t2)))
+    atomic_write(out / "methods_vs_points.png", lambda f: f.write(plot_methods(results["baselines"])))
+    atomic_write_text(out / "REPRODUCTION.md", report(results, config))
+    return results
+
+
+def _baseline_cases(data: dict, config: ReproduceConfig) -> dict:
+    """Every Table 4/5 case and the planar frames: case name -> (frames, model name)."""
+    rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
+    s8 = data["galaxy-s8"]
+    s8_rig, test = _rig_test(s8), s8.select(s8.frames_in("test"))
+    cases = {f"{d} rig": (_rig_test(data[d]), f"{d}-8x6-A") for d in DEVICES}
+    for scene in ("natural", "planar"):
+        frames = test.select(test.scene == scene)
+        if frames.n_frames:
+            cases[f"galaxy-s8 {scene}"] = (frames, "galaxy-s8-8x6-A")
+    noisy = add_noise(s8_rig, NOISE_2D_PX, NOISE_3D_MM, rng(1))
+    for n in POINTS:  # the same draws as Table 4
+        cases[f"galaxy-s8 clean {n} pts"] = (drop_inference_points(s8_rig, n, rng(2)), "galaxy-s8-8x6-A")
+        cases[f"galaxy-s8 noisy {n} pts"] = (drop_inference_points(noisy, n, rng(3)), "galaxy-s8-8x6-A")
+    return cases
+
+
+def _baselines(data: dict, predictors: dict, config: ReproduceConfig) -> dict:
+    """case -> {"methods": method -> {avg_e, rho, fallbacks}, "coverage" and "coverage_true":
+    method -> parameter -> share (against K* and against the simulator's K_true)}."""
+    out = {}
+    for case, (frames, name) in progress(_baseline_cases(data, config).items(), desc="reproduce: baselines"):
+        p = predictors[name]
+        ev = evaluate(frames, p.spec.K_c, p, methods=METHODS)
+        out[case] = {
+            "n_frames": frames.n_frames,
+            "methods": {
+                m: {"avg_e": rows["overall"].avg_e, "rho": rows["overall"].rho, "fallbacks": ev.fallbacks[m]}
+                for m, rows in ev.methods.items()
+            },
+            "coverage": ev.coverage,
+            "coverage_true": ev.coverage_true,
+        }
+    return out
