@@ -1,6 +1,6 @@
 """Batched, exact BPnP: the weighted PnP optimum as a differentiable torch layer.
 
-``solve_pnp(points_2d, points_3d, K, weights)`` returns the pose {W}->{C}
+``solve_pnp(points_2d, points_3d, weights, K)`` returns the pose {W}->{C}
 (X_C = R(rvec) X_W + tvec; rvec axis-angle in rad, tvec in mm) minimising
 
     E = sum_i w_i ||pi(K, R X_i + t) - x_i||^2   (px^2),
@@ -40,9 +40,8 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import MIN_DEPTH_MM, check_not_degenerate, solve_pnp_start
+from dimenet.runtime.geometry import MIN_DEPTH_MM, MIN_POSE_POINTS, check_not_degenerate, solve_pnp_start
 
-MIN_POINTS = 4
 MAX_ITERATIONS = 50
 # A frame has converged when its rotation step is below this (rad) and its translation
 # step below this times max(|t|, 1 mm) (mm).
@@ -184,12 +183,12 @@ def _start(problem: _Problem) -> tuple[torch.Tensor, torch.Tensor]:
     K = np.zeros((3, 3))
     r0, t0 = np.empty((len(x), 3)), np.empty((len(x), 3))
     for b in range(len(x)):
-        if use[b].sum() < MIN_POINTS:
-            raise InputError(f"frame {b}: {int(use[b].sum())} weighted points, a pose needs >= {MIN_POINTS}")
+        if use[b].sum() < MIN_POSE_POINTS:
+            raise InputError(f"frame {b}: {int(use[b].sum())} weighted points, a pose needs >= {MIN_POSE_POINTS}")
         fx, fy, cx, cy = problem.kp[b].tolist()
         K[...] = [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
         try:
-            check_not_degenerate(X[b, use[b]], x[b, use[b]])
+            check_not_degenerate(x[b, use[b]], X[b, use[b]])
             r0[b], t0[b] = solve_pnp_start(x[b, use[b]], X[b, use[b]], K)
         except (InputError, cv2.error) as err:
             raise InputError(f"frame {b}: {err}") from None
@@ -371,12 +370,13 @@ class _BPnP(torch.autograd.Function):
 
 
 def solve_pnp(
-    points_2d: torch.Tensor, points_3d: torch.Tensor, K: torch.Tensor, weights: torch.Tensor
+    points_2d: torch.Tensor, points_3d: torch.Tensor, weights: torch.Tensor, K: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Weighted least-squares PnP optimum of B frames, differentiable w.r.t. points_2d, points_3d and K.
 
-    points_2d (B, N, 2) px; points_3d (B, N, 3) mm in {W}; K (B, 3, 3) px (fx, fy, cx, cy
-    read); weights (B, N) >= 0, 0 masks a point. All float64. Returns rvec (B, 3) rad and
+    points_2d (B, N, 2) px; points_3d (B, N, 3) mm in {W}; weights (B, N) >= 0, 0 masks a
+    point; K (B, 3, 3) px (fx, fy, cx, cy read). All float64 (the argument order of
+    ``geometry.least_squares.solve_pnp``). Returns rvec (B, 3) rad and
     tvec (B, 3) mm of the pose {W}->{C}. Raises InputError on bad input or a frame
     without an isolated optimum (the message names the frame).
     """

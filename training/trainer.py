@@ -25,7 +25,6 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import torch
@@ -35,10 +34,9 @@ from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
-from dimenet.runtime.evaluation.predictor import MIN_INFER_POINTS
 from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import k_params, project
+from dimenet.runtime.geometry import MIN_POINTS, k_params, project
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.map_fit import map_rectify
@@ -46,6 +44,7 @@ from dimenet.runtime.rectify.spec import ModelSpec
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 
 from . import bpnp
+from .config import TrainConfig
 from .model import DimeNet
 from .predictor import torch_predictor
 from .run_dir import write_run
@@ -61,31 +60,6 @@ UNCERTAINTY_SAMPLES = 240
 # Per-axis std range (px) of the label noise on the two-object draws: hand labels of natural
 # features are a few px off (the paper's LEGO test; the simulator's natural scene: 4.9 px).
 OBJECT_LABEL_NOISE_PX = (2.0, 8.0)
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    grid: str = "8x6"
-    variant: str = "A"
-    epochs: int = 600
-    batch_size: int = 32
-    lr: float = 2e-3
-    weight_decay: float = 1e-2  # AdamW's own default: keeps the long schedule from overfitting the rig
-    hidden: tuple = (256, 128)
-    seed: int = 0
-    val_fraction: float = 0.15  # of train, held back when the dataset has no val split
-    min_points: int = 64
-    max_eta: float = 0.8
-    max_noise_px: float = 3.0  # per-frame extra 2D noise drawn from U(0, max), px
-    resynthesis: float = 0.75  # share of train frames re-imaged under another frame's principal point
-    cluster_share: float = 0.25  # share of frames whose inference points shrink to hand-labelled-like clusters
-    cluster_points: tuple = (40, 100)  # how many points those clusters keep, drawn uniformly
-    max_label_noise_px: float = 6.0  # per-frame label noise on the clustered points drawn from U(0, max), px
-    # Epochs without val improvement before stopping; None (default): the whole cosine schedule
-    # runs (stopping at 150 cost one seed 5 points of ipad rho) and the best val epoch is kept.
-    patience: Optional[int] = None
-    full_share: float = 0.4  # share of frames keeping all their inference points and every cell
-    focal_weight: float = 0.03  # weight of the focal term: squared error (px^2) of (fx, fy) against K*
 
 
 @dataclass(frozen=True)
@@ -185,7 +159,7 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     of emptied cells, except a ``full_share`` of the frames that keep all their points and
     cells; a share of the frames with clustered, noisily labelled inference points."""
     n_infer = frames.infer_mask.sum(1)
-    low = np.minimum(max(config.min_points, MIN_INFER_POINTS), n_infer)
+    low = np.minimum(max(config.min_points, MIN_POINTS), n_infer)
     n = rng.integers(low, n_infer + 1)
     eta = rng.uniform(0.0, config.max_eta, frames.n_frames)
     # Full frames, as the rig's at test time: without them the net sees 320 points too rarely.
@@ -195,7 +169,7 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     dropped = drop_inference_points(noisy, n, rng)
     emptied = empty_cells(dropped, eta, grid, rng)
     # A frame the emptying left with too few points keeps its points (the runtime would fall back).
-    too_few = emptied.infer_mask.sum(1) < MIN_INFER_POINTS
+    too_few = emptied.infer_mask.sum(1) < MIN_POINTS
     kept = replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
     return cluster_inference_points(
         kept, frames.infer_mask, config.cluster_share, config.cluster_points, config.max_label_noise_px, rng
@@ -249,16 +223,16 @@ def _map_errors(draws: list, uncertainty: Uncertainty, spec: ModelSpec) -> tuple
     standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames' 2D noise (F,) px."""
     errors, sigma, ratio, noise = [], [], [], []
     for frames, pred, K_ref in draws:
-        cov = uncertainty.covariance(pred.stats)
+        K_cov = uncertainty.covariance(pred.stats)
         for f in np.flatnonzero(pred.predicted):
             m = frames.infer_mask[f]
             fit, _ = map_rectify(
-                frames.points_2d[f][m], frames.points_3d[f][m], k_params(pred.K[f]), cov[f], spec.K_bounds, spec.K_c
+                frames.points_2d[f][m], frames.points_3d[f][m], k_params(pred.K[f]), K_cov[f], spec.K_bounds, spec.K_c
             )
             if fit is not None:
                 errors.append(fit.k - k_params(K_ref[f]))
-                sigma.append(np.sqrt(np.diag(fit.k_cov)))
-                ratio.append(np.diag(fit.k_cov) / np.diag(cov[f]))
+                sigma.append(np.sqrt(np.diag(fit.K_cov)))
+                ratio.append(np.diag(fit.K_cov) / np.diag(K_cov[f]))
                 noise.append(fit.noise_px)
     return tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio)) + (np.array(noise),)
 
@@ -286,7 +260,7 @@ def reprojection_loss(delta_k: torch.Tensor, K_c: torch.Tensor, p2, p3, w) -> tu
     K[:, 1, 1] = K[:, 1, 1] + dk[:, 1]
     K[:, 0, 2] = K[:, 0, 2] + dk[:, 2]
     K[:, 1, 2] = K[:, 1, 2] + dk[:, 3]
-    rvec, tvec = bpnp.solve_pnp(p2, p3, K, w)
+    rvec, tvec = bpnp.solve_pnp(p2, p3, w, K)
     r = (bpnp.project(p3, K, rvec, tvec) - p2) * w[..., None]
     n = w.sum(1)
     mse = ((r**2).sum((1, 2)) / n).mean()

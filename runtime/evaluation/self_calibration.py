@@ -16,10 +16,8 @@ import numpy as np
 
 from dimenet.runtime.errors import CalibrationError
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry import MIN_POINTS, k_params
 from dimenet.runtime.geometry.least_squares import dlt_starts, fit
-
-MIN_POINTS = 6
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,10 @@ import numpy as np
 
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.geometry import MIN_POINTS
 
 FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")
-MIN_POINTS_PER_FRAME = 6
 REQUIRED_KEYS = ("format", "image_size", "points_2d", "points_3d", "valid", "infer_mask", "split", "scene", "meta")
 OPTIONAL_KEYS = ("K_true", "frame_id")
 
@@ -156,9 +156,9 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     )
     counts = valid.sum(1)
     _require(
-        bool(np.all(counts >= MIN_POINTS_PER_FRAME)),
+        bool(np.all(counts >= MIN_POINTS)),
         "valid",
-        f"frame {int(np.argmin(counts))} has {int(counts.min())} valid points, needs >= {MIN_POINTS_PER_FRAME}",
+        f"frame {int(np.argmin(counts))} has {int(counts.min())} valid points, needs >= {MIN_POINTS}",
     )
     split = _string_array(arrays, "split", (F,))
     unknown_split = sorted(set(split.tolist()) - set(SPLITS))

@@ -10,8 +10,15 @@ from dimenet.runtime.geometry.camera import k_matrix, k_params
 from dimenet.runtime.geometry.rotation import matrix_to_rvec
 from dimenet.runtime.geometry.spread import spans_3d
 
+# Fewest correspondences of a frame anywhere in dimenet: a pose and, from non-coplanar points,
+# its K (the DLT's 11 unknowns need 6 points); datasets, the rectifier and the predictors ask
+# for it.
+MIN_POINTS = 6
+# Fewest correspondences from which a pose alone is solved (SQPnP and the BPnP layer).
+MIN_POSE_POINTS = 4
 
-def check_not_degenerate(points_3d: np.ndarray, points_2d: np.ndarray) -> None:
+
+def check_not_degenerate(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
     """Raise InputError when the correspondences cannot fix a pose.
 
     Rejects coincident or collinear 3D points (mm) and coincident image points (px).
@@ -29,15 +36,18 @@ def check_not_degenerate(points_3d: np.ndarray, points_2d: np.ndarray) -> None:
 def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fast closed-form pose {W}->{C} (SQPnP) for one frame: (N, 2) px, (N, 3) mm -> rvec, tvec (3,).
 
-    Raises InputError when OpenCV finds no pose.
+    Raises InputError when OpenCV finds no pose or fails on the input.
     """
-    ok, rvec, tvec = cv2.solvePnP(
-        np.ascontiguousarray(points_3d, dtype=np.float64),
-        np.ascontiguousarray(points_2d, dtype=np.float64),
-        np.asarray(K, dtype=np.float64),
-        None,
-        flags=cv2.SOLVEPNP_SQPNP,
-    )
+    try:
+        ok, rvec, tvec = cv2.solvePnP(
+            np.ascontiguousarray(points_3d, dtype=np.float64),
+            np.ascontiguousarray(points_2d, dtype=np.float64),
+            np.asarray(K, dtype=np.float64),
+            None,
+            flags=cv2.SOLVEPNP_SQPNP,
+        )
+    except cv2.error as exc:
+        raise InputError(f"PnP failed: OpenCV could not solve for a pose ({exc.err})") from None
     if not ok or not (
         (cv2.checkRange(rvec)[0] and cv2.checkRange(tvec)[0])  # fast; refuses +DBL_MAX too
         or (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))
@@ -54,8 +64,8 @@ def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray
     when the 3D points are coplanar or too few, where K is not observable from one view.
     """
     n = len(points_3d)
-    if n < 6:
-        raise CalibrationError(f"K from one frame needs >= 6 points, got {n}")
+    if n < MIN_POINTS:
+        raise CalibrationError(f"K from one frame needs >= {MIN_POINTS} points, got {n}")
     c3 = points_3d.mean(0)
     s3 = np.sqrt(3) / np.sqrt(((points_3d - c3) ** 2).sum(1).mean())
     if not spans_3d((points_3d - c3) * s3):

@@ -29,10 +29,10 @@ import numpy as np
 
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import DimenetError, IngestError, LabelsError
-from dimenet.runtime.formats.dataset import MIN_POINTS_PER_FRAME, Dataset
+from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.natural_labels import ImageLabels, NaturalObject
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
-from dimenet.runtime.geometry import k_params, project, to_camera
+from dimenet.runtime.geometry import MIN_POINTS, k_params, project, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
 from dimenet.runtime.ingest.detection import detect_boards
 from dimenet.runtime.ingest.identity import identify, rough_k
@@ -93,8 +93,8 @@ def ingest_photo(path: Path, rig: Rig, labels: Optional[ImageLabels], object_poi
     except DimenetError as exc:
         return replace(result, skipped=str(exc))
     n_points = int(np.isfinite(found.corners_px[:, 0]).sum()) + len(fixed_3d)
-    if n_points < MIN_POINTS_PER_FRAME:
-        return replace(result, skipped=f"{n_points} points found, a frame needs {MIN_POINTS_PER_FRAME}")
+    if n_points < MIN_POINTS:
+        return replace(result, skipped=f"{n_points} points found, a frame needs {MIN_POINTS}")
     return replace(
         result,
         corners_px=found.corners_px,

@@ -21,7 +21,7 @@ from functools import cached_property
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import rotation_matrices, solve_pnp_start
+from dimenet.runtime.geometry import MIN_POSE_POINTS, rotation_matrices, solve_pnp_start
 from dimenet.runtime.rectify.grid import Grid
 
 CHANNELS = ("dx", "dy", "X", "Y", "inv_z")
@@ -81,8 +81,8 @@ def poses_c0(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray]:
     for b in range(F):
         m = slice(None) if mask is None else mask[b]
         n = points_2d.shape[1] if mask is None else int(m.sum())
-        if n < 4:
-            raise InputError(f"frame {b}: {n} inference points, the C0 pose needs >= 4")
+        if n < MIN_POSE_POINTS:
+            raise InputError(f"frame {b}: {n} inference points, the C0 pose needs >= {MIN_POSE_POINTS}")
         rvec[b], tvec[b] = solve_pnp_start(points_2d[b][m], points_3d[b][m], K_c)
     return rvec, tvec
 
