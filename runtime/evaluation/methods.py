@@ -63,12 +63,12 @@ class FrameErrors:
 
 @dataclass(frozen=True)
 class MethodEstimate:
-    """One method's K (F, 3, 3) px per frame; cov (F, 4, 4) px^2 of (fx, fy, cx, cy) or None;
+    """One method's K (F, 3, 3) px per frame; K_cov (F, 4, 4) px^2 of (fx, fy, cx, cy) or None;
     fallbacks: how many frames the method could not estimate (they get K_c, or for map the
     DIME-Net K)."""
 
     K: np.ndarray
-    cov: Optional[np.ndarray]
+    K_cov: Optional[np.ndarray]
     fallbacks: int
 
 
@@ -121,7 +121,7 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
     K and covariance (``prediction``, the predictor's on these frames); frames the network
     does not predict keep K_c, failed fits its K."""
     uncertainty = predictor.spec.map_uncertainty(predictor.source)
-    K, cov = prediction.K.copy(), prediction.cov.copy()
+    K, K_cov = prediction.K.copy(), prediction.K_cov.copy()
     fallbacks = int((~prediction.predicted).sum())
     for f in np.flatnonzero(prediction.predicted):
         m = frames.infer_mask[f]
@@ -129,16 +129,16 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
             frames.points_2d[f][m],
             frames.points_3d[f][m],
             k_params(K[f]),
-            cov[f],
+            K_cov[f],
             predictor.spec.K_bounds,
             predictor.spec.K_c,
             uncertainty=uncertainty,
         )
         if reason is None:
-            K[f], cov[f] = k_matrix(fit.k), fit.k_cov
+            K[f], K_cov[f] = k_matrix(fit.k), fit.K_cov
         else:
             fallbacks += 1
-    return MethodEstimate(K=K, cov=cov, fallbacks=fallbacks)
+    return MethodEstimate(K=K, K_cov=K_cov, fallbacks=fallbacks)
 
 
 def method_estimate(
@@ -156,14 +156,14 @@ def method_estimate(
     if method in MODEL_METHODS and predictor is None:
         raise ModelError(f"methods: {method!r} needs a model (--model)")
     if method == "kc":
-        return MethodEstimate(K=np.broadcast_to(K_c, K_star.shape).copy(), cov=None, fallbacks=0)
+        return MethodEstimate(K=np.broadcast_to(K_c, K_star.shape).copy(), K_cov=None, fallbacks=0)
     if method == "oracle":
-        return MethodEstimate(K=K_star, cov=None, fallbacks=0)
+        return MethodEstimate(K=K_star, K_cov=None, fallbacks=0)
     if method == "self":
         sc = self_calibrate(frames, K_c)
-        return MethodEstimate(K=sc.K, cov=None, fallbacks=sum(r is not None for r in sc.fallback))
+        return MethodEstimate(K=sc.K, K_cov=None, fallbacks=sum(r is not None for r in sc.fallback))
     if method == "dimenet":
-        return MethodEstimate(K=prediction.K, cov=prediction.cov, fallbacks=int((~prediction.predicted).sum()))
+        return MethodEstimate(K=prediction.K, K_cov=prediction.K_cov, fallbacks=int((~prediction.predicted).sum()))
     return map_estimate(frames, predictor, prediction)
 
 
@@ -201,11 +201,11 @@ def evaluate(
         rows[method] = {name: _summary(frames.scene == name, mine) for name in names}
         rows[method]["overall"] = _summary(np.ones(frames.n_frames, bool), mine)
         fallbacks[method] = est.fallbacks
-        if est.cov is not None:
-            ok = np.all(np.isfinite(est.cov), axis=(1, 2))
-            covered[method] = coverage(k_params(est.K[ok]), k_params(errors.K_star[ok]), est.cov[ok])
+        if est.K_cov is not None:
+            ok = np.all(np.isfinite(est.K_cov), axis=(1, 2))
+            covered[method] = coverage(k_params(est.K[ok]), k_params(errors.K_star[ok]), est.K_cov[ok])
             if frames.K_true is not None:
-                covered_true[method] = coverage(k_params(est.K[ok]), k_params(frames.K_true[ok]), est.cov[ok])
+                covered_true[method] = coverage(k_params(est.K[ok]), k_params(frames.K_true[ok]), est.K_cov[ok])
     return Evaluation(
         split=split,
         K_c=np.asarray(K_c),

@@ -2,7 +2,8 @@
 
 A backend (the ONNX session in the runtime, or a torch RUN_DIR from dimenet.training,
 registered under the ``dimenet.predictors`` entry-point group) only maps features to
-Delta K; building the features and turning Delta K into K lives here once.
+Delta K; building the features and turning Delta K into K is ``rectify.inference``'s, shared
+with the rectifier's batches.
 """
 
 from __future__ import annotations
@@ -16,14 +17,11 @@ import numpy as np
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import covariance_invariants_batch, k_matrix, k_params, mean_residual_norms
-from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.geometry import MIN_POINTS, k_matrix
+from dimenet.runtime.rectify.inference import network_k, network_statistics
 from dimenet.runtime.rectify.model import load_onnx_model
 from dimenet.runtime.rectify.spec import ModelSpec
-from dimenet.runtime.rectify.uncertainty import STATISTICS, input_statistics
-
-# Fewest inference points from which a frame's K is predicted; below, K = K_c.
-MIN_INFER_POINTS = 6
+from dimenet.runtime.rectify.uncertainty import STATISTICS
 
 
 @dataclass(frozen=True)
@@ -31,13 +29,13 @@ class KPrediction:
     """Per frame of F: K (F, 3, 3) px (K_c where not predicted); predicted (F,) bool, False
     when the frame has too few inference points or the prediction is implausible; stats
     (F, 4) the uncertainty statistics of the inference points (NaN where not predicted);
-    cov (F, 4, 4) px^2 the network's covariance of (fx, fy, cx, cy), None when the spec has
+    K_cov (F, 4, 4) px^2 the network's covariance of (fx, fy, cx, cy), None when the spec has
     no uncertainty model (NaN where not predicted)."""
 
     K: np.ndarray
     predicted: np.ndarray
     stats: np.ndarray
-    cov: Optional[np.ndarray]
+    K_cov: Optional[np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -60,36 +58,19 @@ class Predictor:
         K = np.broadcast_to(spec.K_c, (F, 3, 3)).copy()
         stats = np.full((F, len(STATISTICS)), np.nan)
         predicted = np.zeros(F, bool)
-        usable = frames.infer_mask.sum(1) >= MIN_INFER_POINTS
+        usable = frames.infer_mask.sum(1) >= MIN_POINTS
         if usable.any():
             sub = frames.select(usable)
-            feats, points = grid_features(
-                sub.points_2d,
-                sub.points_3d,
-                sub.infer_mask,
-                spec.K_c,
-                spec.image_size,
-                spec.features,
-                return_points=True,
-            )
-            dk = np.asarray(self.delta_k(feats.astype(np.float32)), dtype=np.float64)
-            K_pred = k_matrix(k_params(spec.K_c) + dk)
-            ok = spec.k_within_bounds(K_pred) & np.all(np.isfinite(dk), axis=1)
+            net = network_k(spec, self.delta_k, sub.points_2d, sub.points_3d, sub.infer_mask)
+            ok = net.plausible
             rows = np.flatnonzero(usable)[ok]
-            K[rows], predicted[rows] = K_pred[ok], True
-            mask = sub.infer_mask
-            stats[rows] = input_statistics(
-                feats,
-                mask.sum(1),
-                mean_residual_norms(points[:, :2], mask),
-                covariance_invariants_batch(sub.points_3d, mask),
-                len(spec.features.channels),
-            )[ok]
-        cov = None
+            K[rows], predicted[rows] = k_matrix(net.k[ok]), True
+            stats[rows] = network_statistics(net, ok, sub.infer_mask, sub.points_3d, len(spec.features.channels))
+        K_cov = None
         if spec.uncertainty is not None:
-            cov = np.full((F, 4, 4), np.nan)
-            cov[predicted] = spec.uncertainty.covariance(stats[predicted])
-        return KPrediction(K=K, predicted=predicted, stats=stats, cov=cov)
+            K_cov = np.full((F, 4, 4), np.nan)
+            K_cov[predicted] = spec.uncertainty.covariance(stats[predicted])
+        return KPrediction(K=K, predicted=predicted, stats=stats, K_cov=K_cov)
 
     def predict_k(self, frames: Dataset) -> np.ndarray:
         """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few

@@ -29,31 +29,27 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     camera_xy_inverse_depth,
-    frame_k_matrix,
     frame_normal_equations,
-    frame_residuals,
+    k_matrix,
     left_update,
     solve_pnp_start,
 )
+from dimenet.runtime.rectify.fast import frame_residuals, frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 
-# Gauss-Newton steps. From k_net and the C0 pose turned to k_net's principal point one step
-# lands at the optimum: on 282 fresh galaxy-s8 rig frames its rms K error, 1.1 / 0.6 px (f / c),
-# is that of 4 steps, where one step from the C0 pose itself left 1.6 / 1.1 px and its
-# posterior covered only 52-64 % of the true K (training/METHOD.md, "Calibration on fresh frames").
+# Gauss-Newton steps: from k_net and the turned C0 pose one step lands at the optimum
+# (training/METHOD.md, "MAP: steps and noise passes").
 ITERATIONS = 1
 NOISE_FLOOR_PX = 0.1
 # The start pose (C0, under K_c, turned) is not the optimum under k_net, so its residuals
 # overstate the noise: s^2 is re-estimated this many times from the linearised MAP residuals
-# (2N - 10 dof). galaxy-s8 seed-1 test rho, passes 0 / 1 / 2, measured from the unturned C0
-# pose: natural 72.8 / 89.7 / 89.8, planar 49.8 / 87.5 / 89.0; with the turn, no pass breaks
-# the fit (rig K error 2.9 px against 1.1 px, training/METHOD.md).
+# (2N - 10 dof; training/METHOD.md, "MAP: steps and noise passes").
 NOISE_PASSES = 1
 
 
 @dataclass(frozen=True)
 class MapFit:
-    """k (4,) px (fx, fy, cx, cy); rvec (3,) rad, tvec (3,) mm {W}->{C}; k_cov (4, 4) px^2 the
+    """k (4,) px (fx, fy, cx, cy); rvec (3,) rad, tvec (3,) mm {W}->{C}; K_cov (4, 4) px^2 the
     posterior covariance; residuals (N, 2) px at the result; steps: the Gauss-Newton steps
     taken (0: the first step would have raised the cost, the result is the start); noise_px:
     the frame's 2D noise std s the data term was weighted with."""
@@ -61,7 +57,7 @@ class MapFit:
     k: np.ndarray
     rvec: np.ndarray
     tvec: np.ndarray
-    k_cov: np.ndarray
+    K_cov: np.ndarray
     residuals: np.ndarray
     steps: int
     noise_px: float
@@ -71,7 +67,7 @@ def map_fit(
     points_2d: np.ndarray,
     points_3d: np.ndarray,
     k_net: np.ndarray,
-    cov_net: np.ndarray,
+    K_cov_net: np.ndarray,
     rvec: np.ndarray,
     tvec: np.ndarray,
     *,
@@ -80,12 +76,12 @@ def map_fit(
     uncertainty: Uncertainty | None = None,
 ) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
-    k_net (4,) px the network's K; cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
+    k_net (4,) px the network's K; K_cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
     {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
     to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
     own); iterations >= 1 Gauss-Newton steps at most; uncertainty: the network's, whose
-    ``posterior_scale`` widens k_cov (None: the independent-errors posterior)."""
-    precision = cv2.invert(cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
+    ``posterior_scale`` widens K_cov (None: the independent-errors posterior)."""
+    precision = cv2.invert(K_cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
     R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
     k = k_net
@@ -107,7 +103,7 @@ def map_fit(
         step *= -1.0
         k_new = k + step[6:]
         R_new, tvec_new = left_update(R, tvec, step[:3], step[3:6])
-        res = frame_residuals(points_2d, points_3d, frame_k_matrix(k_new), R_new, tvec_new)
+        res = frame_residuals(points_2d, points_3d, k_matrix(k_new), R_new, tvec_new)
         d = k_new - k_net
         cost_new = weight * float(np.vdot(res, res)) + float(d @ precision @ d)
         if not cost_new <= cost:
@@ -118,16 +114,16 @@ def map_fit(
             cov = _posterior(JJ, precision, weight)
     if residuals is None:
         residuals = np.ascontiguousarray(r.T)
-    k_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
+    K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
     noise_px = weight**-0.5
     if uncertainty is not None and uncertainty.widens:
-        scale = np.array(uncertainty.posterior_scale((k_cov.diagonal() / cov_net.diagonal()).tolist(), noise_px))
-        k_cov = k_cov * (scale[:, None] * scale)
+        scale = np.array(uncertainty.posterior_scale((K_cov.diagonal() / K_cov_net.diagonal()).tolist(), noise_px))
+        K_cov = K_cov * (scale[:, None] * scale)
     return MapFit(
         k=k,
         rvec=cv2.Rodrigues(R)[0].ravel(),
         tvec=tvec,
-        k_cov=k_cov,
+        K_cov=K_cov,
         residuals=residuals,
         steps=steps,
         noise_px=noise_px,
@@ -164,7 +160,7 @@ def map_rectify(
     points_2d: np.ndarray,
     points_3d: np.ndarray,
     k_net: np.ndarray,
-    cov_net: np.ndarray,
+    K_cov_net: np.ndarray,
     k_bounds: np.ndarray,
     K_c: np.ndarray,
     pose=None,
@@ -180,10 +176,9 @@ def map_rectify(
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
             return None, "no C0 pose under K_c"
-    result = map_fit(points_2d, points_3d, k_net, cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
+    result = map_fit(points_2d, points_3d, k_net, K_cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
     if result.steps == 0:
         return None, "the MAP step did not lower the cost"
-    # Plain floats: a NaN fails every comparison, so this also refuses a non-finite K.
-    if not all(low <= v <= high for v, (low, high) in zip(result.k.tolist(), k_bounds.tolist())):
+    if not frame_within_bounds(result.k.tolist(), k_bounds.tolist()):
         return None, "the MAP K is implausible (outside the model's K_bounds)"
     return result, None

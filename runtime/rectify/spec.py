@@ -19,11 +19,8 @@ from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 
 FORMAT = "dimenet-model/1"
-# semver of the spec; a reader refuses another major version. 1.1: the optional
-# ``uncertainty`` (what MAP mode needs); 1.0 files still load, for mode "dimenet" only.
-# 1.2: the uncertainty names its statistics and may use the 3D thickness; 1.1 files still load.
-# 1.3: the uncertainty's data_correlation and noise_scale_px, by which mode map widens its
-# posterior on noisy points; 1.1 and 1.2 files still load (no widening).
+# semver of the spec; a reader refuses another major version and reads every 1.x (the minor
+# versions and what each added: models_spec/model-v1.md).
 VERSION = "1.3.0"
 METADATA_KEY = "dimenet_model_spec"
 
@@ -110,7 +107,7 @@ class ModelSpec:
             )
         return self.uncertainty
 
-    def k_within_bounds(self, K: np.ndarray) -> np.ndarray:
-        """(..., 3, 3) -> (...,) bool: every parameter inside K_bounds."""
-        p = k_params(K)
-        return np.all((p >= self.K_bounds[:, 0]) & (p <= self.K_bounds[:, 1]), axis=-1)
+    def k_within_bounds(self, k: np.ndarray) -> np.ndarray:
+        """The K-bounds rule: k (..., 4) px (fx, fy, cx, cy) -> (...,) bool, every parameter inside
+        [low, high] of K_bounds. A NaN fails it, so a non-finite K is refused too."""
+        return np.all((k >= self.K_bounds[:, 0]) & (k <= self.K_bounds[:, 1]), axis=-1)

@@ -39,10 +39,8 @@ PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
 D_FLOOR_PX = 0.05  # PMD below this says nothing more: noise-free frames are not infinitely certain
 T_FLOOR = 1e-6  # thickness of a plane to float rounding: log t stays finite on exactly planar points
-# 2D noise (px) at which half of the prior-data correlation applies. galaxy-s8, 690 fresh
-# frames: s0 = 0 (rho for any noise) over-covers single planar views (cx 79 %), 4 px needs
-# rho_cx > 1; 2 px calibrates noisy rig frames and leaves clean ones as they are
-# (training/METHOD.md, "Calibration on fresh frames").
+# 2D noise (px) at which half of the prior-data correlation applies (how it was chosen:
+# training/METHOD.md, "Calibration on fresh frames").
 NOISE_SCALE_PX = 2.0
 
 

@@ -1,0 +1,139 @@
+"""The rectifier's rules, each written once: what input it accepts and when it falls back to K_c.
+
+Input (``InputError`` naming the problem, and the frame in a batch): real arrays of the right
+shape; at least ``MIN_POINTS`` correspondences; finite values; 2D points inside the image the
+model was trained for; points that fix a pose (not coincident, not collinear).
+
+Fallback (K_c's own solution is returned and the result's ``fallback`` says why): Delta K not
+finite or K outside the spec's ``K_bounds`` (``ModelSpec.k_within_bounds``); no pose under K; or
+e(K) > (1 + WORSE_RELATIVE) e(K_c) + WORSE_ABSOLUTE_PX, i.e. the predicted K fits the frame's
+own points worse than K_c by more than 5 % + 0.05 px.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.geometry import check_not_degenerate, covariance_invariants, covariance_invariants_batch
+
+WORSE_RELATIVE = 0.05
+WORSE_ABSOLUTE_PX = 0.05
+# Cheap sufficient test of a spread-out configuration (see clearly_spread): second largest over
+# largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
+# than check_not_degenerate's limits, which then decides the frames failing it.
+SPREAD_RATIO = 1e-4
+SPREAD_ABSOLUTE = 1e-10
+
+
+def real_array(value, name: str, shape: str, ndim: int, last: int) -> np.ndarray:
+    """C-contiguous float64 array of ``ndim`` dims ending in ``last`` from any real array-like."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: not an array of numbers ({exc})") from None
+    if a.dtype.kind not in "iuf":
+        raise InputError(f"{name}: dtype {a.dtype} cannot be cast to float64 coordinates")
+    if a.ndim != ndim or a.shape[-1] != last:
+        raise InputError(f"{name}: expected shape {shape}, got {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def bool_mask(value, name: str, shape: tuple) -> np.ndarray:
+    """A bool array of ``shape`` from bool or integer input, or InputError."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "biu" or a.shape != shape:
+        raise InputError(f"{name}: expected a bool array of shape {shape}, got {a.dtype} {a.shape}")
+    return a.astype(bool, copy=False)
+
+
+class ImageBounds:
+    """The image a model was trained for: pixel centres run from 0 to size - 1 (OpenCV), so it
+    covers [-0.5, width - 0.5] x [-0.5, height - 0.5] px."""
+
+    def __init__(self, image_size) -> None:
+        self.width, self.height = (int(v) for v in image_size)
+        self.low = np.array([-0.5, -0.5])
+        self.high = np.array([self.width - 0.5, self.height - 0.5])
+        self.cv_bounds = (tuple(self.low.tolist()), tuple(self.high.tolist()))  # for cv2.inRange
+
+    def inside(self, points_2d: np.ndarray, points_3d: np.ndarray) -> np.ndarray:
+        """(..., N) bool: finite 3D point and 2D point inside the image."""
+        return np.all((points_2d >= self.low) & (points_2d <= self.high), -1) & np.isfinite(points_3d).all(-1)
+
+    def raise_bad_values(self, points_2d, points_3d, valid, where: str) -> None:
+        """InputError naming the first non-finite or outside-the-image point of one frame among
+        its ``valid`` ones ((N,) bool, or True for all)."""
+        for name, a in (("points_2d", points_2d), ("points_3d", points_3d)):
+            bad = valid & ~np.isfinite(a).all(-1)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise InputError(f"{where}{name}: point {i} is not finite ({a[i].tolist()})")
+        i = int(np.argmax(valid & ~self.inside(points_2d, points_3d)))
+        raise InputError(
+            f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
+            f"outside the {self.width}x{self.height} px image the model was trained for"
+        )
+
+
+def clearly_spread(trace, minors, scale, dims: int):
+    """The points clearly span >= 2 dimensions, from the invariants of their covariance (D = dims
+    eigenvalues l1 >= l2 >= ...): trace T = sum l and S the sum of its principal 2x2 minors;
+    scale = max(|coordinate|, 1). As l1 <= T and S <= 3 l1 l2, S > 3 SPREAD_RATIO T^2 gives
+    l2 > SPREAD_RATIO l1; as l1 >= T / D, T > D SPREAD_ABSOLUTE scale^2 gives l1 > SPREAD_ABSOLUTE
+    scale^2. A sufficient condition for ``check_not_degenerate`` to pass. Floats, or (B,) arrays."""
+    return (minors > 3 * SPREAD_RATIO * trace**2) & (trace > dims * SPREAD_ABSOLUTE * scale**2)
+
+
+def well_spread(points: np.ndarray, invariants: tuple) -> bool:
+    """``clearly_spread`` of one frame's (N, D) finite points, D = 2 or 3, from their
+    ``covariance_invariants``."""
+    trace, minors, _ = invariants
+    return bool(clearly_spread(trace, minors, max(cv2.norm(points, cv2.NORM_INF), 1.0), points.shape[1]))
+
+
+def check_spread(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple:
+    """InputError (from check_not_degenerate) when one frame's points cannot fix a pose; else the
+    ``covariance_invariants`` of points_3d (the uncertainty's thickness reads them)."""
+    invariants_3d = covariance_invariants(points_3d)
+    if not (well_spread(points_3d, invariants_3d) and well_spread(points_2d, covariance_invariants(points_2d))):
+        check_not_degenerate(points_2d, points_3d)
+    return invariants_3d
+
+
+def spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> tuple[np.ndarray, tuple]:
+    """(B, P, D) points (D = 2 or 3) of B frames, valid (B, P) bool or None (all) -> (B,) bool
+    ``clearly_spread`` of each frame's valid points, vectorised, and the
+    ``covariance_invariants_batch`` it read."""
+    where = True if valid is None else valid[..., None]
+    scale = np.max(np.abs(points), axis=(1, 2), where=where, initial=1.0)
+    invariants = covariance_invariants_batch(points, valid)
+    return clearly_spread(invariants[0], invariants[1], scale, points.shape[-1]), invariants
+
+
+def worse(e, e_c):
+    """e(K) beyond the fallback margin, 5 % + 0.05 px above e(K_c) (a NaN counts as worse):
+    floats -> bool, (B,) arrays -> (B,) bool."""
+    return np.logical_not(e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX)
+
+
+def worse_reason(e: float, e_c: float) -> str:
+    return (
+        f"the predicted K fits worse than K_c: {e:.3f} px vs {e_c:.3f} px "
+        f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX} px)"
+    )
+
+
+def implausible_reason(delta_k, k) -> str:
+    """Why K = K_c + Delta K was refused: Delta K (4,) px not finite, or k (4,) px (fx, fy, cx, cy)
+    outside K_bounds."""
+    if not np.all(np.isfinite(delta_k)):
+        return "the model's Delta K is not finite"
+    fx, fy, cx, cy = (float(v) for v in k)
+    return f"implausible K (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px) outside the model's K_bounds"
+
+
+NO_POSE_REASON = "no pose under the predicted K"
