@@ -5,8 +5,8 @@ valid points; a method's K is inferred from the ``infer_mask`` points only. K_c 
 prior (from the train frames' calibration, or the model's own K_c).
 
 Methods compared side by side (``METHODS``): ``kc`` K_c itself; ``self`` per-frame joint
-K + pose on the inference points (runtime/self_calibration.py); ``dimenet`` the network;
-``map`` the network's prior fused with the frame's points (runtime/map_fit.py); ``oracle``
+K + pose on the inference points (``evaluation.self_calibration``); ``dimenet`` the network;
+``map`` the network's prior fused with the frame's points (``rectify.map_fit``); ``oracle``
 K*. For methods with a covariance (dimenet: the network's; map: the posterior), the 1-sigma
 coverage is the share of frames with |K - K*| <= sigma, per parameter; on datasets that carry
 the true K (``K_true``, simulated ones), also with |K - K_true| <= sigma. The two differ where

@@ -5,7 +5,7 @@ One implementation, numpy only, used by training, evaluation, export checks and 
 1. Pose {W}->{C0}: PnP under the prior K_c on the frame's inference points (SQPnP).
 2. Point feature f_i = [dx, dy, X, Y, 1/Z]: dx, dy = K_c proj(X_C0) - x (px, the projection
    model discrepancy, PMD) and (X, Y, Z) the point in {C0} (mm).
-3. Each cell of the u x v grid (runtime/grid.py) holds the mean of its points' features;
+3. Each cell of the u x v grid (``rectify.grid``) holds the mean of its points' features;
    empty cells are zero. Flattened cell by cell in (row, column) order, channels inside.
 4. Every channel is multiplied by a fixed scale (no shift, so a zero feature stays zero).
 
