@@ -13,9 +13,10 @@ inference points (min_points..all) and a random fraction (0..max_eta) of its occ
 cells emptied, so one model serves 320 down to 64 points and eta up to 80%; a share of the
 frames keeps only clustered, noisily labelled inference points, like natural-object labels.
 Early stopping on the val split, or on a held-back part of train when there is no val.
-Then the uncertainty model of Delta K (``rectify.uncertainty``, fitted by ``evaluation.uncertainty_fit``) is fitted on those same
-frames, clean, reduced to 64 points, under several draws of the augmentation, with the
-points of one plane and with those of two objects under label noise.
+Then the uncertainty model of Delta K (``rectify.uncertainty``; the fit is
+``evaluation.uncertainty_fit``'s) is fitted on those same frames, clean, reduced to 64
+points, under several draws of the augmentation, with the points of one plane and with
+those of two objects under label noise.
 """
 
 from __future__ import annotations
