@@ -391,9 +391,20 @@ class Rectifier:
             _in_frame(b, check_spread, *frames[b])
         return _Frames(p2, p3, valid, infer, mask, frames, invariants_3d)
 
+    def _c0_poses(self, fr: _Frames) -> tuple[np.ndarray, np.ndarray]:
+        """Stage pnp_kc of B frames: SQPnP poses {W}->{C0} under K_c on each frame's valid points."""
+        B = len(fr.frames)
+        rvec_c0, tvec_c0 = np.empty((B, 3)), np.empty((B, 3))
+        for b, (x, X) in enumerate(fr.frames):
+            rvec_c0[b], tvec_c0[b] = _in_frame(b, solve_pnp_start, x, X, self._K_c)
+        return rvec_c0, tvec_c0
+
     def _inference_poses(self, fr: _Frames, rvec_c0, tvec_c0, reasons: list):
-        """SQPnP poses under K_c from each frame's inference points; frames with too few of
-        them or no pose get a fallback reason and an empty inference mask."""
+        """The C0 poses of the inference points: the valid points' when they are the inference
+        points, else SQPnP under K_c on each frame's inference points; frames with too few of
+        them or no pose get a fallback reason and an empty inference mask. -> (infer, rvec, tvec)."""
+        if fr.infer is fr.valid:
+            return fr.infer, rvec_c0, tvec_c0
         rvec, tvec, infer = rvec_c0.copy(), tvec_c0.copy(), fr.infer.copy()
         for b in range(len(infer)):
             n = int(infer[b].sum())
@@ -403,7 +414,73 @@ class Rectifier:
                 rvec[b], tvec[b] = solve_pnp_start(fr.points_2d[b][infer[b]], fr.points_3d[b][infer[b]], self._K_c)
             except InputError as exc:
                 reasons[b], infer[b] = f"no K inferred: {exc}", False
-        return rvec, tvec, infer
+        return infer, rvec, tvec
+
+    def _candidates(self, fr: _Frames, net, rvec_c0, tvec_c0, reasons: list) -> _BatchCandidates:
+        """Stages model's end and pnp_k of B frames: the K-bounds rule, then SQPnP under each
+        standing K on the frame's valid points."""
+        cand = _BatchCandidates(
+            K=k_matrix(net.k),
+            delta_k=net.delta_k,
+            rvec=rvec_c0.copy(),
+            tvec=tvec_c0.copy(),
+            K_cov=None,
+            reasons=reasons,
+            notes=[None] * len(reasons),
+        )
+        for b, (x, X) in enumerate(fr.frames):
+            if reasons[b] is None and not net.plausible[b]:
+                reasons[b] = implausible_reason(net.delta_k[b], net.k[b])
+            if reasons[b] is None:
+                try:
+                    cand.rvec[b], cand.tvec[b] = solve_pnp_start(x, X, cand.K[b])
+                except InputError:
+                    reasons[b] = NO_POSE_REASON
+        return cand
+
+    def _covariances(self, cand: _BatchCandidates, net, fr: _Frames, infer, pending, pmd_px) -> None:
+        """The network's K_cov of the pending frames (NaN elsewhere), in place. With K inferred
+        from the valid points, validation's 3D invariants and ``pmd_px`` are those of the
+        inference points."""
+        cand.K_cov = np.full((len(infer), 4, 4), np.nan)
+        if not pending.any():
+            return
+        if pmd_px is not None:
+            known = (pmd_px[pending], tuple(a[pending] for a in fr.invariants_3d))
+            stats = network_statistics(net, pending, infer, fr.points_3d, self._n_channels, *known)
+        else:
+            stats = network_statistics(net, pending, infer, fr.points_3d, self._n_channels)
+        cand.K_cov[pending] = self._uncertainty.covariance(stats)
+
+    def _maps(self, cand: _BatchCandidates, net, fr: _Frames, infer, poses_i, pending) -> None:
+        """Stage map of the pending frames, in place: each frame's MAP K from its inference points
+        and their C0 pose, its pose on its valid points; a failed fit leaves DIME-Net's K and a note."""
+        for b in np.flatnonzero(pending):
+            m = infer[b]
+            x, X = fr.points_2d[b][m], fr.points_3d[b][m]
+            fit, cand.notes[b] = self._map(x, X, net.k[b], cand.K_cov[b], poses_i[0][b], poses_i[1][b])
+            if fit is not None:
+                cand.K[b], cand.delta_k[b], cand.K_cov[b] = k_matrix(fit.k), fit.k - self._k_c, fit.K_cov
+                cand.rvec[b], cand.tvec[b] = (
+                    (fit.rvec, fit.tvec) if infer is fr.valid else solve_pnp_start(*fr.frames[b], cand.K[b])
+                )
+
+    def _errors(self, cand: _BatchCandidates, fr: _Frames, pending, e_c) -> np.ndarray:
+        """Stage check of B frames: e(K) over each frame's valid points (e_c where not pending),
+        and the worse-than-K_c rule into ``cand.reasons``."""
+        e = e_c.copy()
+        if pending.any():
+            e[pending] = mean_reprojection_error(
+                fr.points_2d[pending],
+                fr.points_3d[pending],
+                None if fr.mask is None else fr.mask[pending],
+                cand.K[pending],
+                cand.rvec[pending],
+                cand.tvec[pending],
+            )
+        for b in np.flatnonzero(pending & worse(e, e_c)):
+            cand.reasons[b] = worse_reason(e[b], e_c[b])
+        return e
 
     def rectify_batch(
         self, points_2d, points_3d, valid, *, infer_mask=None, refine: bool = False
@@ -418,87 +495,31 @@ class Rectifier:
         the first unusable frame.
         """
         fr = self._validated_batch(points_2d, points_3d, valid, infer_mask)
-        K_c, B = self._K_c, len(fr.frames)
-        rvec_c0, tvec_c0 = np.empty((B, 3)), np.empty((B, 3))
-        for b, (x, X) in enumerate(fr.frames):
-            rvec_c0[b], tvec_c0[b] = _in_frame(b, solve_pnp_start, x, X, K_c)
-        reasons: list = [None] * B
-        same_poses = fr.infer is fr.valid
-        if same_poses:
-            rvec_i, tvec_i, infer = rvec_c0, tvec_c0, fr.infer
-        else:
-            rvec_i, tvec_i, infer = self._inference_poses(fr, rvec_c0, tvec_c0, reasons)
-        net = network_k(self.spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, (rvec_i, tvec_i))
-        cand = _BatchCandidates(
-            K=k_matrix(net.k),
-            delta_k=net.delta_k,
-            rvec=rvec_c0.copy(),
-            tvec=tvec_c0.copy(),
-            K_cov=None,
-            reasons=reasons,
-            notes=[None] * B,
-        )
-        for b, (x, X) in enumerate(fr.frames):
-            if reasons[b] is None and not net.plausible[b]:
-                reasons[b] = implausible_reason(net.delta_k[b], net.k[b])
-            if reasons[b] is None:
-                try:
-                    cand.rvec[b], cand.tvec[b] = solve_pnp_start(x, X, cand.K[b])
-                except InputError:
-                    reasons[b] = NO_POSE_REASON
+        rvec_c0, tvec_c0 = self._c0_poses(fr)
+        reasons: list = [None] * len(fr.frames)
+        infer, *poses_i = self._inference_poses(fr, rvec_c0, tvec_c0, reasons)
+        net = network_k(self.spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, tuple(poses_i))
+        cand = self._candidates(fr, net, rvec_c0, tvec_c0, reasons)
         pending = cand.standing
         # With K inferred from the valid points, the feature's PMD rows are their residuals under K_c
         # at the C0 pose: their mean norm is e_c, and the uncertainty's PMD statistic.
-        pmd_px = net.pmd_norms(fr.mask) if same_poses else None
+        pmd_px = net.pmd_norms(fr.mask) if infer is fr.valid else None
         if self._uncertainty is not None:
-            cand.K_cov = np.full((B, 4, 4), np.nan)
-            if pending.any():
-                if same_poses:  # validation's 3D invariants are those of the inference points
-                    stats = network_statistics(
-                        net,
-                        pending,
-                        infer,
-                        fr.points_3d,
-                        self._n_channels,
-                        pmd_px[pending],
-                        tuple(a[pending] for a in fr.invariants_3d),
-                    )
-                else:
-                    stats = network_statistics(net, pending, infer, fr.points_3d, self._n_channels)
-                cand.K_cov[pending] = self._uncertainty.covariance(stats)
+            self._covariances(cand, net, fr, infer, pending, pmd_px)
         if self.mode == "map":
-            for b in np.flatnonzero(pending):
-                m = infer[b]
-                x, X = fr.points_2d[b][m], fr.points_3d[b][m]
-                fit, cand.notes[b] = self._map(x, X, net.k[b], cand.K_cov[b], rvec_i[b], tvec_i[b])
-                if fit is not None:
-                    cand.K[b], cand.delta_k[b], cand.K_cov[b] = k_matrix(fit.k), fit.k - self._k_c, fit.K_cov
-                    cand.rvec[b], cand.tvec[b] = (
-                        (fit.rvec, fit.tvec) if same_poses else solve_pnp_start(*fr.frames[b], cand.K[b])
-                    )
+            self._maps(cand, net, fr, infer, poses_i, pending)
         if refine:
             for b, (x, X) in enumerate(fr.frames):
-                rvec_c0[b], tvec_c0[b] = _refine(x, X, K_c, rvec_c0[b], tvec_c0[b])
+                rvec_c0[b], tvec_c0[b] = _refine(x, X, self._K_c, rvec_c0[b], tvec_c0[b])
                 if pending[b]:
                     cand.rvec[b], cand.tvec[b] = _refine(x, X, cand.K[b], cand.rvec[b], cand.tvec[b])
-        if same_poses and not refine:
+        if pmd_px is not None and not refine:
             e_c = pmd_px  # the C0 pose and K_c on all valid points
         else:
-            e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, K_c, rvec_c0, tvec_c0)
-        e = e_c.copy()
-        if pending.any():
-            e[pending] = mean_reprojection_error(
-                fr.points_2d[pending],
-                fr.points_3d[pending],
-                None if fr.mask is None else fr.mask[pending],
-                cand.K[pending],
-                cand.rvec[pending],
-                cand.tvec[pending],
-            )
-        for b in np.flatnonzero(pending & worse(e, e_c)):
-            reasons[b] = worse_reason(e[b], e_c[b])
+            e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, self._K_c, rvec_c0, tvec_c0)
+        e = self._errors(cand, fr, pending, e_c)
         fell_back = ~cand.standing  # the one fallback rule: K_c's own solution
-        cand.K[fell_back], cand.delta_k[fell_back] = K_c, 0.0
+        cand.K[fell_back], cand.delta_k[fell_back] = self._K_c, 0.0
         cand.rvec[fell_back], cand.tvec[fell_back], e[fell_back] = (
             rvec_c0[fell_back],
             tvec_c0[fell_back],
