@@ -1,7 +1,9 @@
 """Batched Levenberg-Marquardt on the reprojection error, over the pose or the pose and K.
 
-One solver for every frame-wise fit in dimenet: the PnP optimum under a fixed K (the
-metric e(K)), and the joint (K*, pose) calibration (the oracle e*). Frames are solved
+The one LM core of the runtime: the PnP optimum under a fixed K (the metric e(K)), the joint
+(K*, pose) calibration (the oracle e*) and self-calibration. Mode map's one Gauss-Newton step
+uses this core's Jacobian in closed form (``normal_equations``); the training's BPnP layer
+(torch, dimenet.training.bpnp) solves the same PnP problem with its exact Hessian. Frames are solved
 together with analytic Jacobians and batched 6x6 or 10x10 normal equations; each frame
 keeps its own damping. Points with weight 0 have no effect (their values are ignored).
 

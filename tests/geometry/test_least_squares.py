@@ -40,3 +40,22 @@ def test_calibrate_reduces_cost_below_fixed_k():
     assert np.all(joint.cost < fixed.cost)
     # The joint fit moves cx back towards the truth it was pushed 25 px away from.
     assert np.all(np.abs(g.k_params(joint.K)[:, 2] - g.k_params(K)[:, 2]) < 10.0)
+
+
+def test_map_normal_equations_are_the_lm_cores_jacobian_in_the_left_pose_parameters():
+    """geometry.frame_normal_equations (MAP's closed form) is the LM core's Jacobian, re-expressed
+    for the pose perturbed on the left of X_C (w, tau) instead of on R and t (d, dt): to first
+    order d = w and dt = w x t + tau, so J_map = J_lm T."""
+    rng = np.random.default_rng(7)
+    x, X, K, rvec, tvec = random_frames(rng, frames=1, points=40, noise_px=0.8)
+    R, k, sqrt_w = g.rvec_to_matrix(rvec), g.k_params(K), np.ones(x.shape[:2])
+    r, Xc, z, xn, yn = ls._residuals(x, X, sqrt_w, k, R, tvec)
+    J = ls._jacobian(sqrt_w, k, Xc, tvec, z, xn, yn, fit_k=True).reshape(-1, 10)  # (2N, 10)
+    T = np.eye(10)
+    T[3:6, 0:3] = -g.skew(tvec[0])
+    J_left = J @ T
+    JJ, Jr, rss, residuals = g.frame_normal_equations(g.camera_xy_inverse_depth(X[0], R[0], tvec[0]), x[0], k[0])
+    np.testing.assert_allclose(JJ, J_left.T @ J_left, rtol=1e-9, atol=1e-9 * np.abs(JJ).max())
+    np.testing.assert_allclose(Jr, J_left.T @ r.reshape(-1), rtol=1e-9, atol=1e-9 * np.abs(Jr).max())
+    assert abs(rss - (r**2).sum()) <= 1e-9 * rss
+    np.testing.assert_allclose(residuals.T, r[0], atol=1e-9)
