@@ -176,16 +176,16 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     except json.JSONDecodeError as exc:
         raise DatasetError(f"meta: not valid JSON ({exc.msg})") from None
     _require(isinstance(meta, dict), "meta", "must be a JSON object")
-    out: dict[str, Any] = dict(
-        image_size=size.astype(np.int64),
-        points_2d=p2,
-        points_3d=p3,
-        valid=valid,
-        infer_mask=infer,
-        split=split,
-        scene=scene,
-        meta=meta,
-    )
+    out: dict[str, Any] = {
+        "image_size": size.astype(np.int64),
+        "points_2d": p2,
+        "points_3d": p3,
+        "valid": valid,
+        "infer_mask": infer,
+        "split": split,
+        "scene": scene,
+        "meta": meta,
+    }
     if "K_true" in arrays:
         K = _float_array(arrays, "K_true", (F, 3, 3))
         _require(bool(np.all(np.isfinite(K))), "K_true", "has non-finite entries")
