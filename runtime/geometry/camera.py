@@ -107,6 +107,15 @@ def mean_reprojection_error(points_2d, points_3d, valid, K, rvec, tvec) -> np.nd
     return mean_residual_norms(d, valid)
 
 
+def min_depths(points_3d, valid, rvec, tvec) -> np.ndarray:
+    """The smallest depth Z_C (mm) of each of B frames' valid points at its pose {W}->{C}:
+    points_3d (B, N, 3) mm, valid (B, N) bool or None (all), rvec, tvec (B, 3) -> (B,); <= 0
+    when a point lies behind the camera."""
+    R = rotation_matrices(np.asarray(rvec, dtype=np.float64).reshape(-1, 3))
+    z = np.einsum("bj,bnj->bn", R[:, 2], points_3d) + np.asarray(tvec, dtype=np.float64).reshape(-1, 3)[:, 2:]
+    return np.min(z, axis=1, where=True if valid is None else valid, initial=np.inf)
+
+
 def mean_over(values: np.ndarray, valid) -> np.ndarray:
     """(..., N) values -> (...,) their mean over the ``valid`` (..., N) bool entries, or over all
     entries when valid is None."""

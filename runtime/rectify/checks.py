@@ -1,13 +1,17 @@
 """The rectifier's rules, each written once: what input it accepts and when it falls back to K_c.
 
 Input (``InputError`` naming the problem, and the frame in a batch): real arrays of the right
-shape; at least ``MIN_POINTS`` correspondences; finite values; 2D points inside the image the
-model was trained for; points that fix a pose (not coincident, not collinear).
+shape; at least ``MIN_POINTS`` correspondences; finite values, 3D coordinates within
++-MAX_COORDINATE; 2D points inside the image the model was trained for; points that fix a pose
+(not coincident, not collinear); a pose under K_c with every point in front of the camera.
 
-Fallback (K_c's own solution is returned and the result's ``fallback`` says why): Delta K not
-finite or K outside the spec's ``K_bounds`` (``ModelSpec.k_within_bounds``); no pose under K; or
-e(K) > (1 + WORSE_RELATIVE) e(K_c) + WORSE_ABSOLUTE_PX, i.e. the predicted K fits the frame's
-own points worse than K_c by more than 5 % + 0.05 px.
+Fallback (K_c's own solution is returned and the result's ``fallback`` says why): the frame's
+points fit K_c worse than any frame the model was made for (mean error e(K_c) above
+MAX_KC_ERROR_F times K_c's focal length: wrong correspondences, another camera, resolution or
+unit); Delta K not finite or K outside the spec's ``K_bounds`` (``ModelSpec.k_within_bounds``); no
+pose under K, or one with a point behind the camera; or e(K) > (1 + WORSE_RELATIVE) e(K_c) +
+WORSE_ABSOLUTE_PX, i.e. the predicted K fits the frame's own points worse than K_c by more than
+5 % + 0.05 px.
 """
 
 from __future__ import annotations
@@ -22,6 +26,14 @@ from dimenet.runtime.geometry import check_not_degenerate, covariance_invariants
 
 WORSE_RELATIVE = 0.05
 WORSE_ABSOLUTE_PX = 0.05
+# Largest |3D coordinate| accepted, in the points' unit (1e12 mm is 10^6 km): beyond it the
+# covariance invariants of the spread test overflow float64.
+MAX_COORDINATE = 1e12
+# Largest mean error under K_c (at its best pose) a frame may have, as a fraction of K_c's fx:
+# 0.006 f is 18 px on the paper's phones, twice the worst of their simulated rig, planar and
+# natural frames (8.4 px) and beyond 3 px noise on them; shuffled, flipped or other-camera
+# points lie far above (training/METHOD.md, "Runtime safety").
+MAX_KC_ERROR_F = 0.006
 # Cheap sufficient test of a spread-out configuration (see clearly_spread): second largest over
 # largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
 # than check_not_degenerate's limits, which then decides the frames failing it.
@@ -61,8 +73,10 @@ class ImageBounds:
         self.cv_bounds = (tuple(self.low.tolist()), tuple(self.high.tolist()))  # for cv2.inRange
 
     def inside(self, points_2d: np.ndarray, points_3d: np.ndarray) -> np.ndarray:
-        """(..., N) bool: finite 3D point and 2D point inside the image."""
-        return np.all((points_2d >= self.low) & (points_2d <= self.high), -1) & np.isfinite(points_3d).all(-1)
+        """(..., N) bool: 3D point within [-MAX_COORDINATE, MAX_COORDINATE) (finite) and 2D point
+        inside the image."""
+        inside_2d = np.all((points_2d >= self.low) & (points_2d <= self.high), -1)
+        return inside_2d & np.all((points_3d >= -MAX_COORDINATE) & (points_3d < MAX_COORDINATE), -1)
 
     def raise_bad_values(self, points_2d, points_3d, valid, where: str) -> None:
         """InputError naming the first non-finite or outside-the-image point of one frame among
@@ -72,6 +86,13 @@ class ImageBounds:
             if bad.any():
                 i = int(np.argmax(bad))
                 raise InputError(f"{where}{name}: point {i} is not finite ({a[i].tolist()})")
+        far = valid & ~np.all(np.abs(points_3d) < MAX_COORDINATE, -1)
+        if far.any():
+            i = int(np.argmax(far))
+            raise InputError(
+                f"{where}points_3d: point {i} at {points_3d[i].tolist()} lies beyond +-{MAX_COORDINATE:g} "
+                f"(in the points' unit): not a scene a camera sees"
+            )
         i = int(np.argmax(valid & ~self.inside(points_2d, points_3d)))
         raise InputError(
             f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
@@ -85,7 +106,7 @@ def clearly_spread(trace, minors, scale, dims: int):
     scale = max(|coordinate|, 1). As l1 <= T and S <= 3 l1 l2, S > 3 SPREAD_RATIO T^2 gives
     l2 > SPREAD_RATIO l1; as l1 >= T / D, T > D SPREAD_ABSOLUTE scale^2 gives l1 > SPREAD_ABSOLUTE
     scale^2. A sufficient condition for ``check_not_degenerate`` to pass. Floats, or (B,) arrays."""
-    return (minors > 3 * SPREAD_RATIO * trace**2) & (trace > dims * SPREAD_ABSOLUTE * scale**2)
+    return (minors > 3 * SPREAD_RATIO * (trace * trace)) & (trace > dims * SPREAD_ABSOLUTE * (scale * scale))
 
 
 def well_spread(points: np.ndarray, invariants: tuple) -> bool:
@@ -136,4 +157,26 @@ def implausible_reason(delta_k, k) -> str:
     return f"implausible K (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px) outside the model's K_bounds"
 
 
+def out_of_range(e_c, fx_c: float):
+    """The frame's mean error under K_c, e_c (px; float or (B,) array), beyond the model's range
+    (MAX_KC_ERROR_F times K_c's fx, px)."""
+    return np.logical_not(e_c <= MAX_KC_ERROR_F * fx_c)
+
+
+def out_of_range_reason(e_c: float, fx_c: float) -> str:
+    return (
+        f"the points fit K_c with a mean error of {e_c:.1f} px, beyond the {MAX_KC_ERROR_F * fx_c:.0f} px "
+        f"this model was made for: wrong correspondences, or points of another camera, resolution or unit?"
+    )
+
+
+def behind_camera_error(n_behind: int, n: int) -> InputError:
+    """The InputError of a frame whose best pose under K_c has points behind the camera."""
+    return InputError(
+        f"{n_behind} of {n} points lie behind the camera at the best pose under K_c: "
+        f"the correspondences do not fit one pinhole camera"
+    )
+
+
 NO_POSE_REASON = "no pose under the predicted K"
+BEHIND_REASON = "a point lies behind the camera at the pose under the predicted K"

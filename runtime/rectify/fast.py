@@ -20,6 +20,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from dimenet.runtime.rectify.checks import MAX_COORDINATE
+
 
 def frame_residuals(
     points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, R: np.ndarray, tvec: np.ndarray
@@ -38,18 +40,24 @@ def frame_mean_norm(residuals: np.ndarray) -> float:
     return cv2.sumElems(cv2.magnitude(residuals[0], residuals[1]))[0] / residuals.shape[1]
 
 
-def frame_mean_error(points_2d, points_3d, K, rvec, tvec) -> float:
-    """Mean Euclidean reprojection error (px) of one frame's (N, 2) px / (N, 3) mm points under K
-    (3, 3) at the pose rvec, tvec (3,)."""
-    return frame_mean_norm(frame_residuals(points_2d, points_3d, K, cv2.Rodrigues(rvec)[0], tvec).T)
+def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, float]:
+    """One frame's mean Euclidean reprojection error (px) of its (N, 2) px / (N, 3) mm points under
+    K (3, 3) at the pose rvec, tvec (3,), and the smallest depth Z_C of its points (mm, <= 0:
+    a point behind the camera): OpenCV's transform gives z (u, v, 1), z = Z_C for a pinhole K."""
+    Rt = np.empty((3, 4))
+    Rt[:, :3], Rt[:, 3] = cv2.Rodrigues(rvec)[0], tvec
+    h = cv2.transform(points_3d.reshape(-1, 1, 3), K @ Rt)
+    d = cv2.convertPointsFromHomogeneous(h).reshape(-1, 2)
+    d -= points_2d
+    return frame_mean_norm(d.T), cv2.minMaxLoc(h[:, 0, 2])[0]
 
 
 def all_inside(bounds, points_2d: np.ndarray, points_3d: np.ndarray) -> bool:
-    """Every point finite and inside ``bounds`` (an ``ImageBounds``): (N, 2), (N, 3) float64
-    C-contiguous, or any leading dims. OpenCV's checks first (exact for all but the float
-    extremes: checkRange refuses +DBL_MAX), numpy's when they say no."""
+    """``bounds.inside(points_2d, points_3d).all()`` (an ``ImageBounds``): (N, 2), (N, 3) float64
+    C-contiguous, or any leading dims. OpenCV's checks first (checkRange's range is
+    [-MAX_COORDINATE, MAX_COORDINATE), as the reference's), numpy's when they say no."""
     if (
-        cv2.checkRange(points_3d)[0]
+        cv2.checkRange(points_3d, True, -MAX_COORDINATE, MAX_COORDINATE)[0]
         and cv2.countNonZero(cv2.inRange(points_2d.reshape(-1, 1, 2), *bounds.cv_bounds)) == points_2d.size // 2
     ):
         return True

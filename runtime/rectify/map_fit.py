@@ -181,4 +181,6 @@ def map_rectify(
         return None, "the MAP step did not lower the cost"
     if not frame_within_bounds(result.k.tolist(), k_bounds.tolist()):
         return None, "the MAP K is implausible (outside the model's K_bounds)"
+    if (points_3d @ cv2.Rodrigues(result.rvec)[0][2] + result.tvec[2]).min() <= 0:
+        return None, "a point lies behind the camera at the MAP pose"
     return result, None

@@ -35,19 +35,30 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import InputError, ModelError
-from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, mean_reprojection_error, solve_pnp_start
+from dimenet.runtime.geometry import (
+    MIN_POINTS,
+    k_matrix,
+    k_params,
+    mean_reprojection_error,
+    min_depths,
+    solve_pnp_start,
+)
 from dimenet.runtime.rectify.checks import (
+    BEHIND_REASON,
     NO_POSE_REASON,
     ImageBounds,
+    behind_camera_error,
     bool_mask,
     check_spread,
     implausible_reason,
+    out_of_range,
+    out_of_range_reason,
     real_array,
     spread_frames,
     worse,
     worse_reason,
 )
-from dimenet.runtime.rectify.fast import all_inside, frame_mean_error, frame_mean_norm, frame_within_bounds
+from dimenet.runtime.rectify.fast import all_inside, frame_error_and_depth, frame_mean_norm, frame_within_bounds
 from dimenet.runtime.rectify.features import grid_features
 from dimenet.runtime.rectify.inference import network_k, network_statistics
 from dimenet.runtime.rectify.map_fit import map_rectify
@@ -196,6 +207,7 @@ class Rectifier:
         self._K_c = np.ascontiguousarray(spec.K_c, dtype=np.float64)
         self._k_c = k_params(spec.K_c)
         self._k_c_list = self._k_c.tolist()
+        self._fx_c = float(self._k_c[0])
         self._K_bounds_list = spec.K_bounds.tolist()
         self._image = ImageBounds(spec.image_size)
 
@@ -305,11 +317,16 @@ class Rectifier:
             poses=(rvec_c0[None], tvec_c0[None]),
             return_points=True,
         )
+        if cv2.minMaxLoc(points[0, 4])[0] <= 0:  # 1 / Z_C0: a point behind the camera under K_c
+            raise behind_camera_error(int(np.count_nonzero(points[0, 4] <= 0)), len(p2))
         lap("features")
         delta_k = self.model.frame_delta_k(feats)
         lap("model")
         e_c = frame_mean_norm(points[0, :2])  # the feature's PMD: the residuals under K_c at the C0 pose
-        cand, reason = self._network_candidate(delta_k, feats, len(p2), e_c, invariants_3d)
+        if out_of_range(e_c, self._fx_c):
+            cand, reason = None, out_of_range_reason(e_c, self._fx_c)
+        else:
+            cand, reason = self._network_candidate(delta_k, feats, len(p2), e_c, invariants_3d)
         if reason is None and self.mode == "map":
             # From the C0 pose: MAP needs no PnP under the network's K, unless it fails.
             fit, cand.note = self._map(p2, p3, self._k_c + delta_k, cand.covariance(), rvec_c0, tvec_c0)
@@ -334,13 +351,14 @@ class Rectifier:
             rvec_c0, tvec_c0 = _refine(p2, p3, K_c, rvec_c0, tvec_c0)
             if reason is None and cand.from_pnp:
                 cand.rvec, cand.tvec = _refine(p2, p3, cand.K, cand.rvec, cand.tvec)
-            e_c = frame_mean_error(p2, p3, K_c, rvec_c0, tvec_c0)
+            e_c = frame_error_and_depth(p2, p3, K_c, rvec_c0, tvec_c0)[0]
             lap("refine")
-        if reason is None:
-            if cand.e is None:
-                cand.e = frame_mean_error(p2, p3, cand.K, cand.rvec, cand.tvec)
-            if worse(cand.e, e_c):
-                reason = worse_reason(cand.e, e_c)
+        if reason is None and cand.e is None:
+            cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
+            if depth <= 0:
+                reason = BEHIND_REASON
+        if reason is None and worse(cand.e, e_c):
+            reason = worse_reason(cand.e, e_c)
         if reason is not None:  # the one fallback rule: K_c's own solution
             cand = _Candidate(
                 K=spec.K_c.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
@@ -366,6 +384,8 @@ class Rectifier:
         p3 = real_array(points_3d, "points_3d", "(B, P, 3)", 3, 3)
         if p3.shape[:2] != p2.shape[:2]:
             raise InputError(f"points_2d has shape {p2.shape} and points_3d {p3.shape}: (B, P) must agree")
+        if len(p2) == 0:
+            raise InputError("points_2d: an empty batch (B = 0), nothing to rectify")
         valid = bool_mask(valid, "valid", p2.shape[:2])
         infer = valid if infer_mask is None else bool_mask(infer_mask, "infer_mask", p2.shape[:2])
         if np.any(infer & ~valid):
@@ -397,6 +417,12 @@ class Rectifier:
         rvec_c0, tvec_c0 = np.empty((B, 3)), np.empty((B, 3))
         for b, (x, X) in enumerate(fr.frames):
             rvec_c0[b], tvec_c0[b] = _in_frame(b, solve_pnp_start, x, X, self._K_c)
+        behind = min_depths(fr.points_3d, fr.mask, rvec_c0, tvec_c0) <= 0
+        if behind.any():
+            b = int(np.argmax(behind))
+            x, X = fr.frames[b]
+            Z = X @ cv2.Rodrigues(rvec_c0[b])[0][2] + tvec_c0[b, 2]
+            raise InputError(f"frame {b}: {behind_camera_error(int(np.count_nonzero(Z <= 0)), len(X))}")
         return rvec_c0, tvec_c0
 
     def _inference_poses(self, fr: _Frames, rvec_c0, tvec_c0, reasons: list):
@@ -416,9 +442,10 @@ class Rectifier:
                 reasons[b], infer[b] = f"no K inferred: {exc}", False
         return infer, rvec, tvec
 
-    def _candidates(self, fr: _Frames, net, rvec_c0, tvec_c0, reasons: list) -> _BatchCandidates:
-        """Stages model's end and pnp_k of B frames: the K-bounds rule, then SQPnP under each
-        standing K on the frame's valid points."""
+    def _candidates(self, fr: _Frames, net, rvec_c0, tvec_c0, e_c0, reasons: list) -> _BatchCandidates:
+        """Stages model's end and pnp_k of B frames: the range rule on e_c0 (B,) px, each frame's
+        mean error under K_c at its C0 pose, and the K-bounds rule, then SQPnP under each standing
+        K on the frame's valid points."""
         cand = _BatchCandidates(
             K=k_matrix(net.k),
             delta_k=net.delta_k,
@@ -428,7 +455,10 @@ class Rectifier:
             reasons=reasons,
             notes=[None] * len(reasons),
         )
+        far = out_of_range(e_c0, self._fx_c)
         for b, (x, X) in enumerate(fr.frames):
+            if reasons[b] is None and far[b]:
+                reasons[b] = out_of_range_reason(e_c0[b], self._fx_c)
             if reasons[b] is None and not net.plausible[b]:
                 reasons[b] = implausible_reason(net.delta_k[b], net.k[b])
             if reasons[b] is None:
@@ -467,8 +497,14 @@ class Rectifier:
 
     def _errors(self, cand: _BatchCandidates, fr: _Frames, pending, e_c) -> np.ndarray:
         """Stage check of B frames: e(K) over each frame's valid points (e_c where not pending),
-        and the worse-than-K_c rule into ``cand.reasons``."""
+        and the cheirality and worse-than-K_c rules into ``cand.reasons``."""
         e = e_c.copy()
+        if pending.any():
+            mask = None if fr.mask is None else fr.mask[pending]
+            behind = min_depths(fr.points_3d[pending], mask, cand.rvec[pending], cand.tvec[pending]) <= 0
+            for b in np.flatnonzero(pending)[behind]:
+                cand.reasons[b] = BEHIND_REASON
+            pending = pending & cand.standing
         if pending.any():
             e[pending] = mean_reprojection_error(
                 fr.points_2d[pending],
@@ -499,11 +535,15 @@ class Rectifier:
         reasons: list = [None] * len(fr.frames)
         infer, *poses_i = self._inference_poses(fr, rvec_c0, tvec_c0, reasons)
         net = network_k(self.spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, tuple(poses_i))
-        cand = self._candidates(fr, net, rvec_c0, tvec_c0, reasons)
-        pending = cand.standing
         # With K inferred from the valid points, the feature's PMD rows are their residuals under K_c
         # at the C0 pose: their mean norm is e_c, and the uncertainty's PMD statistic.
         pmd_px = net.pmd_norms(fr.mask) if infer is fr.valid else None
+        if pmd_px is not None:
+            e_c0 = pmd_px
+        else:
+            e_c0 = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, self._K_c, rvec_c0, tvec_c0)
+        cand = self._candidates(fr, net, rvec_c0, tvec_c0, e_c0, reasons)
+        pending = cand.standing
         if self._uncertainty is not None:
             self._covariances(cand, net, fr, infer, pending, pmd_px)
         if self.mode == "map":
@@ -513,10 +553,10 @@ class Rectifier:
                 rvec_c0[b], tvec_c0[b] = _refine(x, X, self._K_c, rvec_c0[b], tvec_c0[b])
                 if pending[b]:
                     cand.rvec[b], cand.tvec[b] = _refine(x, X, cand.K[b], cand.rvec[b], cand.tvec[b])
-        if pmd_px is not None and not refine:
-            e_c = pmd_px  # the C0 pose and K_c on all valid points
-        else:
+        if refine:
             e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, self._K_c, rvec_c0, tvec_c0)
+        else:
+            e_c = e_c0  # the C0 pose and K_c on all valid points
         e = self._errors(cand, fr, pending, e_c)
         fell_back = ~cand.standing  # the one fallback rule: K_c's own solution
         cand.K[fell_back], cand.delta_k[fell_back] = self._K_c, 0.0

@@ -32,7 +32,9 @@ def test_frame_mean_norm_and_error_equal_the_reference_means():
         g.mean_residual_norms(d[None], None)[0], rel=1e-12
     )
     reference = g.mean_reprojection_error(x[None], X[None], None, K, rvec[None], tvec[None])[0]
-    assert fast.frame_mean_error(x, X, K, rvec, tvec) == pytest.approx(reference, rel=1e-9)
+    e, depth = fast.frame_error_and_depth(x, X, K, rvec, tvec)
+    assert e == pytest.approx(reference, rel=1e-9)
+    assert depth == pytest.approx(g.min_depths(X[None], None, rvec[None], tvec[None])[0], rel=1e-12) and depth > 0
 
 
 @pytest.mark.parametrize(
