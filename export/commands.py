@@ -6,7 +6,7 @@ import argparse
 import hashlib
 from pathlib import Path
 
-from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.main import Command, integer_in, nonempty_path
 
 DEFAULT_OPSET = 17
 # Erf (exact GELU) needs opset 9; 20 is the TorchScript exporter's newest.
@@ -15,10 +15,12 @@ MIN_OPSET, MAX_OPSET = 9, 20
 
 def _add_export(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", metavar="RUN_DIR", help="a trained model folder from `dimenet train`")
-    p.add_argument("--out", required=True, metavar="MODEL.onnx", help="ONNX file to write (atomically)")
+    p.add_argument(
+        "--out", required=True, type=nonempty_path, metavar="MODEL.onnx", help="ONNX file to write (atomically)"
+    )
     p.add_argument(
         "--opset",
-        type=int,
+        type=integer_in(MIN_OPSET, MAX_OPSET),
         default=DEFAULT_OPSET,
         help=f"ONNX opset, {MIN_OPSET} to {MAX_OPSET} (default {DEFAULT_OPSET})",
     )

@@ -4,34 +4,42 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import shlex
 import sys
 
-from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.main import Command, finite_float_in, grid_size, integer_in, nonempty_path, seed
 
 from .config import ReproduceConfig, TrainConfig
 
 # The defaults --help states are the dataclasses' own (training/config.py imports no torch).
 TRAIN_DEFAULTS = TrainConfig()
 REPRODUCE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(ReproduceConfig) if f.name != "out_dir"}
+# The flags are range-checked by their argparse types, so a bad value is refused before torch is imported.
+MAX_EPOCHS = 100_000  # the paper's models train 600; 2**40 would run for ever
+MAX_FOCAL_WEIGHT = 1000.0  # 1e300 overflows the loss (NaN poses)
+epochs = integer_in(1, MAX_EPOCHS)
 
 
 def _add_train(p: argparse.ArgumentParser) -> None:
     d = TRAIN_DEFAULTS
     p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz) with a train split")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png")
-    p.add_argument("--grid", default=d.grid, help=f"grid, columns x rows (default {d.grid})")
     p.add_argument(
-        "--features", default=d.variant, choices="ABCDE", help=f"feature variant of paper Table 3 (default {d.variant})"
+        "--out", required=True, type=nonempty_path, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png"
+    )
+    p.add_argument("--grid", type=grid_size, default=d.grid, help=f"grid, columns x rows (default {d.grid})")
+    p.add_argument(
+        "--features",
+        default=d.variant,
+        choices=tuple("ABCDE"),
+        help=f"feature variant of paper Table 3 (default {d.variant})",
     )
     p.add_argument(
-        "--epochs", type=int, default=d.epochs, help=f"epochs (default {d.epochs}; the best val epoch is kept)"
+        "--epochs", type=epochs, default=d.epochs, help=f"epochs (default {d.epochs}; the best val epoch is kept)"
     )
-    p.add_argument("--seed", type=int, default=d.seed, help=f"seed: same seed, same model (default {d.seed})")
+    p.add_argument("--seed", type=seed, default=d.seed, help=f"seed: same seed, same model (default {d.seed})")
     p.add_argument(
         "--focal-weight",
-        type=float,
+        type=finite_float_in(0.0, MAX_FOCAL_WEIGHT),
         default=d.focal_weight,
         metavar="W",
         help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
@@ -40,15 +48,10 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from dimenet.runtime.errors import InputError
     from dimenet.runtime.formats.dataset import read_dataset
 
     from .trainer import file_sha256, train
 
-    if args.epochs < 1:
-        raise InputError(f"--epochs must be >= 1, got {args.epochs}")
-    if not 0.0 <= args.focal_weight < math.inf:
-        raise InputError(f"--focal-weight must be a finite number >= 0, got {args.focal_weight}")
     ds = read_dataset(args.data)
     config = TrainConfig(
         grid=args.grid, variant=args.features, epochs=args.epochs, seed=args.seed, focal_weight=args.focal_weight
@@ -78,30 +81,35 @@ TRAIN = Command(
 
 def _add_reproduce(p: argparse.ArgumentParser) -> None:
     d = REPRODUCE_DEFAULTS
-    p.add_argument("--out", required=True, metavar="DIR", help="folder for REPRODUCTION.md, results.json, plots, runs/")
     p.add_argument(
-        "--epochs", type=int, default=d["epochs"], help=f"epochs of the three device models (default {d['epochs']})"
+        "--out",
+        required=True,
+        type=nonempty_path,
+        metavar="DIR",
+        help="folder for REPRODUCTION.md, results.json, plots, runs/",
+    )
+    p.add_argument(
+        "--epochs", type=epochs, default=d["epochs"], help=f"epochs of the three device models (default {d['epochs']})"
     )
     p.add_argument(
         "--ablation-epochs",
-        type=int,
+        type=epochs,
         default=d["ablation_epochs"],
         help=f"epochs of the Table 2/3 ablation models (default {d['ablation_epochs']})",
     )
     p.add_argument(
-        "--seed", type=int, default=d["seed"], help=f"seed of simulation, training and conditions (default {d['seed']})"
+        "--seed",
+        type=seed,
+        default=d["seed"],
+        help=f"seed of simulation, training and conditions (default {d['seed']})",
     )
 
 
 def _run_reproduce(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from dimenet.runtime.errors import InputError
-
     from .reproduce import run
 
-    if args.epochs < 1 or args.ablation_epochs < 1:
-        raise InputError("--epochs and --ablation-epochs must be >= 1")
     results = run(
         ReproduceConfig(
             out_dir=Path(args.out), epochs=args.epochs, ablation_epochs=args.ablation_epochs, seed=args.seed

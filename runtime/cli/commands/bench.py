@@ -9,9 +9,10 @@ from __future__ import annotations
 import argparse
 import json
 
-from dimenet.runtime.cli.main import CliError, Command, integer_at_least, positive_float
-from dimenet.runtime.errors import InputError
+from dimenet.runtime.cli.commands.render import MAX_PHOTOS
+from dimenet.runtime.cli.main import CliError, Command, finite_float_in, integer_in, nonempty_path, parallelism, seed
 from dimenet.runtime.evaluation.latency import format_report, run_bench
+from dimenet.runtime.geometry.pnp import MIN_POINTS
 from dimenet.runtime.sim.simulator import PROFILES
 
 # Each bench's options and their defaults. The parser's defaults are None, so that an option
@@ -28,6 +29,14 @@ LATENCY = {
 }
 INGEST = {"n": 30, "seed": 1, "profile": "galaxy-s8", "workers": 2}
 BPNP = {"frames": 32, "points": 320, "repeats": 200, "baseline_repeats": 10}
+# Caps: --frames x --points correspondences are held in memory (50000 x 320: 0.6 GB); the BPnP
+# baseline's Jacobian is 2N x 3N floats per frame (N = 2000: 96 MB), its layer B x N x 20.
+MAX_FRAMES = 50_000
+MAX_POINTS = 100_000  # the latency bench's frames have at most 320 (refused with the count)
+MAX_BPNP_POINTS = 2_000
+MAX_BPNP_CORRESPONDENCES = 10**6  # --frames x --points with --bpnp
+MAX_REPEATS = 100_000
+MAX_BUDGET_MS = 60_000.0  # a minute per frame: past it a budget is a typo
 BENCHES = {"the latency bench (without --ingest or --bpnp)": LATENCY, "--ingest": INGEST, "--bpnp": BPNP}
 
 
@@ -42,13 +51,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     latency = p.add_argument_group(
         "latency bench (the default)", "the runtime's stages and end to end against cv2.solvePnP ITERATIVE under K_c"
     )
-    latency.add_argument("--model", help="a .onnx from `dimenet export` (default: the bundled model)")
-    latency.add_argument("--points", type=int, help=f"correspondences per frame ({_default('points')})")
-    latency.add_argument("--frames", type=int, help=f"frames to time ({_default('frames')})")
-    latency.add_argument("--threads", type=int, help=f"ONNX Runtime and OpenCV threads ({_default('threads')})")
-    latency.add_argument("--batch", type=int, help="also time rectify_batch on batches of B frames")
     latency.add_argument(
-        "--budget-ms", type=positive_float, metavar="X", help="exit 1 when the end-to-end p99 exceeds X ms"
+        "--model", type=nonempty_path, help="a .onnx from `dimenet export` (default: the bundled model)"
+    )
+    latency.add_argument(
+        "--points", type=integer_in(MIN_POINTS, MAX_POINTS), help=f"correspondences per frame ({_default('points')})"
+    )
+    latency.add_argument("--frames", type=integer_in(1, MAX_FRAMES), help=f"frames to time ({_default('frames')})")
+    latency.add_argument("--threads", type=parallelism, help=f"ONNX Runtime and OpenCV threads ({_default('threads')})")
+    latency.add_argument(
+        "--batch", type=integer_in(1, MAX_FRAMES), help="also time rectify_batch on batches of B frames"
+    )
+    latency.add_argument(
+        "--budget-ms",
+        type=finite_float_in(0.0, MAX_BUDGET_MS, above=True),
+        metavar="X",
+        help="exit 1 when the end-to-end p99 exceeds X ms",
     )
     latency.add_argument("--refine", action="store_true", default=None, help="polish poses with cv2.solvePnPRefineLM")
     latency.add_argument(
@@ -61,14 +79,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "`dimenet ingest` on rendered full-size photos of the paper's rig, scored against the truth",
     )
     ingest.add_argument(
-        "--ingest", metavar="DIR", help="folder of rendered photos (rendered there first if it has no truth.npz)"
+        "--ingest",
+        type=nonempty_path,
+        metavar="DIR",
+        help="folder of rendered photos (rendered there first if it has no truth.npz)",
     )
-    ingest.add_argument("--n", type=integer_at_least(1), help=f"photos to render (default {INGEST['n']})")
-    ingest.add_argument("--seed", type=int, help=f"render seed (default {INGEST['seed']})")
+    ingest.add_argument("--n", type=integer_in(1, MAX_PHOTOS), help=f"photos to render (default {INGEST['n']})")
+    ingest.add_argument("--seed", type=seed, help=f"render seed (default {INGEST['seed']})")
     ingest.add_argument("--profile", choices=sorted(PROFILES), help=f"device profile (default {INGEST['profile']})")
-    ingest.add_argument(
-        "--workers", type=integer_at_least(1), help=f"ingest worker processes (default {INGEST['workers']})"
-    )
+    ingest.add_argument("--workers", type=parallelism, help=f"ingest worker processes (default {INGEST['workers']})")
     bpnp = p.add_argument_group(
         "BPnP bench (--bpnp; needs the train extra)",
         "forward + backward of the training's BPnP layer on B frames x N points (--frames, --points), "
@@ -76,11 +95,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     bpnp.add_argument("--bpnp", action="store_true", help="time the BPnP layer instead of the runtime")
     bpnp.add_argument(
-        "--repeats", type=integer_at_least(1), help=f"timed runs of the layer (default {BPNP['repeats']})"
+        "--repeats", type=integer_in(1, MAX_REPEATS), help=f"timed runs of the layer (default {BPNP['repeats']})"
     )
     bpnp.add_argument(
         "--baseline-repeats",
-        type=integer_at_least(1),
+        type=integer_in(1, MAX_REPEATS),
         help=f"timed runs of the baseline (default {BPNP['baseline_repeats']})",
     )
 
@@ -136,9 +155,13 @@ def _run_ingest(args: argparse.Namespace) -> int:
 
 def _run_bpnp(args: argparse.Namespace) -> int:
     o = _options(args, BPNP)
-    for name in ("frames", "points"):
-        if o[name] < 1:
-            raise InputError(f"--{name} must be >= 1, got {o[name]}")
+    if o["points"] > MAX_BPNP_POINTS:
+        raise CliError(f"dimenet bench: --points must be <= {MAX_BPNP_POINTS} with --bpnp, got {o['points']}")
+    if o["frames"] * o["points"] > MAX_BPNP_CORRESPONDENCES:
+        raise CliError(
+            f"dimenet bench: --frames x --points must be <= {MAX_BPNP_CORRESPONDENCES} with --bpnp, "
+            f"got {o['frames']} x {o['points']}"
+        )
     try:
         from dimenet.training.bench_bpnp import format_report as format_bpnp_report
         from dimenet.training.bench_bpnp import run as run_bpnp

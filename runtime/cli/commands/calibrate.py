@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.main import Command, nonempty_path
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, write_calibration
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.geometry import k_params
@@ -12,7 +12,12 @@ from dimenet.runtime.geometry import k_params
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz)")
-    p.add_argument("--out", required=True, help="calibration file to write (.npz: K_c, K_star, rvec, tvec, e_star)")
+    p.add_argument(
+        "--out",
+        required=True,
+        type=nonempty_path,
+        help="calibration file to write (.npz: K_c, K_star, rvec, tvec, e_star)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -8,32 +8,53 @@ import json
 
 import numpy as np
 
-from dimenet.runtime.cli.main import CliError, Command, positive_float
+from dimenet.runtime.cli.main import (
+    CliError,
+    Command,
+    finite_float_in,
+    grid_size,
+    integer_in,
+    noise_sigma,
+    nonempty_path,
+    seed,
+)
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
 from dimenet.runtime.evaluation.methods import METHODS, MODEL_METHODS, evaluate, format_table
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
+from dimenet.runtime.geometry.pnp import MIN_POINTS
 from dimenet.runtime.rectify.grid import Grid
+
+MAX_DROP = 10**6  # points kept per frame; more than a frame has keeps them all
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz)")
-    p.add_argument("--model", help="trained model: a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`")
+    p.add_argument(
+        "--model",
+        type=nonempty_path,
+        help="trained model: a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`",
+    )
     p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")
-    p.add_argument("--drop", type=int, metavar="N", help="keep N uniformly drawn inference points per frame")
-    p.add_argument("--noise-2d", type=positive_float, default=0.0, metavar="PX", help="extra 2D Gaussian noise, px")
-    p.add_argument("--noise-3d", type=positive_float, default=0.0, metavar="MM", help="extra 3D Gaussian noise, mm")
+    p.add_argument(
+        "--drop",
+        type=integer_in(MIN_POINTS, MAX_DROP),
+        metavar="N",
+        help="keep N uniformly drawn inference points per frame",
+    )
+    p.add_argument("--noise-2d", type=noise_sigma, default=0.0, metavar="PX", help="extra 2D Gaussian noise, px")
+    p.add_argument("--noise-3d", type=noise_sigma, default=0.0, metavar="MM", help="extra 3D Gaussian noise, mm")
     p.add_argument(
         "--eta",
-        type=positive_float,
+        type=finite_float_in(0.0, 1.0, below=True),
         default=0.0,
         metavar="FRACTION",
         help="empty this fraction of the occupied grid cells (paper Table 2)",
     )
-    p.add_argument("--grid", help="grid (columns x rows) for --eta (default: the model's, else 8x6)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the test conditions (default 0)")
+    p.add_argument("--grid", type=grid_size, help="grid (columns x rows) for --eta (default: the model's, else 8x6)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the test conditions (default 0)")
     p.add_argument(
         "--methods",
         type=_methods,

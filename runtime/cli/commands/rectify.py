@@ -13,7 +13,7 @@ from importlib import resources
 import numpy as np
 
 from dimenet.runtime.assets import asset
-from dimenet.runtime.cli.main import CliError, Command
+from dimenet.runtime.cli.main import CliError, Command, nonempty_path
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)",
     )
-    p.add_argument("--model", help="a .onnx from `dimenet export` (default: the bundled model)")
+    p.add_argument("--model", type=nonempty_path, help="a .onnx from `dimenet export` (default: the bundled model)")
     p.add_argument(
         "--mode",
         choices=MODES,
@@ -40,6 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--out",
+        type=nonempty_path,
         metavar="RESULT.npz",
         help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov per frame",
     )

@@ -4,27 +4,31 @@ from __future__ import annotations
 
 import argparse
 
-from dimenet.runtime.cli.main import Command, integer_at_least, positive_float
+from dimenet.runtime.cli.main import Command, finite_float_in, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.formats.rig import rig_from_argument
 from dimenet.runtime.sim.render import FORMATS, TRUTH_FILE, scaled_profile, write_render
 from dimenet.runtime.sim.simulator import PROFILES, get_profile
 
+MAX_PHOTOS = 10_000  # --n here and in `dimenet bench --ingest`: ~30 GB of full-size JPEGs
+MAX_SCALE = 64.0  # 4032x3024 -> 63x47 px; past that the boards are a few pixels
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", required=True, help="rig file (dimenet-rig/1 JSON), or `paper` for the bundled paper rig")
     p.add_argument("--profile", required=True, choices=sorted(PROFILES), help="simulated device")
-    p.add_argument("--n", type=integer_at_least(1), required=True, help="number of photos")
-    p.add_argument("--out", required=True, help=f"folder for photo-0000.<format>, ... and {TRUTH_FILE}")
+    p.add_argument("--n", type=integer_in(1, MAX_PHOTOS), required=True, help="number of photos")
     p.add_argument(
-        "--seed", type=integer_at_least(0), default=0, help="random seed (default 0); same seed, same photos"
+        "--out", required=True, type=nonempty_path, help=f"folder for photo-0000.<format>, ... and {TRUTH_FILE}"
     )
+    p.add_argument("--seed", type=seed, default=0, help="random seed (default 0); same seed, same photos")
     p.add_argument("--format", choices=FORMATS, default="jpg", help="photo format (default jpg)")
     p.add_argument(
         "--scale",
-        type=positive_float,
+        type=finite_float_in(1.0, MAX_SCALE),
         default=1.0,
-        help="render this many times fewer pixels per side, same field of view (default 1: full size)",
+        help=f"render this many times fewer pixels per side, same field of view, 1 to {MAX_SCALE:g} "
+        "(default 1: full size)",
     )
 
 

@@ -6,27 +6,29 @@ import argparse
 
 import numpy as np
 
-from dimenet.runtime.cli.main import Command, integer_at_least
+from dimenet.runtime.cli.main import Command, integer_in, nonempty_path, seed
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.sim.simulator import PROFILES, simulate
+
+MAX_EXTRA_FRAMES = 10_000  # natural or planar frames: ~13 KB and ~4 ms each (2**40: MemoryError)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", required=True, choices=sorted(PROFILES), help="simulated device")
-    p.add_argument("--seed", type=integer_at_least(0), default=0, help="random seed (default 0); same seed, same file")
+    p.add_argument("--seed", type=seed, default=0, help="random seed (default 0); same seed, same file")
     p.add_argument(
         "--natural-frames",
-        type=integer_at_least(0),
+        type=integer_in(0, MAX_EXTRA_FRAMES),
         default=0,
         help="natural-scene (LEGO buildings) test frames to add (the paper has 34; default 0)",
     )
     p.add_argument(
         "--planar-frames",
-        type=integer_at_least(0),
+        type=integer_in(0, MAX_EXTRA_FRAMES),
         default=0,
         help="planar test frames to add: rig photos whose K is inferred from one board only (default 0)",
     )
-    p.add_argument("--out", required=True, help="dataset file to write (dimenet-dataset/1 .npz)")
+    p.add_argument("--out", required=True, type=nonempty_path, help="dataset file to write (dimenet-dataset/1 .npz)")
 
 
 def run(args: argparse.Namespace) -> int:
