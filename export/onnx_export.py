@@ -4,11 +4,14 @@ The graph maps ``features`` float32 [batch, D] (dynamic batch) to ``delta_k`` fl
 [batch, 4] px; the model spec JSON rides in ``metadata_props`` under ``METADATA_KEY``.
 The exported bytes are checked (onnx.checker, then ONNX Runtime against torch on probe
 features, and zero features -> exactly zero Delta K) before anything is written, and the
-file is written atomically: a failed export leaves any previous file intact.
+file is written atomically: a failed export leaves any previous file intact. The spec carries
+``weights_sha256`` (spec >= 1.4), the sha256 of the file's bytes with that value set to 64
+zeros (``stamp_weights_sha256``), which the runtime checks without the onnx package.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import warnings
 from pathlib import Path
@@ -19,8 +22,14 @@ import torch
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.rectify.model import INPUT_NAME, OUTPUT_NAME, onnx_model_from_bytes
-from dimenet.runtime.rectify.spec import METADATA_KEY, ModelSpec
+from dimenet.runtime.rectify.model import (
+    INPUT_NAME,
+    OUTPUT_NAME,
+    onnx_model_from_bytes,
+    stamped_digests,
+    weights_sha256_span,
+)
+from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 
@@ -52,18 +61,33 @@ def _trace(model: DimeNet, size: int, opset: int) -> bytes:
     return buf.getvalue()
 
 
+def stamp_weights_sha256(blob: bytes) -> bytes:
+    """Model bytes whose spec holds ``weights_sha256`` = 64 zeros -> the same bytes with those
+    zeros replaced by the sha256 of ``blob`` (same length: the protobuf lengths stay valid).
+    The runtime undoes the replacement and compares (``rectify.model.stamped_digests``)."""
+    span = weights_sha256_span(blob, WEIGHTS_SHA256_PLACEHOLDER)
+    if span is None:
+        raise ModelError("export: the placeholder weights_sha256 does not occur exactly once in the model's bytes")
+    digest = hashlib.sha256(blob).hexdigest()
+    stamped = blob[: span[0]] + digest.encode("ascii") + blob[span[1] :]
+    if stamped_digests(stamped, digest) != (digest, hashlib.sha256(stamped).hexdigest()):
+        raise ModelError("export: the stamped weights_sha256 does not verify")
+    return stamped
+
+
 def _with_spec(blob: bytes, spec: ModelSpec) -> bytes:
-    """The model bytes with the spec JSON in metadata_props, after onnx.checker (full check)."""
+    """The model bytes with the spec JSON in metadata_props, after onnx.checker (full check),
+    stamped with its weights_sha256 (``stamp_weights_sha256``)."""
     proto = onnx.load_from_string(blob)
     del proto.metadata_props[:]
     entry = proto.metadata_props.add()
-    entry.key, entry.value = METADATA_KEY, spec.to_json()
+    entry.key, entry.value = METADATA_KEY, spec.to_json(weights_sha256=WEIGHTS_SHA256_PLACEHOLDER)
     proto.doc_string = f"DIME-Net: grid feature -> Delta K (px); model spec in metadata_props[{METADATA_KEY!r}]"
     try:
         onnx.checker.check_model(proto, full_check=True)
     except onnx.checker.ValidationError as exc:
         raise ModelError(f"export: the exported graph fails onnx.checker ({str(exc).splitlines()[0]})") from None
-    return proto.SerializeToString()
+    return stamp_weights_sha256(proto.SerializeToString())
 
 
 def _check_parity(model: DimeNet, blob: bytes, size: int) -> None:
@@ -97,6 +121,16 @@ def export_model(model: DimeNet, spec: ModelSpec, *, opset: int = DEFAULT_OPSET)
     blob = _with_spec(traced, spec)
     _check_parity(model, blob, size)
     return blob
+
+
+def restamp_model(blob: bytes, source: str = "model") -> bytes:
+    """A ``dimenet-model/1`` file's bytes with its spec re-embedded at this release's spec
+    version and stamped with its weights_sha256; graph, weights and spec content untouched.
+    The input must load (``onnx_model_from_bytes``), and so must the result."""
+    spec = onnx_model_from_bytes(blob, source).spec
+    stamped = _with_spec(blob, spec)
+    onnx_model_from_bytes(stamped, f"{source} (re-stamped)")
+    return stamped
 
 
 def export_run(run_dir: str | Path, out: str | Path, *, opset: int = DEFAULT_OPSET) -> Path:

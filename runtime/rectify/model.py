@@ -4,13 +4,16 @@ The file holds the frozen MLP (input ``features`` float32 [batch, D], output ``d
 float32 [batch, 4] px as (dfx, dfy, dcx, dcy)) and its model spec as JSON in the ONNX
 ``metadata_props`` under ``METADATA_KEY``. Loading refuses, with a ModelError naming the file:
 an unreadable or corrupt file, a foreign model without the spec, a spec of another major
-version, and a graph whose input or output does not match the spec. Needs onnxruntime only
-(never onnx, never torch). See models_spec/model-v1.md.
+version or malformed, a graph whose input or output does not match the spec (declared, or
+as a probe call on zero features really gives), and bytes that differ from the spec's
+``weights_sha256`` (spec >= 1.4). Needs onnxruntime only (never onnx, never torch). See
+models_spec/model-v1.md.
 """
 
 from __future__ import annotations
 
 import hashlib
+import re
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -21,11 +24,12 @@ import numpy as np
 import onnxruntime as ort
 
 from dimenet.runtime.errors import InputError, ModelError
-from dimenet.runtime.rectify.spec import METADATA_KEY, ModelSpec
+from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
 
 INPUT_NAME = "features"
 OUTPUT_NAME = "delta_k"
 DEFAULT_PROVIDERS = ("CPUExecutionProvider",)
+PROBE_FRAMES = 2  # the batch of zero features the load-time probe call runs
 
 
 @dataclass(frozen=True)
@@ -92,10 +96,87 @@ def _check_signature(session: ort.InferenceSession, spec: ModelSpec, source: str
         raise ModelError(f"{source}: output {OUTPUT_NAME!r} has shape {outputs[0].shape}, expected [batch, 4]")
 
 
+def _check_probe(session: ort.InferenceSession, spec: ModelSpec, source: str) -> None:
+    """ModelError unless the graph really maps a zero feature batch (PROBE_FRAMES, D) to
+    finite float32 (PROBE_FRAMES, 4): the declared signature is only what the file says."""
+    declared = f"float32 [batch, 4] {OUTPUT_NAME!r}"
+    zeros = np.zeros((PROBE_FRAMES, spec.features.size), np.float32)
+    try:
+        out = session.run((OUTPUT_NAME,), {INPUT_NAME: zeros})[0]
+    except Exception as exc:  # ORT raises its own types when the graph cannot run
+        raise ModelError(
+            f"{source}: the graph fails on {PROBE_FRAMES} zero feature frames, so it differs from the declared "
+            f"{declared} ({type(exc).__name__}: {str(exc).strip()[:300]})"
+        ) from None
+    if not isinstance(out, np.ndarray) or out.dtype != np.float32 or out.shape != (PROBE_FRAMES, 4):
+        got = f"{out.dtype} {list(out.shape)}" if isinstance(out, np.ndarray) else type(out).__name__
+        raise ModelError(
+            f"{source}: graph output {OUTPUT_NAME!r} on {PROBE_FRAMES} zero feature frames is {got}, "
+            f"it differs from the declared {declared}"
+        )
+    if not np.all(np.isfinite(out)):
+        raise ModelError(f"{source}: graph output {OUTPUT_NAME!r} on zero features is not finite ({out[0].tolist()})")
+
+
+_STAMP_KEY = b'"' + WEIGHTS_SHA256_KEY.encode("ascii") + b'"'
+_STAMP_ENTRY = re.compile(re.escape(_STAMP_KEY) + rb'\s*:\s*"([0-9a-f]{64})"')
+_PLACEHOLDER = WEIGHTS_SHA256_PLACEHOLDER.encode("ascii")
+
+
+def weights_sha256_span(blob: bytes, digest: str) -> Optional[tuple]:
+    """(start, end) of the 64 hex digits of the spec's ``"weights_sha256": "<digest>"`` entry in
+    the file's bytes (JSON whitespace allowed around the colon), or None unless the key
+    ``"weights_sha256"`` occurs exactly once in the bytes and holds ``digest`` there."""
+    if blob.count(_STAMP_KEY) != 1:
+        return None
+    entry = _STAMP_ENTRY.match(blob, blob.rfind(_STAMP_KEY))
+    return entry.span(1) if entry is not None and entry.group(1) == digest.encode("ascii") else None
+
+
+def stamped_digests(blob: bytes, digest: str) -> Optional[tuple]:
+    """(the sha256 of ``blob`` with its ``weights_sha256`` entry of value ``digest`` set to the
+    placeholder, 64 zeros; the sha256 of ``blob`` itself), in one pass over the bytes before
+    the entry (the spec sits at the end of an ONNX file); None unless the entry is unambiguous
+    (``weights_sha256_span``). Export stamps a file with the first of its placeholder bytes;
+    the runtime checks it here."""
+    span = weights_sha256_span(blob, digest)
+    if span is None:
+        return None
+    start, end = span
+    view = memoryview(blob)
+    stamped = hashlib.sha256(view[:start])
+    whole = stamped.copy()
+    stamped.update(_PLACEHOLDER)
+    whole.update(view[start:end])
+    stamped.update(view[end:])
+    whole.update(view[end:])
+    return stamped.hexdigest(), whole.hexdigest()
+
+
+def _checked_sha256(blob: bytes, spec: ModelSpec, source: str) -> str:
+    """The sha256 of the file's bytes, after checking them against the spec's ``weights_sha256``
+    (spec >= 1.4; no check without it): ModelError when they differ."""
+    if spec.weights_sha256 is None:
+        return hashlib.sha256(blob).hexdigest()
+    digests = stamped_digests(blob, spec.weights_sha256)
+    if digests is None:
+        raise ModelError(
+            f"{source}: its spec's {WEIGHTS_SHA256_KEY} does not occur exactly once in the file's bytes: "
+            f"corrupt or modified"
+        )
+    if digests[0] != spec.weights_sha256:
+        raise ModelError(
+            f"{source}: the model file's bytes differ from the sha256 in its spec: corrupt or modified "
+            f"(sha256 {digests[0][:16]}..., spec {spec.weights_sha256[:16]}...)"
+        )
+    return digests[1]
+
+
 def onnx_model_from_bytes(
     blob: bytes, source: str, *, threads: int = 1, providers: Optional[Sequence[str]] = None
 ) -> OnnxModel:
-    """Create the ORT session from the model's bytes and read and validate its spec."""
+    """Create the ORT session from the model's bytes, read and validate its spec, check the
+    graph's signature and a probe call against it, and the bytes against its weights_sha256."""
     options = session_options(threads)
     try:
         session = ort.InferenceSession(blob, options, providers=list(providers or DEFAULT_PROVIDERS))
@@ -103,7 +184,10 @@ def onnx_model_from_bytes(
         raise ModelError(
             f"{source}: not a loadable ONNX model ({type(exc).__name__}: {str(exc).strip()[:300]})"
         ) from None
-    text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+    try:
+        text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+    except UnicodeDecodeError as exc:  # ONNX (proto2) strings are not checked to be UTF-8
+        raise ModelError(f"{source}: the ONNX metadata is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     if text is None:
         raise ModelError(
             f"{source}: no {METADATA_KEY!r} in the ONNX metadata: not a DIME-Net model "
@@ -111,7 +195,9 @@ def onnx_model_from_bytes(
         )
     spec = ModelSpec.from_json(text, source=source)
     _check_signature(session, spec, source)
-    return OnnxModel(session=session, spec=spec, source=source, sha256=hashlib.sha256(blob).hexdigest())
+    _check_probe(session, spec, source)
+    sha256 = _checked_sha256(blob, spec, source)
+    return OnnxModel(session=session, spec=spec, source=source, sha256=sha256)
 
 
 def load_onnx_model(path: str | Path, *, threads: int = 1, providers: Optional[Sequence[str]] = None) -> OnnxModel:
