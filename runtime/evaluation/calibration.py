@@ -19,6 +19,7 @@ import numpy as np
 from dimenet.runtime.errors import CalibrationError, DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry.least_squares import calibrate
 
@@ -64,11 +65,32 @@ def write_calibration(cal: Calibration, path: str | Path) -> Path:
     return atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
+def _calibration_array(arrays: dict, key: str, shape: tuple, named: str) -> np.ndarray:
+    """``arrays[key]`` as float64 if it is a float array of ``shape`` (``named``: as the spec writes it)."""
+    a = arrays[key]
+    if a.dtype.kind != "f" or a.shape != shape:
+        raise DatasetError(f"{key}: must be a float array of shape {named}, got {a.dtype} {a.shape}")
+    return a.astype(np.float64, copy=False)
+
+
 def read_calibration(path: str | Path) -> Calibration:
+    """Read a ``dimenet calibrate`` file (see models_spec/README.md). Raises DatasetError naming the file
+    (never pickle-loads; a corrupt, truncated or oversized archive is refused before decoding)."""
+    arrays = read_npz(path, DatasetError, "calibration file")
+    missing = [k for k in CALIBRATION_KEYS if k not in arrays]
+    if missing:
+        raise DatasetError(f"{path}: not a dimenet calibration file (missing {missing[0]!r})")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return Calibration(**{k: npz[k] for k in CALIBRATION_KEYS})
-    except KeyError as exc:
-        raise DatasetError(f"{path}: not a dimenet calibration file (missing {exc})") from None
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: not a readable calibration file ({exc})") from None
+        F = arrays["K_star"].shape[0] if arrays["K_star"].ndim == 3 else -1
+        K_c = _calibration_array(arrays, "K_c", (3, 3), "(3, 3)")
+        if not np.all(np.isfinite(K_c)):
+            raise DatasetError("K_c: has non-finite entries")
+        return Calibration(
+            K_c=K_c,
+            K_star=_calibration_array(arrays, "K_star", (F, 3, 3), "(F, 3, 3)"),
+            rvec=_calibration_array(arrays, "rvec", (F, 3), "(F, 3)"),
+            tvec=_calibration_array(arrays, "tvec", (F, 3), "(F, 3)"),
+            e_star=_calibration_array(arrays, "e_star", (F,), "(F,)"),
+        )
+    except DatasetError as exc:
+        raise DatasetError(f"{path}: {exc}") from None

@@ -1,7 +1,8 @@
 """Dataset format ``dimenet-dataset/1``: the one reader, validator and writer.
 
 The format is specified in ``models_spec/dataset-v1.md``. A dataset is one ``.npz``
-file, read with ``allow_pickle=False``. Frames are F images, each with up to P
+file, read by ``formats.npz.read_npz`` (never unpickles; refuses a corrupt archive or one
+declaring more than ``MAX_NPZ_BYTES`` before decoding it). Frames are F images, each with up to P
 correspondences (NaN-padded); 2D points are pixels (x right, y down), 3D points are
 millimetres in that frame's world frame {W}.
 """
@@ -18,12 +19,16 @@ import numpy as np
 
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.formats.json_text import JsonProblem, parse_json
+from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import MIN_POINTS
 
 FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")
 REQUIRED_KEYS = ("format", "image_size", "points_2d", "points_3d", "valid", "infer_mask", "split", "scene", "meta")
 OPTIONAL_KEYS = ("K_true", "frame_id")
+MAX_IMAGE_SIDE_PX = 1_000_000  # image_size: no camera image is wider (it also keeps int64 maths exact)
+MAX_META_CHARS = 4 << 20  # meta: 4 Mi characters of JSON (the simulator's is ~5 k, ingest's grows with OBJECT.csv)
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,8 @@ class Dataset:
     def select(self, frames: np.ndarray) -> Dataset:
         """The dataset restricted to ``frames`` (a boolean mask or index array over F)."""
         idx = np.arange(self.n_frames)[frames]
+        if len(idx) == 0:  # say so, rather than "the dataset has no frames" about a dataset that has some
+            raise DatasetError(f"select: none of the dataset's {self.n_frames} frames is selected (a dataset needs 1)")
         take = lambda a: None if a is None else a[idx]  # noqa: E731
         return replace(
             self,
@@ -129,6 +136,9 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     size = np.asarray(arrays["image_size"])
     _require(size.dtype.kind in "iu" and size.shape == (2,), "image_size", "must be 2 integers (width, height) px")
     _require(bool(np.all(size > 0)), "image_size", f"must be positive, got {size.tolist()}")
+    _require(
+        bool(np.all(size <= MAX_IMAGE_SIDE_PX)), "image_size", f"must be <= {MAX_IMAGE_SIDE_PX} px, got {size.tolist()}"
+    )
     p2 = np.asarray(arrays["points_2d"])
     _require(p2.ndim == 3 and p2.shape[2] == 2, "points_2d", f"must have shape (F, P, 2), got {p2.shape}")
     F, P = p2.shape[:2]
@@ -149,11 +159,9 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     )
     _require(not np.any(infer & ~valid), "infer_mask", "must be a subset of valid (a point to infer from is not valid)")
     bad = valid & ~(np.isfinite(p2).all(-1) & np.isfinite(p3).all(-1))
-    _require(
-        not bad.any(),
-        "points_2d/points_3d",
-        f"valid point has a non-finite coordinate (frame {np.argwhere(bad)[0][0] if bad.any() else 0})",
-    )
+    if bad.any():
+        f, p = np.argwhere(bad)[0]
+        raise DatasetError(f"points_2d/points_3d: valid point has a non-finite coordinate (frame {f}, point {p})")
     counts = valid.sum(1)
     _require(
         bool(np.all(counts >= MIN_POINTS)),
@@ -172,9 +180,9 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     meta_raw = np.asarray(arrays["meta"])
     _require(meta_raw.shape == () and meta_raw.dtype.kind == "U", "meta", "must be a JSON string")
     try:
-        meta = json.loads(str(meta_raw))
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"meta: not valid JSON ({exc.msg})") from None
+        meta = parse_json(str(meta_raw), max_chars=MAX_META_CHARS)
+    except JsonProblem as exc:
+        raise DatasetError(f"meta: not valid JSON ({exc.problem})" if exc.line else f"meta: {exc.problem}") from None
     _require(isinstance(meta, dict), "meta", "must be a JSON object")
     out: dict[str, Any] = {
         "image_size": size.astype(np.int64),
@@ -201,17 +209,13 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def read_dataset(path: str | Path) -> Dataset:
-    """Read and validate a ``dimenet-dataset/1`` file. Raises DatasetError (never pickle-loads)."""
+    """Read and validate a ``dimenet-dataset/1`` file. Raises DatasetError naming the file (never pickle-loads).
+
+    A corrupt, truncated or foreign file, or one declaring more than ``npz.MAX_NPZ_BYTES`` of arrays,
+    is refused before its arrays are decoded (see ``formats.npz``).
+    """
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: no such dataset file")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
-    except ValueError as exc:
-        raise DatasetError(f"{path}: holds object arrays, which format dimenet-dataset/1 forbids ({exc})") from None
-    except (OSError, EOFError, KeyError) as exc:
-        raise DatasetError(f"{path}: not a readable .npz file ({exc})") from None
+    arrays = read_npz(path, DatasetError, "dataset file")
     try:
         return Dataset(**validate_arrays(arrays))
     except DatasetError as exc:

@@ -10,7 +10,10 @@ Specified in models_spec/ingest.md.
 from __future__ import annotations
 
 import csv
+import io
 import math
+import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +23,12 @@ from dimenet.runtime.errors import LabelsError
 
 OBJECT_HEADER = ("point_id", "X_mm", "Y_mm", "Z_mm")
 LABELS_HEADER = ("image", "point_id", "x_px", "y_px")
+MAX_CSV_BYTES = 16 << 20  # 16 MiB: ~500 k label rows (~15 s to read); a LEGO test has ~10^3
+MAX_OBJECT_POINTS = 100_000  # rows of OBJECT.csv: a rig's limit too (formats.rig.MAX_RIG_POINTS)
+MAX_LABEL_ROWS = 1_000_000  # rows of LABELS.csv (the byte limit allows ~500 k anyway)
+MAX_OBJECT_MM = 1e6  # |X_mm|, |Y_mm|, |Z_mm|: 1 km, the rig's limit too (formats.rig.MAX_LENGTH_MM)
+MAX_LABEL_PX = 1e6  # |x_px|, |y_px|: the dataset's largest image side (formats.dataset.MAX_IMAGE_SIDE_PX)
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")  # ASCII, no 1_000 / nan / inf
 
 
 @dataclass(frozen=True)
@@ -38,47 +47,82 @@ class ImageLabels:
     points_px: np.ndarray
 
 
-def _rows(path: Path, header: tuple[str, ...]) -> list[tuple[int, list[str]]]:
-    """(line number, fields) of every non-empty data row; LabelsError unless the header is ``header``."""
+def _text(path: Path) -> str:
+    """The file's text: UTF-8 (a BOM ignored), at most MAX_CSV_BYTES."""
     try:
-        with path.open(newline="", encoding="utf-8-sig") as f:
-            lines = [(n, row) for n, row in enumerate(csv.reader(f), start=1) if any(c.strip() for c in row)]
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        with path.open("rb") as f:
+            data = f.read(MAX_CSV_BYTES + 1)
+    except OSError as exc:
         raise LabelsError(f"{path}: cannot read the CSV file ({exc})") from None
-    if not lines or tuple(c.strip() for c in lines[0][1]) != header:
-        raise LabelsError(f"{path}:1: the header must be {','.join(header)}")
-    rows = []
-    for n, row in lines[1:]:
-        if len(row) != len(header):
-            raise LabelsError(f"{path}:{n}: expected {len(header)} fields ({','.join(header)}), got {len(row)}")
-        rows.append((n, [c.strip() for c in row]))
-    if not rows:
-        raise LabelsError(f"{path}: no rows after the header")
-    return rows
-
-
-def _number(text: str, path: Path, line: int, field: str) -> float:
+    if len(data) > MAX_CSV_BYTES:
+        raise LabelsError(f"{path}: larger than {MAX_CSV_BYTES} bytes, too large for a CSV of points")
     try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise LabelsError(f"{path}:{line}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+
+
+def _rows(path: Path, header: tuple[str, ...], max_rows: int) -> Iterator[tuple[int, list[str]]]:
+    """(line number, stripped fields) of every non-empty data row, read as they are needed.
+
+    LabelsError unless the header is ``header``, for a row of another field count and for more than
+    ``max_rows`` rows.
+    """
+    reader = csv.reader(io.StringIO(_text(path), newline=""))
+    start, n_rows, seen_header = 1, 0, False
+    try:
+        for row in reader:
+            if "".join(row).strip():
+                fields = [c.strip() for c in row]
+                if not seen_header:
+                    if tuple(fields) != header:
+                        break
+                    seen_header = True
+                elif len(fields) != len(header):
+                    raise LabelsError(
+                        f"{path}:{start}: expected {len(header)} fields ({','.join(header)}), got {len(fields)}"
+                    )
+                elif n_rows == max_rows:
+                    raise LabelsError(f"{path}:{start}: more than {max_rows} rows")
+                else:
+                    n_rows += 1
+                    yield start, fields
+            start = reader.line_num + 1  # a quoted field may span lines: a row is named by its first line
+    except csv.Error as exc:
+        raise LabelsError(f"{path}:{start}: not a readable CSV row ({exc})") from None
+    if not seen_header:
+        raise LabelsError(f"{path}:1: the header must be {','.join(header)}")
+    if not n_rows:
+        raise LabelsError(f"{path}: no rows after the header")
+
+
+def _number(text: str, path: Path, line: int, field: str, limit: float) -> float:
+    """A plain decimal number (``-12.5``, ``3e2``) of magnitude at most ``limit``."""
+    value = float(text) if _DECIMAL.fullmatch(text) else math.inf  # 1e400 is inf too
     if not math.isfinite(value):
-        raise LabelsError(f"{path}:{line}: {field} must be a finite number, got {text!r}")
+        raise LabelsError(f"{path}:{line}: {field} must be a finite number, got {_shown(text)}")
+    if abs(value) > limit:
+        raise LabelsError(f"{path}:{line}: {field} must be at most {limit:g} in magnitude, got {_shown(text)}")
     return value
+
+
+def _shown(text: str) -> str:
+    return repr(text) if len(text) <= 40 else f"{text[:30]!r}... ({len(text)} characters)"
 
 
 def read_object(path: str | Path) -> NaturalObject:
     """Read OBJECT.csv. Raises LabelsError naming the file and line (header, fields, numbers, duplicate ids)."""
     path = Path(path)
-    ids: list[str] = []
+    ids: dict[str, None] = {}  # insertion-ordered; a set's lookup (a list's made 10^5 points quadratic)
     points = []
-    for line, (point_id, *xyz) in _rows(path, OBJECT_HEADER):
+    for line, (point_id, *xyz) in _rows(path, OBJECT_HEADER, MAX_OBJECT_POINTS):
         if not point_id:
             raise LabelsError(f"{path}:{line}: empty point_id")
         if point_id in ids:
-            raise LabelsError(f"{path}:{line}: duplicate point_id {point_id!r}")
-        ids.append(point_id)
-        points.append([_number(v, path, line, f) for v, f in zip(xyz, OBJECT_HEADER[1:])])
+            raise LabelsError(f"{path}:{line}: duplicate point_id {_shown(point_id)}")
+        ids[point_id] = None
+        points.append([_number(v, path, line, f, MAX_OBJECT_MM) for v, f in zip(xyz, OBJECT_HEADER[1:])])
     return NaturalObject(point_ids=tuple(ids), points_mm=np.array(points, dtype=np.float64))
 
 
@@ -90,15 +134,18 @@ def read_labels(path: str | Path, obj: NaturalObject) -> dict[str, ImageLabels]:
     path = Path(path)
     index_of = {pid: k for k, pid in enumerate(obj.point_ids)}
     per_image: dict[str, dict[int, list[float]]] = {}
-    for line, (image, point_id, x, y) in _rows(path, LABELS_HEADER):
+    for line, (image, point_id, x, y) in _rows(path, LABELS_HEADER, MAX_LABEL_ROWS):
         if not image:
             raise LabelsError(f"{path}:{line}: empty image name")
         if point_id not in index_of:
-            raise LabelsError(f"{path}:{line}: point_id {point_id!r} is not in the object file")
+            raise LabelsError(f"{path}:{line}: point_id {_shown(point_id)} is not in the object file")
         labelled = per_image.setdefault(image, {})
         if index_of[point_id] in labelled:
             raise LabelsError(f"{path}:{line}: point {point_id!r} labelled twice in {image}")
-        labelled[index_of[point_id]] = [_number(x, path, line, "x_px"), _number(y, path, line, "y_px")]
+        labelled[index_of[point_id]] = [
+            _number(x, path, line, "x_px", MAX_LABEL_PX),
+            _number(y, path, line, "y_px", MAX_LABEL_PX),
+        ]
     return {
         image: ImageLabels(index=np.array(list(points), dtype=np.int64), points_px=np.array(list(points.values())))
         for image, points in per_image.items()

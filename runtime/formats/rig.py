@@ -9,7 +9,6 @@ a corner is R(rvec)·p + tvec_mm.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import RigError
+from dimenet.runtime.formats.json_text import JsonProblem, parse_json
 from dimenet.runtime.geometry import rvec_to_matrix
 
 FORMAT = "dimenet-rig/1"
@@ -28,6 +28,11 @@ _TOP_KEYS = ("format", "units", "boards")
 _BOARD_KEYS = ("name", "inner_corners", "square_mm", "rvec", "tvec_mm")
 _ARUCO_KEYS = ("dictionary", "first_id", "marker_mm")
 PAPER_RIG_NAME = "paper"  # names the bundled paper rig on the command line (``--rig paper``)
+MAX_RIG_BYTES = 1 << 20  # a rig file: 1 MiB of JSON (the paper rig is 735 bytes; ~200 bytes a board)
+MAX_LENGTH_MM = 1e6  # square_mm, marker_mm, |tvec_mm| components: 1 km (more is a unit mistake, and safe to square)
+MAX_ROTATION_RAD = 2 * math.pi  # |rvec|: every rotation has an axis-angle of at most pi
+MAX_INNER_CORNERS = 1000  # per board side
+MAX_RIG_POINTS = 100_000  # corners over all boards (P of every dataset ingested with the rig)
 
 
 @dataclass(frozen=True)
@@ -108,17 +113,32 @@ def _check_keys(d: Any, required: tuple[str, ...], where: str, optional: tuple[s
         raise _fail(f"{where}{unknown[0]}", f"unknown field (format {FORMAT} does not define it)")
 
 
-def _number(value: Any, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise _fail(field, f"must be a finite number, got {value!r}")
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else f"{text[:60]}... ({len(text)} characters)"
+
+
+def _number(value: Any, field: str, limit: float = MAX_LENGTH_MM) -> float:
+    finite = isinstance(value, int) or (isinstance(value, float) and math.isfinite(value))  # a big int is finite
+    if isinstance(value, bool) or not finite:
+        raise _fail(field, f"must be a finite number, got {_shown(value)}")
+    if abs(value) > limit:
+        raise _fail(field, f"must be at most {limit:g} in magnitude, got {_shown(value)}")
     return float(value)
 
 
 def _vector3(value: Any, field: str) -> tuple[float, float, float]:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise _fail(field, f"must be a list of 3 numbers, got {value!r}")
+        raise _fail(field, f"must be a list of 3 numbers, got {_shown(value)}")
     x, y, z = (_number(v, f"{field}[{k}]") for k, v in enumerate(value))
     return x, y, z
+
+
+def _rotation(value: Any, field: str) -> tuple[float, float, float]:
+    rvec = _vector3(value, field)
+    if math.hypot(*rvec) > MAX_ROTATION_RAD:
+        raise _fail(field, f"must be an axis-angle of at most 2 pi rad, got |rvec| = {math.hypot(*rvec):g} rad")
+    return rvec
 
 
 def _aruco_from_dict(d: Any, where: str) -> Optional[Aruco]:
@@ -127,10 +147,10 @@ def _aruco_from_dict(d: Any, where: str) -> Optional[Aruco]:
     _check_keys(d, _ARUCO_KEYS, where)
     name = d["dictionary"]
     if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
-        raise _fail(f"{where}dictionary", f"must name an OpenCV predefined ArUco dictionary, got {name!r}")
+        raise _fail(f"{where}dictionary", f"must name an OpenCV predefined ArUco dictionary, got {_shown(name)}")
     first_id = d["first_id"]
     if isinstance(first_id, bool) or not isinstance(first_id, int) or first_id < 0:
-        raise _fail(f"{where}first_id", f"must be an integer >= 0, got {first_id!r}")
+        raise _fail(f"{where}first_id", f"must be an integer >= 0, got {_shown(first_id)}")
     marker = _number(d["marker_mm"], f"{where}marker_mm")
     if marker <= 0:
         raise _fail(f"{where}marker_mm", f"must be > 0 mm, got {marker}")
@@ -141,25 +161,36 @@ def _board_from_dict(d: Any, where: str) -> Board:
     _check_keys(d, _BOARD_KEYS, where, optional=("aruco",))
     name = d["name"]
     if not isinstance(name, str) or not name.strip():
-        raise _fail(f"{where}name", f"must be a non-empty string, got {name!r}")
+        raise _fail(f"{where}name", f"must be a non-empty string, got {_shown(name)}")
     corners = d["inner_corners"]
     if (
         not isinstance(corners, (list, tuple))
         or len(corners) != 2
-        or any(isinstance(c, bool) or not isinstance(c, int) or c < 2 for c in corners)
+        or any(isinstance(c, bool) or not isinstance(c, int) or not 2 <= c <= MAX_INNER_CORNERS for c in corners)
     ):
-        raise _fail(f"{where}inner_corners", f"must be 2 integers >= 2 (nx, ny), got {corners!r}")
+        raise _fail(
+            f"{where}inner_corners", f"must be 2 integers in [2, {MAX_INNER_CORNERS}] (nx, ny), got {_shown(corners)}"
+        )
     square = _number(d["square_mm"], f"{where}square_mm")
     if square <= 0:
         raise _fail(f"{where}square_mm", f"must be > 0 mm, got {square}")
     aruco = _aruco_from_dict(d.get("aruco"), f"{where}aruco.")
     if aruco is not None and aruco.marker_mm >= square:
         raise _fail(f"{where}aruco.marker_mm", f"must be smaller than square_mm ({square}), got {aruco.marker_mm}")
+    if aruco is not None:
+        n_markers = (corners[0] + 1) * (corners[1] + 1) // 2  # one per white square
+        size = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, aruco.dictionary)).bytesList.shape[0]
+        if aruco.first_id + n_markers > size:
+            raise _fail(
+                f"{where}aruco.first_id",
+                f"the board's {n_markers} markers from id {aruco.first_id} exceed {aruco.dictionary} "
+                f"(ids 0-{size - 1})",
+            )
     return Board(
         name=name,
         inner_corners=(int(corners[0]), int(corners[1])),
         square_mm=square,
-        rvec=_vector3(d["rvec"], f"{where}rvec"),
+        rvec=_rotation(d["rvec"], f"{where}rvec"),
         tvec_mm=_vector3(d["tvec_mm"], f"{where}tvec_mm"),
         aruco=aruco,
     )
@@ -169,13 +200,15 @@ def rig_from_dict(d: Any) -> Rig:
     """Validate a ``dimenet-rig/1`` mapping and build the Rig. Raises RigError naming the field."""
     _check_keys(d, _TOP_KEYS, "")
     if d["format"] != FORMAT:
-        raise _fail("format", f"must be exactly {FORMAT!r}, got {d['format']!r}")
+        raise _fail("format", f"must be exactly {FORMAT!r}, got {_shown(d['format'])}")
     if d["units"] != UNITS:
-        raise _fail("units", f"must be {UNITS!r}, got {d['units']!r}")
+        raise _fail("units", f"must be {UNITS!r}, got {_shown(d['units'])}")
     boards = d["boards"]
     if not isinstance(boards, list) or not boards:
         raise _fail("boards", "must be a non-empty list of boards")
     built = tuple(_board_from_dict(b, f"boards[{k}].") for k, b in enumerate(boards))
+    if sum(b.n_points for b in built) > MAX_RIG_POINTS:
+        raise _fail("boards", f"{sum(b.n_points for b in built)} corners in all; a rig has at most {MAX_RIG_POINTS}")
     names = [b.name for b in built]
     for k, name in enumerate(names):
         if name in names[:k]:
@@ -208,19 +241,30 @@ def rig_to_dict(rig: Rig) -> dict:
 
 def _parse_json(text: str, source: str) -> Rig:
     try:
-        d = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise RigError(f"{source}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        d = parse_json(text, max_chars=MAX_RIG_BYTES)
+    except JsonProblem as exc:
+        raise RigError(f"{source}: not valid JSON ({exc})" if exc.line else f"{source}: {exc.problem}") from None
     return rig_from_dict(d)
 
 
 def load_rig(path: str | Path) -> Rig:
-    """Read and validate a rig JSON file. Raises RigError (the message starts with the path)."""
+    """Read and validate a rig JSON file (UTF-8, a BOM ignored, at most ``MAX_RIG_BYTES``).
+
+    Raises RigError (the message starts with the path).
+    """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        with path.open("rb") as f:
+            data = f.read(MAX_RIG_BYTES + 1)
+    except OSError as exc:
         raise RigError(f"{path}: cannot read rig file ({exc})") from None
+    if len(data) > MAX_RIG_BYTES:
+        raise RigError(f"{path}: larger than {MAX_RIG_BYTES} bytes, too large for a rig file")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise RigError(f"{path}:{line}: cannot read rig file: not UTF-8 ({exc.reason} at byte {exc.start})") from None
     try:
         return _parse_json(text, str(path))
     except RigError as exc:

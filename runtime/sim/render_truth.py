@@ -15,6 +15,7 @@ import numpy as np
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import oracle_fit
 from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_params
 
 IDENTITY_TOLERANCE_PX = 5.0  # a found board further than this (RMS) from its true corners has the wrong identity
@@ -36,15 +37,40 @@ class Truth:
     covered_board: np.ndarray  # (N,) int, -1 for none
 
 
+def _truth_array(arrays: dict, key: str, kinds: str, shape: tuple, named: str) -> np.ndarray:
+    """``arrays[key]`` if its dtype kind is one of ``kinds`` and its shape is ``shape`` (``named``: as the spec
+    writes it); floats as float64."""
+    a = arrays[key]
+    if a.dtype.kind not in kinds or a.shape != shape:
+        kind = {"f": "a float", "b": "a bool", "iu": "an integer", "U": "a string"}[kinds]
+        raise DatasetError(f"{key}: must be {kind} array of shape {named}, got {a.dtype} {a.shape}")
+    return a.astype(np.float64, copy=False) if kinds == "f" else a
+
+
 def read_truth(path: str | Path) -> Truth:
-    """Read a renderer's truth.npz (never pickle-loads). Raises DatasetError naming the file."""
+    """Read a renderer's truth.npz (never pickle-loads). Raises DatasetError naming the file: also for a
+    corrupt, truncated or oversized archive (refused before decoding) and for arrays of the wrong shape."""
+    arrays = read_npz(path, DatasetError, "render truth file")
+    missing = [k for k in Truth.__dataclass_fields__ if k not in arrays]
+    if missing:
+        raise DatasetError(f"{path}: not a render truth file (missing {missing[0]!r})")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return Truth(**{k: npz[k] for k in Truth.__dataclass_fields__})
-    except KeyError as exc:
-        raise DatasetError(f"{path}: not a render truth file (missing {exc})") from None
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: not a readable render truth file ({exc})") from None
+        frame_id = arrays["frame_id"]
+        N = frame_id.shape[0] if frame_id.ndim == 1 else -1
+        P = arrays["board_of_point"].shape[0] if arrays["board_of_point"].ndim == 1 else -1
+        return Truth(
+            frame_id=_truth_array(arrays, "frame_id", "U", (N,), "(N,)"),
+            K=_truth_array(arrays, "K", "f", (N, 3, 3), "(N, 3, 3)"),
+            rvec=_truth_array(arrays, "rvec", "f", (N, 3), "(N, 3)"),
+            tvec=_truth_array(arrays, "tvec", "f", (N, 3), "(N, 3)"),
+            corners_px=_truth_array(arrays, "corners_px", "f", (N, P, 2), "(N, P, 2)"),
+            seen=_truth_array(arrays, "seen", "b", (N, P), "(N, P)"),
+            board_of_point=_truth_array(arrays, "board_of_point", "iu", (P,), "(P,)"),
+            upside_down=_truth_array(arrays, "upside_down", "b", (N,), "(N,)"),
+            covered_board=_truth_array(arrays, "covered_board", "iu", (N,), "(N,)"),
+        )
+    except DatasetError as exc:
+        raise DatasetError(f"{path}: {exc}") from None
 
 
 @dataclass(frozen=True)
