@@ -6,7 +6,9 @@ apart and fit the photo's single-frame K (``board_identity``); when that camera 
 view that was not found, the boards are searched again with every fallback detector
 (``detect_boards(thorough=True)``). A photo without labels needs
 MIN_BOARDS boards; a labelled one (scene ``natural``, as the paper's LEGO test) needs
-MIN_BOARDS_NATURAL, its labels giving the rest. A photo that fails gets the reason in the report.
+MIN_BOARDS_NATURAL, its labels giving the rest. A photo that fails, whatever the stage (a size beyond
+the caps of ``photo.check_size``, undecodable, a label outside the image, an OpenCV or numeric error
+in detection or identification), is skipped with the reason in the report; the run goes on.
 
 Then, in the photos' order, every accepted photo becomes one frame: the rig's corners (rig order,
 NaN where not found), then the object's points (OBJECT.csv order) where labelled. On a rig
@@ -36,7 +38,7 @@ from dimenet.runtime.geometry import MIN_POINTS, k_params, project, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
 from dimenet.runtime.ingest.detection import detect_boards
 from dimenet.runtime.ingest.identity import identify, rough_k
-from dimenet.runtime.ingest.photo import read_photo
+from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 
 GENERATOR = "dimenet.ingest"
 MIN_BOARDS = 2  # boards a rig photo needs: two planes make K observable from the photo alone
@@ -44,6 +46,11 @@ MIN_BOARDS_NATURAL = 1  # boards a labelled photo needs (its labelled points add
 SPLITS = ("auto", "train", "test")
 AUTO_TRAIN_FRACTION = 0.8  # --split auto: share of rig photos in train, by file-name hash
 IN_VIEW_MARGIN_PX = 16.0  # a board is expected in a photo when its corners lie this far inside the image
+LABEL_MARGIN = 1.0  # a label may lie this many image sizes beyond the image (a point extrapolated, e.g. hidden)
+MAX_OBJECT_MM = 1e6  # |X|, |Y|, |Z| of an OBJECT.csv point (mm): 1 km, as the CSV reader and the rig allow
+# What a photo's failure may raise besides DimenetError: OpenCV's errors and numeric ones (a singular or
+# non-converging linear algebra step, an overflow). Anything else (a bug, KeyboardInterrupt, MemoryError) propagates.
+PHOTO_FAILURES = (DimenetError, cv2.error, np.linalg.LinAlgError, ArithmeticError)
 
 
 @dataclass(frozen=True)
@@ -71,13 +78,52 @@ class Ingestion:
     splits: tuple[Optional[str], ...]  # each photo's split, None when skipped
 
 
-def ingest_photo(path: Path, rig: Rig, labels: Optional[ImageLabels], object_points_mm: np.ndarray) -> PhotoResult:
-    """Decode, detect, identify and fit one photo (pure: reads only ``path``)."""
+def failure_reason(exc: BaseException, stage: str) -> str:
+    """The report's reason for a photo that failed with one of PHOTO_FAILURES while ``stage``."""
+    if isinstance(exc, DimenetError):
+        return str(exc)
+    if isinstance(exc, cv2.error):
+        return f"OpenCV failed while {stage} ({exc.func or 'unknown function'}: {exc.err or exc})"
+    return f"numeric failure while {stage} ({type(exc).__name__}: {exc})"
+
+
+def check_labels(labels: ImageLabels, image_size: tuple[int, int], point_ids: tuple[str, ...] = ()) -> None:
+    """LabelsError unless every labelled point of a photo lies within LABEL_MARGIN image sizes of its
+    (width, height) px image."""
+    w, h = image_size
+    x, y = labels.points_px[:, 0], labels.points_px[:, 1]
+    mx, my = LABEL_MARGIN * w, LABEL_MARGIN * h
+    outside = np.flatnonzero(~((x >= -mx) & (x <= w + mx) & (y >= -my) & (y <= h + my)))
+    if outside.size:
+        k = int(outside[0])
+        index = int(labels.index[k])
+        name = repr(point_ids[index]) if index < len(point_ids) else f"#{index}"
+        more = f" (and {outside.size - 1} more)" if outside.size > 1 else ""
+        raise LabelsError(
+            f"labels: point {name} at ({x[k]:.6g}, {y[k]:.6g}) px lies far outside the {w}x{h} px image{more} "
+            f"(a label may lie at most {LABEL_MARGIN:g} image size(s) beyond its edges)"
+        )
+
+
+def ingest_photo(
+    path: Path,
+    rig: Rig,
+    labels: Optional[ImageLabels],
+    object_points_mm: np.ndarray,
+    max_megapixels: float = MAX_MEGAPIXELS,
+    point_ids: tuple[str, ...] = (),
+) -> PhotoResult:
+    """Decode, detect, identify and fit one photo (pure: reads only ``path``). Never raises for a bad photo:
+    any of PHOTO_FAILURES becomes the result's ``skipped`` reason."""
     result = PhotoResult(name=path.name, labels=labels)
+    stage = "decoding"
     try:
-        photo = read_photo(path)
+        photo = read_photo(path, max_megapixels)
         h, w = photo.gray.shape
         result = replace(result, exif_orientation=photo.exif_orientation, image_size=(w, h))
+        if labels is not None:
+            check_labels(labels, (w, h), point_ids)
+        stage = "finding the boards"
         detections = detect_boards(photo.gray, rig)
         need = MIN_BOARDS if labels is None else MIN_BOARDS_NATURAL
         if len(detections) < need:
@@ -85,14 +131,17 @@ def ingest_photo(path: Path, rig: Rig, labels: Optional[ImageLabels], object_poi
             return replace(result, skipped=f"{len(detections)} board(s) found, {kind} needs {need}")
         fixed_2d = np.empty((0, 2)) if labels is None else labels.points_px
         fixed_3d = np.empty((0, 3)) if labels is None else object_points_mm[labels.index]
+        stage = "identifying the boards"
         found = identify(detections, rig, rough_k((w, h)), fixed_2d, fixed_3d)
         missing = set(np.flatnonzero(boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h)))) - set(found.boards)
         if missing:  # the rig says a board is in view: search again with every fallback detector
+            stage = "searching the boards again"
             detections = detect_boards(photo.gray, rig, thorough=True)
+            stage = "identifying the boards"
             found = identify(detections, rig, rough_k((w, h)), fixed_2d, fixed_3d)
-    except DimenetError as exc:
-        return replace(result, skipped=str(exc))
-    n_points = int(np.isfinite(found.corners_px[:, 0]).sum()) + len(fixed_3d)
+        n_points = int(np.isfinite(found.corners_px[:, 0]).sum()) + len(fixed_3d)
+    except PHOTO_FAILURES as exc:
+        return replace(result, skipped=failure_reason(exc, stage))
     if n_points < MIN_POINTS:
         return replace(result, skipped=f"{n_points} points found, a frame needs {MIN_POINTS}")
     return replace(
@@ -143,9 +192,16 @@ def frame_split(result: PhotoResult, split: str) -> str:
 
 
 def _results(
-    paths: list[Path], rig: Rig, labels: dict[str, ImageLabels], object_points_mm: np.ndarray, workers: int
+    paths: list[Path],
+    rig: Rig,
+    labels: dict[str, ImageLabels],
+    obj: Optional[NaturalObject],
+    workers: int,
+    max_megapixels: float,
 ) -> Iterator[PhotoResult]:
-    jobs = ([p, rig, labels.get(p.name), object_points_mm] for p in paths)
+    object_points = np.empty((0, 3)) if obj is None else obj.points_mm
+    point_ids = () if obj is None else obj.point_ids
+    jobs = ([p, rig, labels.get(p.name), object_points, max_megapixels, point_ids] for p in paths)
     if workers == 1:
         yield from (ingest_photo(*job) for job in jobs)
         return
@@ -155,11 +211,27 @@ def _results(
         yield from pool.map(ingest_photo, *zip(*jobs))
 
 
-def check_inputs(paths: list[Path], labels: dict[str, ImageLabels], split: str, workers: int) -> None:
+def check_object(obj: NaturalObject, source: str = "OBJECT.csv") -> None:
+    """LabelsError naming ``source`` and the point when a coordinate of the object is beyond MAX_OBJECT_MM
+    (finite but absurd, e.g. 1e300: its squares would overflow the fits)."""
+    far = ~(np.abs(obj.points_mm) <= MAX_OBJECT_MM)  # NaN too
+    if far.any():
+        k, axis = (int(v) for v in np.argwhere(far)[0])
+        raise LabelsError(
+            f"{source}: point {obj.point_ids[k]!r}: {('X_mm', 'Y_mm', 'Z_mm')[axis]} = {obj.points_mm[k, axis]:g} "
+            f"lies beyond ±{MAX_OBJECT_MM:g} mm of the rig"
+        )
+
+
+def check_inputs(
+    paths: list[Path], labels: dict[str, ImageLabels], split: str, workers: int, max_megapixels: float = MAX_MEGAPIXELS
+) -> None:
     """IngestError / LabelsError for what would fail late: no photos, missing files, repeated names,
-    labels of photos not given, an unknown split, workers < 1."""
+    labels of photos not given, an unknown split, workers < 1, a pixel cap that is not a positive number."""
     if not paths:
         raise IngestError("no photos given")
+    if not (isinstance(max_megapixels, (int, float)) and 0 < max_megapixels < float("inf")):
+        raise IngestError(f"max_megapixels must be a positive number, got {max_megapixels!r}")
     if split not in SPLITS:
         raise IngestError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
     if workers < 1:
@@ -241,19 +313,22 @@ def ingest(
     labels: Optional[dict[str, ImageLabels]] = None,
     workers: int = 1,
     progress: Callable[[Iterator[PhotoResult]], Iterable[PhotoResult]] = iter,
+    max_megapixels: float = MAX_MEGAPIXELS,
 ) -> Ingestion:
     """Ingest photos of ``rig`` (see the module doc); ``labels`` by photo file name need ``obj``.
 
     ``progress`` wraps the iterator of per-photo results (e.g. ``dimenet.runtime.cli.progress.progress``).
-    Raises IngestError / LabelsError for bad input; a photo that cannot be used is skipped with a reason.
+    Raises IngestError / LabelsError for bad input (before any photo is read); a photo that cannot be used
+    (including one over ``max_megapixels``, see ``photo.check_size``) is skipped with a reason.
     """
     paths = [Path(p) for p in paths]
     labels = labels or {}
     if labels and obj is None:
         raise LabelsError("labels need the object's points (OBJECT.csv)")
-    check_inputs(paths, labels, split, workers)
-    object_points = np.empty((0, 3)) if obj is None else obj.points_mm
-    results = list(progress(_results(paths, rig, labels, object_points, workers)))
+    if obj is not None:
+        check_object(obj)
+    check_inputs(paths, labels, split, workers, max_megapixels)
+    results = list(progress(_results(paths, rig, labels, obj, workers, max_megapixels)))
     return assemble(results, rig, obj, split)
 
 

@@ -14,7 +14,10 @@ from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.rig import rig_from_argument
-from dimenet.runtime.ingest.pipeline import SPLITS, ingest, report
+from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
+from dimenet.runtime.ingest.pipeline import SPLITS, check_object, ingest, report
+
+OPENCV_MAX_MEGAPIXELS = 1000.0  # OpenCV refuses to decode more than 2**30 px (1073.7 MP) whatever the flag
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,6 +43,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--workers", type=integer_at_least(1), default=1, help="photos processed in parallel (processes; default 1)"
     )
+    p.add_argument(
+        "--max-megapixels",
+        type=megapixels,
+        default=MAX_MEGAPIXELS,
+        metavar="N",
+        help=f"skip a photo whose header declares more than N megapixels, before decoding it (default "
+        f"{MAX_MEGAPIXELS:g}: 48 MP sensors pass; at most {OPENCV_MAX_MEGAPIXELS:g})",
+    )
+
+
+def megapixels(text: str) -> float:
+    """argparse type of --max-megapixels: a number in (0, OPENCV_MAX_MEGAPIXELS]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 < value <= OPENCV_MAX_MEGAPIXELS:
+        raise argparse.ArgumentTypeError(f"must be > 0 and <= {OPENCV_MAX_MEGAPIXELS:g}, got {text}")
+    return value
 
 
 def report_path(out: str | Path) -> Path:
@@ -65,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("dimenet ingest: --labels and --object go together")
     rig = rig_from_argument(args.rig)
     obj = read_object(args.object) if args.object else None
+    if obj is not None:
+        check_object(obj, args.object)
     labels = read_labels(args.labels, obj) if obj is not None else None
     start = time.monotonic()
     result = ingest(
@@ -75,15 +99,18 @@ def run(args: argparse.Namespace) -> int:
         labels=labels,
         workers=args.workers,
         progress=lambda items: progress(items, total=len(args.photos), desc="ingest"),
+        max_megapixels=args.max_megapixels,
     )
     seconds = time.monotonic() - start
     rep = report(result, rig)
-    where = atomic_write_text(report_path(args.out), json.dumps(rep, indent=1) + "\n")
     for p in rep["photos"]:
         print(photo_line(p))
-    if result.dataset is None:
+    text = json.dumps(rep, indent=1) + "\n"
+    if result.dataset is None:  # nothing to write but the report, which says so (0 frames)
+        where = atomic_write_text(report_path(args.out), text)
         raise IngestError(f"no photo gave a frame (report: {where})")
-    path = write_dataset(result.dataset, args.out)
+    path = write_dataset(result.dataset, args.out)  # first: a report never claims a dataset that is not there
+    where = atomic_write_text(report_path(args.out), text)
     t = rep["totals"]
     print(
         f"{t['frames']} frames ({t['splits']['train']} train, {t['splits']['test']} test) from {t['photos']} photos, "
