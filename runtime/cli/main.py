@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import re
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,7 +17,8 @@ from importlib import metadata
 from typing import Callable, Optional
 
 from dimenet.runtime import __version__
-from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.errors import DimenetError, InputError
+from dimenet.runtime.rectify.grid import Grid
 
 # dimenet solves many tiny batched systems: BLAS threads only contend for the cores (a 1 s
 # calibration took 20 s on a busy 2-core machine). Set before numpy is first imported.
@@ -189,13 +189,13 @@ noise_sigma = finite_float_in(0.0, MAX_NOISE)
 
 def grid_size(text: str) -> str:
     """argparse type: a grid, COLUMNSxROWS (e.g. 8x6), each 1 .. MAX_GRID; returned as 'CxR'."""
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m:
-        raise argparse.ArgumentTypeError(f"must look like 8x6 (columns x rows), got {text!r}")
-    cols, rows = int(m.group(1)), int(m.group(2))
-    if not (1 <= cols <= MAX_GRID and 1 <= rows <= MAX_GRID):
+    try:
+        grid = Grid.parse(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if not (grid.cols <= MAX_GRID and grid.rows <= MAX_GRID):
         raise argparse.ArgumentTypeError(f"columns and rows must each be 1 to {MAX_GRID}, got {text!r}")
-    return f"{cols}x{rows}"
+    return str(grid)
 
 
 def nonempty_path(text: str) -> str:

@@ -19,9 +19,9 @@ import numpy as np
 
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.json_text import JsonProblem, parse_json
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import MIN_POINTS
+from dimenet.runtime.json_text import JsonProblem, parse_json
 
 FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")

@@ -19,8 +19,8 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import RigError
-from dimenet.runtime.formats.json_text import JsonProblem, parse_json
 from dimenet.runtime.geometry import rvec_to_matrix
+from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
 
 FORMAT = "dimenet-rig/1"
 UNITS = "mm"
@@ -113,23 +113,17 @@ def _check_keys(d: Any, required: tuple[str, ...], where: str, optional: tuple[s
         raise _fail(f"{where}{unknown[0]}", f"unknown field (format {FORMAT} does not define it)")
 
 
-def _shown(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else f"{text[:60]}... ({len(text)} characters)"
-
-
 def _number(value: Any, field: str, limit: float = MAX_LENGTH_MM) -> float:
-    finite = isinstance(value, int) or (isinstance(value, float) and math.isfinite(value))  # a big int is finite
-    if isinstance(value, bool) or not finite:
-        raise _fail(field, f"must be a finite number, got {_shown(value)}")
+    if not (is_number(value) or (type(value) is int)):  # an int too big for a float is still finite: range
+        raise _fail(field, f"must be a finite number, got {shown(value)}")
     if abs(value) > limit:
-        raise _fail(field, f"must be at most {limit:g} in magnitude, got {_shown(value)}")
+        raise _fail(field, f"must be at most {limit:g} in magnitude, got {shown(value)}")
     return float(value)
 
 
 def _vector3(value: Any, field: str) -> tuple[float, float, float]:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise _fail(field, f"must be a list of 3 numbers, got {_shown(value)}")
+        raise _fail(field, f"must be a list of 3 numbers, got {shown(value)}")
     x, y, z = (_number(v, f"{field}[{k}]") for k, v in enumerate(value))
     return x, y, z
 
@@ -147,10 +141,10 @@ def _aruco_from_dict(d: Any, where: str) -> Optional[Aruco]:
     _check_keys(d, _ARUCO_KEYS, where)
     name = d["dictionary"]
     if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
-        raise _fail(f"{where}dictionary", f"must name an OpenCV predefined ArUco dictionary, got {_shown(name)}")
+        raise _fail(f"{where}dictionary", f"must name an OpenCV predefined ArUco dictionary, got {shown(name)}")
     first_id = d["first_id"]
     if isinstance(first_id, bool) or not isinstance(first_id, int) or first_id < 0:
-        raise _fail(f"{where}first_id", f"must be an integer >= 0, got {_shown(first_id)}")
+        raise _fail(f"{where}first_id", f"must be an integer >= 0, got {shown(first_id)}")
     marker = _number(d["marker_mm"], f"{where}marker_mm")
     if marker <= 0:
         raise _fail(f"{where}marker_mm", f"must be > 0 mm, got {marker}")
@@ -161,7 +155,7 @@ def _board_from_dict(d: Any, where: str) -> Board:
     _check_keys(d, _BOARD_KEYS, where, optional=("aruco",))
     name = d["name"]
     if not isinstance(name, str) or not name.strip():
-        raise _fail(f"{where}name", f"must be a non-empty string, got {_shown(name)}")
+        raise _fail(f"{where}name", f"must be a non-empty string, got {shown(name)}")
     corners = d["inner_corners"]
     if (
         not isinstance(corners, (list, tuple))
@@ -169,7 +163,7 @@ def _board_from_dict(d: Any, where: str) -> Board:
         or any(isinstance(c, bool) or not isinstance(c, int) or not 2 <= c <= MAX_INNER_CORNERS for c in corners)
     ):
         raise _fail(
-            f"{where}inner_corners", f"must be 2 integers in [2, {MAX_INNER_CORNERS}] (nx, ny), got {_shown(corners)}"
+            f"{where}inner_corners", f"must be 2 integers in [2, {MAX_INNER_CORNERS}] (nx, ny), got {shown(corners)}"
         )
     square = _number(d["square_mm"], f"{where}square_mm")
     if square <= 0:
@@ -200,9 +194,9 @@ def rig_from_dict(d: Any) -> Rig:
     """Validate a ``dimenet-rig/1`` mapping and build the Rig. Raises RigError naming the field."""
     _check_keys(d, _TOP_KEYS, "")
     if d["format"] != FORMAT:
-        raise _fail("format", f"must be exactly {FORMAT!r}, got {_shown(d['format'])}")
+        raise _fail("format", f"must be exactly {FORMAT!r}, got {shown(d['format'])}")
     if d["units"] != UNITS:
-        raise _fail("units", f"must be {UNITS!r}, got {_shown(d['units'])}")
+        raise _fail("units", f"must be {UNITS!r}, got {shown(d['units'])}")
     boards = d["boards"]
     if not isinstance(boards, list) or not boards:
         raise _fail("boards", "must be a non-empty list of boards")

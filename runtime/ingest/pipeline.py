@@ -32,7 +32,7 @@ import numpy as np
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import DimenetError, IngestError, LabelsError
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.formats.natural_labels import ImageLabels, NaturalObject
+from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, NaturalObject
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
@@ -47,7 +47,6 @@ SPLITS = ("auto", "train", "test")
 AUTO_TRAIN_FRACTION = 0.8  # --split auto: share of rig photos in train, by file-name hash
 IN_VIEW_MARGIN_PX = 16.0  # a board is expected in a photo when its corners lie this far inside the image
 LABEL_MARGIN = 1.0  # a label may lie this many image sizes beyond the image (a point extrapolated, e.g. hidden)
-MAX_OBJECT_MM = 1e6  # |X|, |Y|, |Z| of an OBJECT.csv point (mm): 1 km, as the CSV reader and the rig allow
 # What a photo's failure may raise besides DimenetError: OpenCV's errors and numeric ones (a singular or
 # non-converging linear algebra step, an overflow). Anything else (a bug, KeyboardInterrupt, MemoryError) propagates.
 PHOTO_FAILURES = (DimenetError, cv2.error, np.linalg.LinAlgError, ArithmeticError)

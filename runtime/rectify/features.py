@@ -17,11 +17,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any, Optional
 
 import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import MIN_POSE_POINTS, rotation_matrices, solve_pnp_start
+from dimenet.runtime.json_text import JsonProblem, is_number, required, shown
 from dimenet.runtime.rectify.grid import Grid
 
 CHANNELS = ("dx", "dy", "X", "Y", "inv_z")
@@ -69,8 +71,37 @@ class FeatureSpec:
         return {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
 
     @classmethod
-    def from_dict(cls, d: dict) -> FeatureSpec:
-        return cls(grid=Grid.parse(d["grid"]), variant=d["variant"], scale={k: float(v) for k, v in d["scale"].items()})
+    def from_dict(cls, d: Any, image_size: Optional[tuple] = None) -> FeatureSpec:
+        """From a spec's ``features`` object, every field checked (JsonProblem, a ValueError,
+        names it); with ``image_size`` (width, height) px, the grid must fit the image."""
+        if not isinstance(d, dict):
+            raise JsonProblem(f"features must be an object, got {shown(d)}")
+        grid_text, variant, scale = required(d, "grid"), required(d, "variant"), required(d, "scale")
+        if not isinstance(grid_text, str):
+            raise JsonProblem(f"features.grid must be a string like '8x6', got {shown(grid_text)}")
+        try:
+            grid = Grid.parse(grid_text)
+        except ValueError as exc:
+            raise JsonProblem(f"features.{exc}") from None
+        if image_size is not None and (grid.cols > image_size[0] or grid.rows > image_size[1]):
+            raise JsonProblem(
+                f"features.grid {grid} has more cells than the {image_size[0]}x{image_size[1]} image has pixels"
+            )
+        if not isinstance(variant, str):
+            raise JsonProblem(f"features.variant must be a string, got {shown(variant)}")
+        if not isinstance(scale, dict):
+            raise JsonProblem(f"features.scale must be an object, got {shown(scale)}")
+        unknown = [key for key in scale if key not in CHANNELS]
+        if unknown:
+            raise JsonProblem(f"features.scale has an unknown channel {unknown[0]!r} (channels: {', '.join(CHANNELS)})")
+        for channel in CHANNELS:
+            value = scale.get(channel)
+            if not (is_number(value) and value > 0):
+                raise JsonProblem(f"features.scale.{channel} must be a positive number, got {shown(value)}")
+        try:
+            return cls(grid=grid, variant=variant, scale={c: float(scale[c]) for c in CHANNELS})
+        except ValueError as exc:
+            raise JsonProblem(f"features: {exc}") from None
 
 
 def poses_c0(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray]:

@@ -30,10 +30,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from dimenet.runtime.errors import InputError
+from dimenet.runtime.json_text import JsonProblem, is_number, numbers, required, shown
 
 PARAMETERS = ("fx", "fy", "cx", "cy")
 STATISTICS = ("log_points", "log_cells", "log_pmd", "log_thickness")
@@ -42,6 +44,12 @@ T_FLOOR = 1e-6  # thickness of a plane to float rounding: log t stays finite on 
 # 2D noise (px) at which half of the prior-data correlation applies (how it was chosen:
 # training/METHOD.md, "Calibration on fresh frames").
 NOISE_SCALE_PX = 2.0
+# The sigma range rule (``Uncertainty.from_dict``): every sigma within [SIGMA_MIN_PX, SIGMA_MAX_PX]
+# over the box of plausible frame statistics: n in [1, MAX_POINTS] points, m in [1, the grid's
+# cells] occupied cells, PMD d in [D_FLOOR_PX, MAX_PMD_PX] px, thickness t in [T_FLOOR, 1/3].
+MAX_POINTS = 100_000
+MAX_PMD_PX = 1_000.0
+SIGMA_MIN_PX, SIGMA_MAX_PX = 1e-6, 1e6
 
 
 @dataclass(frozen=True)
@@ -97,17 +105,53 @@ class Uncertainty:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> Uncertainty:
+    def from_dict(cls, d: Any, n_cells: int) -> Uncertainty:
+        """From a spec's ``uncertainty`` object of a model with ``n_cells`` grid cells, every field
+        checked (JsonProblem, a ValueError, names it), and the sigma range rule: each sigma within
+        [SIGMA_MIN_PX, SIGMA_MAX_PX] over the box of plausible frame statistics."""
+        if not isinstance(d, dict):
+            raise JsonProblem(f"uncertainty must be an object, got {shown(d)}")
+        if d.get("parameters", list(PARAMETERS)) != list(PARAMETERS):
+            raise JsonProblem(f"uncertainty.parameters must be {list(PARAMETERS)}, got {shown(d['parameters'])}")
         names = d.get("statistics", ["1", *STATISTICS[:3]])  # 1.1 files: the first three
-        if not names or names[0] != "1":
-            raise ValueError(f"uncertainty: statistics must start with the intercept '1', got {names!r}")
-        return cls(
-            coef=np.asarray(d["coef"], dtype=np.float64),
-            correlation=np.asarray(d["correlation"], dtype=np.float64),
-            statistics=tuple(names[1:]),
-            data_correlation=np.asarray(d.get("data_correlation", np.zeros(4)), dtype=np.float64),
-            noise_scale_px=float(d.get("noise_scale_px", NOISE_SCALE_PX)),
-        )
+        if (
+            not isinstance(names, list)
+            or not names
+            or names[0] != "1"
+            or not all(isinstance(n, str) and n in STATISTICS for n in names[1:])
+            or len(set(names[1:])) != len(names) - 1
+        ):
+            raise JsonProblem(
+                f"uncertainty.statistics must be '1' then distinct names among {list(STATISTICS)}, got {shown(names)}"
+            )
+        statistics = tuple(names[1:])
+        coef = numbers(required(d, "coef"), (4, len(names)), "uncertainty.coef")
+        correlation = numbers(required(d, "correlation"), (4, 4), "uncertainty.correlation")
+        if not (np.abs(correlation - correlation.T).max() <= 1e-9 and np.abs(np.diag(correlation) - 1).max() <= 1e-6):
+            raise JsonProblem("uncertainty.correlation must be a symmetric matrix with a unit diagonal")
+        rho = numbers(d.get("data_correlation", [0.0] * 4), (4,), "uncertainty.data_correlation")
+        s0 = d.get("noise_scale_px", NOISE_SCALE_PX)
+        if not (is_number(s0) and s0 > 0):
+            raise JsonProblem(f"uncertainty.noise_scale_px must be a positive number, got {shown(s0)}")
+        low, high = log_sigma_range(coef, statistics, n_cells)
+        for p, name in enumerate(PARAMETERS):
+            if not math.log(SIGMA_MIN_PX) <= low[p] <= high[p] <= math.log(SIGMA_MAX_PX):
+                raise JsonProblem(
+                    f"uncertainty.coef gives sigma_{name} from {_exp(low[p])} to {_exp(high[p])} px over "
+                    f"plausible frames (n <= {MAX_POINTS} points, m <= {n_cells} cells, "
+                    f"PMD {D_FLOOR_PX} to {MAX_PMD_PX:g} px, thickness {T_FLOOR:g} to 1/3), "
+                    f"outside [{SIGMA_MIN_PX:g}, {SIGMA_MAX_PX:g}] px"
+                )
+        try:
+            return cls(
+                coef=coef,
+                correlation=correlation,
+                statistics=statistics,
+                data_correlation=rho,
+                noise_scale_px=float(s0),
+            )
+        except ValueError as exc:
+            raise JsonProblem(str(exc)) from None
 
     def posterior_scale(self, variance_ratio, noise_px: float) -> list:
         """Per parameter, the factor on the MAP posterior's standard deviation for the network's
@@ -179,3 +223,26 @@ def input_statistics(
     ``geometry.covariance_invariants_batch`` (trace, minors, det, (B,) each) of their 3D points."""
     t = [thickness(*frame) for frame in zip(*(a.tolist() for a in invariants_3d))]
     return frame_statistics(n_points, occupied_cells(features, n_channels), pmd_norms, t)
+
+
+def log_sigma_range(coef: np.ndarray, statistics: tuple, n_cells: int) -> tuple:
+    """(4,) lowest and highest log sigma of each parameter over the box of plausible statistics
+    (``MAX_POINTS``, ...): coef . z is linear, so its extremes are at the box's corners."""
+    box = {
+        "log_points": (0.0, math.log(MAX_POINTS)),
+        "log_cells": (0.0, math.log(n_cells)),
+        "log_pmd": (math.log(D_FLOOR_PX), math.log(MAX_PMD_PX)),
+        "log_thickness": (math.log(T_FLOOR), math.log(1 / 3)),
+    }
+    low, high = coef[:, 0].copy(), coef[:, 0].copy()
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd coefficients give +-inf or NaN: refused
+        for column, name in enumerate(statistics, start=1):
+            ends = np.outer(coef[:, column], box[name])  # (4, 2)
+            low += ends.min(1)
+            high += ends.max(1)
+    return low, high
+
+
+def _exp(x: float) -> str:
+    """exp(x) for a message, also where it overflows a float."""
+    return f"{math.exp(x):.3g}" if x < 700 else f"exp({x:.3g})"

@@ -41,7 +41,7 @@ def test_uncertainty_fit_recovers_a_known_noise_model():
     fresh = rng.multivariate_normal(np.zeros(4), corr, n) * sigma
     for share in coverage(fresh, np.zeros_like(fresh), model.covariance(stats)).values():
         assert 0.65 < share < 0.71
-    again = Uncertainty.from_dict(json.loads(json.dumps(model.to_dict())))
+    again = Uncertainty.from_dict(json.loads(json.dumps(model.to_dict())), 48)
     np.testing.assert_array_equal(again.coef, model.coef)
     one = model.frame_covariance(100, 20, 2.5, 0.01)
     np.testing.assert_allclose(one, model.covariance(np.log([[100, 20, 2.5, 0.01]]))[0], rtol=1e-12)
@@ -53,14 +53,15 @@ def test_uncertainty_refuses_bad_input():
     with pytest.raises(InputError, match=r"statistics must be \(F, 4\)"):
         fit_uncertainty(np.ones((40, 4)), np.ones((40, 3)))
     with pytest.raises(ValueError, match="not positive definite"):
-        Uncertainty.from_dict({"coef": np.zeros((4, 4)).tolist(), "correlation": np.ones((4, 4)).tolist()})
+        Uncertainty.from_dict({"coef": np.zeros((4, 4)).tolist(), "correlation": np.ones((4, 4)).tolist()}, 48)
     with pytest.raises(ValueError, match="distinct names"):
         Uncertainty.from_dict(
             {
                 "statistics": ["1", "log_points", "log_depth"],
                 "coef": np.zeros((4, 3)).tolist(),
                 "correlation": np.eye(4).tolist(),
-            }
+            },
+            48,
         )
 
 

@@ -20,7 +20,8 @@ def test_a_spec_1_1_uncertainty_reads_the_first_three_statistics():
             "statistics": ["1", "log_points", "log_cells", "log_pmd"],
             "coef": coef.tolist(),
             "correlation": np.eye(4).tolist(),
-        }
+        },
+        48,
     )
     stats = np.log([[100, 20, 2.5, 1e-6], [100, 20, 2.5, 0.3]])  # the thickness does not matter to it
     np.testing.assert_allclose(old.sigma(stats), np.exp(1.0 - 0.5 * np.log(100) + 0.3 * np.log(2.5)) * np.ones((2, 4)))

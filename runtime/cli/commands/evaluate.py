@@ -84,9 +84,10 @@ def run(args: argparse.Namespace) -> int:
     predictor = load_predictor(args.model) if args.model else None
     K_c = predictor.spec.K_c if predictor else calibrate_dataset(ds).K_c
     grid = Grid.parse(args.grid) if args.grid else (predictor.spec.features.grid if predictor else Grid(8, 6))
-    frames = ds.select(ds.frames_in(args.split))
-    if frames.n_frames == 0:
+    chosen = ds.frames_in(args.split)
+    if not chosen.any():
         raise DatasetError(f"split: the dataset has no {args.split!r} frames")
+    frames = ds.select(chosen)
     rng = np.random.default_rng(args.seed)
     if args.noise_2d or args.noise_3d:
         frames = add_noise(frames, args.noise_2d, args.noise_3d, rng)

@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from dimenet.runtime.cli.main import CliError, Command, integer_at_least
+from dimenet.runtime.cli.main import CliError, Command, finite_float_in, parallelism
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
@@ -40,28 +40,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--object", metavar="OBJECT.csv", help="the natural object's points in the rig frame: point_id,X_mm,Y_mm,Z_mm"
     )
-    p.add_argument(
-        "--workers", type=integer_at_least(1), default=1, help="photos processed in parallel (processes; default 1)"
-    )
+    p.add_argument("--workers", type=parallelism, default=1, help="photos processed in parallel (processes; default 1)")
     p.add_argument(
         "--max-megapixels",
-        type=megapixels,
+        type=finite_float_in(0.0, OPENCV_MAX_MEGAPIXELS, above=True),
         default=MAX_MEGAPIXELS,
         metavar="N",
         help=f"skip a photo whose header declares more than N megapixels, before decoding it (default "
         f"{MAX_MEGAPIXELS:g}: 48 MP sensors pass; at most {OPENCV_MAX_MEGAPIXELS:g})",
     )
-
-
-def megapixels(text: str) -> float:
-    """argparse type of --max-megapixels: a number in (0, OPENCV_MAX_MEGAPIXELS]."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0 < value <= OPENCV_MAX_MEGAPIXELS:
-        raise argparse.ArgumentTypeError(f"must be > 0 and <= {OPENCV_MAX_MEGAPIXELS:g}, got {text}")
-    return value
 
 
 def report_path(out: str | Path) -> Path:
