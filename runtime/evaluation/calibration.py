@@ -6,7 +6,9 @@ suffices. e* is that fit's mean Euclidean reprojection error (px).
 
 K_c: the mean of K* over the ``train`` frames, parameter by parameter (fx, fy, cx, cy).
 This is the paper's "averaging a large number of K's under different OIS states"
-(Sec. III-B); it is what a phone SDK hands an app.
+(Sec. III-B); it is what a phone SDK hands an app. A train frame whose K* or e* lies far from
+the others (``outliers``: a wrong point, a poisoned frame) stays out of the mean, so one bad
+frame cannot move K_c; ``Calibration.outliers`` says which.
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry.least_squares import calibrate
 
 CALIBRATION_KEYS = ("K_c", "K_star", "rvec", "tvec", "e_star")
+# A train frame is left out of K_c when a K* parameter or its e* lies this many robust standard
+# deviations from the train frames' median (METHOD.md, "Runtime safety": no clean simulated
+# frame comes near it; one wrong point moves a frame's K* by tens of px).
+OUTLIER_SIGMAS = 8.0
 
 
 @dataclass(frozen=True)
@@ -35,6 +41,7 @@ class Calibration:
     rvec: np.ndarray
     tvec: np.ndarray
     e_star: np.ndarray
+    outliers: tuple = ()
 
 
 def oracle_fit(points_2d, points_3d, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -51,13 +58,41 @@ def prior_k(K_star: np.ndarray) -> np.ndarray:
     return k_matrix(k_params(K_star).mean(0))
 
 
+def outliers(K_star: np.ndarray, e_star: np.ndarray) -> np.ndarray:
+    """(F,) bool: frames whose K* (F, 3, 3) has a parameter, or whose e* (F,) px is above the
+    median, more than OUTLIER_SIGMAS robust standard deviations (1.4826 MAD, floored at
+    1e-6 of the median) from the frames' median; non-finite K* or e* too."""
+    values = np.c_[k_params(K_star), e_star]
+    finite = np.all(np.isfinite(values), axis=1)
+    if not finite.any():
+        return ~finite
+    median = np.median(values[finite], axis=0)
+    spread = 1.4826 * np.median(np.abs(values[finite] - median), axis=0)
+    spread = np.maximum(spread, 1e-6 * np.abs(median) + 1e-12)
+    z = (values - median) / spread
+    z[:, 4] = np.maximum(z[:, 4], 0.0)  # a small e* is no fault
+    with np.errstate(invalid="ignore"):
+        return ~finite | np.any(np.abs(z) > OUTLIER_SIGMAS, axis=1)
+
+
 def calibrate_dataset(dataset: Dataset) -> Calibration:
     """K* and e* for every frame, K_c from the train frames. Raises when there are none."""
     train = dataset.frames_in("train")
     if not train.any():
         raise DatasetError("split: K_c comes from the train frames and this dataset has none")
     K_star, rvec, tvec, e_star = oracle_fit(dataset.points_2d, dataset.points_3d, dataset.valid)
-    return Calibration(K_c=prior_k(K_star[train]), K_star=K_star, rvec=rvec, tvec=tvec, e_star=e_star)
+    rows = np.flatnonzero(train)
+    out = outliers(K_star[rows], e_star[rows])
+    if out.all():
+        raise CalibrationError("every train frame's K* is an outlier or not finite: no K_c")
+    return Calibration(
+        K_c=prior_k(K_star[rows[~out]]),
+        K_star=K_star,
+        rvec=rvec,
+        tvec=tvec,
+        e_star=e_star,
+        outliers=tuple(int(b) for b in rows[out]),
+    )
 
 
 def write_calibration(cal: Calibration, path: str | Path) -> Path:

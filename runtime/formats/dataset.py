@@ -20,7 +20,7 @@ import numpy as np
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.npz import read_npz
-from dimenet.runtime.geometry import MIN_POINTS
+from dimenet.runtime.geometry import MAX_COORDINATE, MIN_POINTS
 from dimenet.runtime.json_text import JsonProblem, parse_json
 
 FORMAT = "dimenet-dataset/1"
@@ -162,6 +162,16 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
     if bad.any():
         f, p = np.argwhere(bad)[0]
         raise DatasetError(f"points_2d/points_3d: valid point has a non-finite coordinate (frame {f}, point {p})")
+    w, h = (int(v) for v in size)
+    far_2d = np.any((p2 < [-w, -h]) | (p2 > [2 * w, 2 * h]), -1)
+    far = valid & (far_2d | np.any(np.abs(p3) >= MAX_COORDINATE, -1))
+    if far.any():
+        f, p = np.argwhere(far)[0]
+        raise DatasetError(
+            f"points_2d/points_3d: valid point {p} of frame {f} at {p2[f, p].tolist()} px, {p3[f, p].tolist()} "
+            f"lies far outside the {w}x{h} px image (more than its size beyond an edge) or beyond "
+            f"+-{MAX_COORDINATE:g} in 3D"
+        )
     counts = valid.sum(1)
     _require(
         bool(np.all(counts >= MIN_POINTS)),

@@ -34,6 +34,7 @@ from dimenet.runtime.geometry.rotation import (
     skew,
 )
 from dimenet.runtime.geometry.spread import (
+    MAX_COORDINATE,
     PLANAR_RATIO,
     RIG_VIEW_RATIO,
     covariance_invariants,
@@ -66,6 +67,7 @@ __all__ = [
     "left_update",
     "PLANAR_RATIO",
     "RIG_VIEW_RATIO",
+    "MAX_COORDINATE",
     "covariance_invariants",
     "covariance_invariants_batch",
     "spans_3d",

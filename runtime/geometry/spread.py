@@ -11,6 +11,9 @@ PLANAR_RATIO = 0.05
 # What a rig view must span to be kept (simulated, rendered or identified): twice that, so
 # every kept view calibrates with margin.
 RIG_VIEW_RATIO = 0.1
+# Largest |3D coordinate| dimenet accepts, in the points' unit (1e12 mm is 10^6 km): beyond it
+# the covariance invariants of point sets overflow float64.
+MAX_COORDINATE = 1e12
 _COVARIANCE = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE  # sample covariance of row points
 
 

@@ -22,13 +22,15 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import check_not_degenerate, covariance_invariants, covariance_invariants_batch
+from dimenet.runtime.geometry import (
+    MAX_COORDINATE,
+    check_not_degenerate,
+    covariance_invariants,
+    covariance_invariants_batch,
+)
 
 WORSE_RELATIVE = 0.05
 WORSE_ABSOLUTE_PX = 0.05
-# Largest |3D coordinate| accepted, in the points' unit (1e12 mm is 10^6 km): beyond it the
-# covariance invariants of the spread test overflow float64.
-MAX_COORDINATE = 1e12
 # Largest mean error under K_c (at its best pose) a frame may have, as a fraction of K_c's fx:
 # 0.006 f is 18 px on the paper's phones, twice the worst of their simulated rig, planar and
 # natural frames (8.4 px) and beyond 3 px noise on them; shuffled, flipped or other-camera

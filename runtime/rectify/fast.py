@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from dimenet.runtime.rectify.checks import MAX_COORDINATE
+from dimenet.runtime.geometry import MAX_COORDINATE
 
 
 def frame_residuals(

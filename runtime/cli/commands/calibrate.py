@@ -25,8 +25,11 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate_dataset(ds)
     write_calibration(cal, args.out)
     fx, fy, cx, cy = k_params(cal.K_c)
+    for b in cal.outliers:
+        name = ds.frame_id[b] if ds.frame_id is not None else f"frame {b}"
+        print(f"left out of K_c: {name} (K* {k_params(cal.K_star[b]).round(1).tolist()} px, e* {cal.e_star[b]:.3g} px)")
     print(
-        f"K_c from {int(ds.frames_in('train').sum())} train frames: "
+        f"K_c from {int(ds.frames_in('train').sum()) - len(cal.outliers)} train frames: "
         f"fx={fx:.2f} fy={fy:.2f} cx={cx:.2f} cy={cy:.2f} px; "
         f"mean e* over {ds.n_frames} frames {cal.e_star.mean():.3f} px -> {args.out}"
     )
