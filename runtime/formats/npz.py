@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import math
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -132,7 +133,7 @@ def _header(
             shape, _, dtype = npy.read_array_header_2_0(f, max_header_size=MAX_HEADER_BYTES)
         else:
             raise ValueError(f".npy format version {version[0]}.{version[1]} is not supported")
-    except (ValueError, TypeError, SyntaxError, EOFError) as exc:
+    except (ValueError, TypeError, SyntaxError, EOFError, tokenize.TokenError) as exc:  # the header is a Python literal
         raise error(f"{path}: {key}: not a readable .npy array header ({_reason(exc)})") from None
     if dtype.hasobject:
         raise error(f"{path}: {key}: holds object arrays, which dimenet files forbid (they are never unpickled)")

@@ -12,7 +12,9 @@ models_spec/model-v1.md.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import re
 import threading
 from collections.abc import Sequence
@@ -179,7 +181,10 @@ def onnx_model_from_bytes(
     graph's signature and a probe call against it, and the bytes against its weights_sha256."""
     options = session_options(threads)
     try:
-        session = ort.InferenceSession(blob, options, providers=list(providers or DEFAULT_PROVIDERS))
+        # On a failure ORT prints an "EP Error" banner to stdout and retries on its fallback
+        # provider; the ModelError below is the one line a user gets.
+        with contextlib.redirect_stdout(io.StringIO()):
+            session = ort.InferenceSession(blob, options, providers=list(providers or DEFAULT_PROVIDERS))
     except Exception as exc:  # ORT raises its own exception types for corrupt files and bad providers
         raise ModelError(
             f"{source}: not a loadable ONNX model ({type(exc).__name__}: {str(exc).strip()[:300]})"

@@ -1,8 +1,9 @@
-"""`dimenet bench --ingest` and `--bpnp`: one command, options refused outside their bench, and
---bpnp's one-line error without torch (no timing assertions)."""
+"""`dimenet bench --ingest`, `--bpnp` and `--fuzz`: one command, options refused outside their
+bench, and --bpnp's one-line error without torch (no timing assertions)."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -25,12 +26,13 @@ def test_bench_help_shows_every_bench_and_ends_with_their_examples(capsys):
         main(["bench", "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
-    assert "--ingest DIR" in out and "--bpnp" in out and "(default 2000; with --bpnp 32)" in out
+    assert "--ingest DIR" in out and "--bpnp" in out and "--fuzz N" in out and "(default 2000; with --bpnp 32)" in out
     example = out[out.index("example:") :].splitlines()[1:]
     assert [line.split()[:3] for line in example] == [
         ["dimenet", "bench", "--points"],
         ["dimenet", "bench", "--ingest"],
         ["dimenet", "bench", "--bpnp"],
+        ["dimenet", "bench", "--fuzz"],
     ]
 
 
@@ -61,3 +63,12 @@ def test_bench_bpnp_without_torch_is_one_line_naming_the_train_extra():
 def test_bench_without_torch_still_runs_its_help():
     done = run_without_torch("bench", "--help")
     assert done.returncode == 0 and "dimenet bench --bpnp" in done.stdout, done.stderr
+
+
+def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
+    assert main(["bench", "--fuzz", "12", "--seed", "3", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert set(report["counts"]) == {"rectify", "rectify_batch", "dataset file", "model file", "rig file"}
+    assert sum(report["counts"]["rectify"].values()) == 24  # 12 per mode
+    assert report["failures"] == [] and all("crash" not in c for c in report["counts"].values())
+    assert main(["bench", "--fuzz", "3", "--bpnp"]) == 2

@@ -2,7 +2,8 @@
 (runtime/evaluation/latency.py); with ``--ingest DIR``, `dimenet ingest` on rendered full-size
 photos against the renderer's truth (runtime/ingest/bench.py); with ``--bpnp``, forward +
 backward of the BPnP layer against a BPnP_fast-style baseline (training/bench_bpnp.py: needs
-the train extra, imported only then, so the runtime never imports torch)."""
+the train extra, imported only then, so the runtime never imports torch); with ``--fuzz N``,
+hostile input through the rectifier and the readers (runtime/evaluation/fuzz.py)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ LATENCY = {
 }
 INGEST = {"n": 30, "seed": 1, "profile": "galaxy-s8", "workers": 2}
 BPNP = {"frames": 32, "points": 320, "repeats": 200, "baseline_repeats": 10}
+FUZZ = {"seed": 0}
 # Caps: --frames x --points correspondences are held in memory (50000 x 320: 0.6 GB); the BPnP
 # baseline's Jacobian is 2N x 3N floats per frame (N = 2000: 96 MB), its layer B x N x 20.
 MAX_FRAMES = 50_000
@@ -37,7 +39,13 @@ MAX_BPNP_POINTS = 2_000
 MAX_BPNP_CORRESPONDENCES = 10**6  # --frames x --points with --bpnp
 MAX_REPEATS = 100_000
 MAX_BUDGET_MS = 60_000.0  # a minute per frame: past it a budget is a typo
-BENCHES = {"the latency bench (without --ingest or --bpnp)": LATENCY, "--ingest": INGEST, "--bpnp": BPNP}
+MAX_FUZZ_CASES = 100_000
+BENCHES = {
+    "the latency bench (without --ingest, --bpnp or --fuzz)": LATENCY,
+    "--ingest": INGEST,
+    "--bpnp": BPNP,
+    "--fuzz": FUZZ,
+}
 
 
 def _default(name: str) -> str:
@@ -102,6 +110,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=integer_in(1, MAX_REPEATS),
         help=f"timed runs of the baseline (default {BPNP['baseline_repeats']})",
     )
+    _add_fuzz(p)
+
+
+def _add_fuzz(p: argparse.ArgumentParser) -> None:
+    fuzz = p.add_argument_group(
+        "fuzz (--fuzz N)",
+        "N hostile frames through the rectifier (modes dimenet and map, one by one and in batches) and N "
+        "mutated files of each kind (dataset, model, rig) through their readers: each must end in a typed "
+        "error or in no confident wrong K; exit 1 when one does not (--seed applies)",
+    )
+    fuzz.add_argument("--fuzz", type=integer_in(1, MAX_FUZZ_CASES), metavar="N", help="cases per area")
 
 
 def _options(args: argparse.Namespace, bench: dict) -> dict:
@@ -114,13 +133,42 @@ def _options(args: argparse.Namespace, bench: dict) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.ingest is not None and args.bpnp:
-        raise CliError("dimenet bench: --ingest and --bpnp exclude each other")
+    chosen = [
+        flag
+        for flag, on in zip(("--ingest", "--bpnp", "--fuzz"), (args.ingest is not None, args.bpnp, args.fuzz))
+        if on
+    ]
+    if len(chosen) > 1:
+        raise CliError(f"dimenet bench: {' and '.join(chosen)} exclude each other")
     if args.ingest is not None:
         return _run_ingest(args)
     if args.bpnp:
         return _run_bpnp(args)
+    if args.fuzz:
+        return _run_fuzz(args)
     return _run_latency(args)
+
+
+def _run_fuzz(args: argparse.Namespace) -> int:
+    import tempfile
+
+    import numpy as np
+
+    from dimenet.runtime.evaluation.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
+    from dimenet.runtime.rectify.rectifier import Rectifier
+    from dimenet.runtime.sim.simulator import simulate
+
+    o = _options(args, FUZZ)
+    rng = np.random.default_rng(o["seed"])
+    frames = simulate("galaxy-s8", seed=o["seed"])
+    report = FuzzReport()
+    for mode in ("dimenet", "map"):
+        fuzz_rectifier(Rectifier.load(mode=mode), frames, args.fuzz, rng, report)
+    with tempfile.TemporaryDirectory() as folder:
+        fuzz_files(folder, args.fuzz, rng, report)
+    counts = {area: dict(c) for area, c in report.counts.items()}
+    print(json.dumps({"counts": counts, "failures": report.failures}) if args.json else report.table())
+    return 1 if report.bad else 0
 
 
 def _run_latency(args: argparse.Namespace) -> int:
@@ -178,10 +226,11 @@ def _run_bpnp(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="bench",
     summary="Time rectification per stage and end to end (p50/p90/p99/max, µs) against cv2.solvePnP ITERATIVE; "
-    "--ingest: photo ingest against the renderer's truth; --bpnp: the BPnP layer.",
+    "--ingest: photo ingest against the renderer's truth; --bpnp: the BPnP layer; --fuzz: hostile input.",
     example="dimenet bench --points 320 --frames 2000 --threads 1 --batch 64 --budget-ms 0.5 --json\n"
     "  dimenet bench --ingest shots --n 30 --seed 1 --profile galaxy-s8 --workers 2\n"
-    "  dimenet bench --bpnp --frames 32 --points 320 --repeats 200",
+    "  dimenet bench --bpnp --frames 32 --points 320 --repeats 200\n"
+    "  dimenet bench --fuzz 2000 --seed 1",
     add_arguments=add_arguments,
     run=run,
 )

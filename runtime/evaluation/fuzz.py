@@ -1,0 +1,204 @@
+"""A fuzz of the rectifier and the file readers with hostile input (issue 20's classes).
+
+Every case must end in a ``DimenetError`` (``typed``) or in a result that is no confident wrong
+K (``ok``): K_c's own solution with a reason, or a finite K inside the spec's bounds with every
+point in front of the camera at its pose. Anything else is a ``crash`` (another exception) or
+``silent-wrong``. The suite runs a few hundred cases (tests/evaluation/test_fuzz.py);
+``dimenet bench --fuzz N`` runs as many as asked.
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from dimenet.runtime.assets import asset
+from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.formats.dataset import read_dataset
+from dimenet.runtime.formats.rig import load_rig
+from dimenet.runtime.rectify.model import onnx_model_from_bytes
+from dimenet.runtime.rectify.rectifier import Rectifier
+
+OUTCOMES = ("typed", "ok", "crash", "silent-wrong")
+
+
+@dataclass
+class FuzzReport:
+    """Per area (``rectify``, ``rectify_batch``, ``dataset file``, ...), the count of each outcome, and
+    the first few crashes and silent-wrong cases (case name and what happened)."""
+
+    counts: dict = field(default_factory=dict)
+    failures: list = field(default_factory=list)
+
+    def add(self, area: str, case: str, outcome: str, detail: str = "") -> None:
+        self.counts.setdefault(area, Counter())[outcome] += 1
+        if outcome in ("crash", "silent-wrong") and len(self.failures) < 20:
+            self.failures.append(f"{area} / {case}: {outcome}: {detail}")
+
+    @property
+    def bad(self) -> int:
+        return sum(c["crash"] + c["silent-wrong"] for c in self.counts.values())
+
+    def table(self) -> str:
+        rows = [f"{'area':<16} {'tried':>6} " + " ".join(f"{o:>12}" for o in OUTCOMES)]
+        for area, c in self.counts.items():
+            rows.append(f"{area:<16} {sum(c.values()):>6} " + " ".join(f"{c[o]:>12}" for o in OUTCOMES))
+        return "\n".join(rows + self.failures)
+
+
+def _frame_variants(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: np.ndarray) -> Iterator:
+    """(name, points_2d, points_3d) hostile variants of one frame's valid points x (N, 2) px, X
+    (N, 3) mm seen under K."""
+    n = len(x)
+    pick = rng.integers(n)
+    _, rvec, tvec = cv2.solvePnP(X, x, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+
+    def edited(a, value, column=None):
+        a = a.copy()
+        a[pick, rng.integers(a.shape[1]) if column is None else column] = value
+        return a
+
+    behind = X @ R.T + t
+    behind[rng.random(n) < rng.uniform(0.05, 0.9)] *= -1.0
+    yield "nan 2D", edited(x, np.nan), X
+    yield "inf 3D", x, edited(X, np.inf)
+    yield "huge 3D", x, edited(X, 10.0 ** rng.uniform(10, 300) * rng.choice([-1, 1]))
+    yield "huge 2D", edited(x, 10.0 ** rng.uniform(4, 300)), X
+    yield "outside the image", edited(x, rng.uniform(4032, 9000), 0), X
+    yield "points behind the camera", x, (behind - t) @ R
+    yield "shuffled", x[rng.permutation(n)], X
+    yield "y-flipped", np.c_[x[:, 0], 3023.0 - x[:, 1]], X
+    yield "noise", np.clip(x + rng.normal(0, rng.uniform(5, 200), x.shape), 0, [4031, 3023]), X
+    yield "one point repeated", np.repeat(x[:1], n, 0), np.repeat(X[:1], n, 0)
+    yield "three points repeated", np.resize(x[:3], (n, 2)), np.resize(X[:3], (n, 3))
+    yield "collinear", x, np.outer(np.linspace(0, 1, n), X[1] - X[0]) + X[0]
+    k = int(rng.integers(0, 9))
+    yield f"{k} points", x[:k], X[:k]
+    yield "3D scaled", x, X * 10.0 ** rng.uniform(-6, 6)
+    yield "2D shifted", x + rng.uniform(-3000, 3000, 2), X
+    yield "mismatched counts", x, X[:-1]
+    yield "swapped", X, x
+    yield "strings", x.astype(str), X
+    yield "objects", np.array([[1, None]] * n, dtype=object), X
+    yield "ragged", [[1.0, 2.0], [3.0]] * n, X
+    yield "3D as (N, 3, 1)", x, X[..., None]
+
+
+def _judge_frame(rect: Rectifier, X: np.ndarray, res) -> tuple[str, str]:
+    """A result is ok when it is K_c's solution with a reason, or a finite, in-bounds K whose pose
+    has every point in front of the camera."""
+    depth = np.asarray(X, dtype=np.float64) @ cv2.Rodrigues(res.rvec)[0][2] + res.tvec[2]
+    if not depth.min() > 0:
+        return "silent-wrong", f"a point behind the camera at the returned pose (fallback {res.fallback!r})"
+    if res.fallback is not None and not res.fallback.startswith("map:"):
+        same = np.array_equal(res.K, rect.spec.K_c) and res.K_cov is None
+        return ("ok", "") if same else ("silent-wrong", f"fallback {res.fallback!r} without K_c's solution")
+    k = np.array([res.K[0, 0], res.K[1, 1], res.K[0, 2], res.K[1, 2]])
+    if not (np.isfinite(res.reprojection_error_px) and rect.spec.k_within_bounds(k)):
+        return "silent-wrong", f"K {k.tolist()} or e {res.reprojection_error_px} with no fallback"
+    return "ok", ""
+
+
+def _outcome(call: Callable, judge: Callable) -> tuple[str, str]:
+    try:
+        result = call()
+    except DimenetError:
+        return "typed", ""
+    except Exception as exc:  # the fuzz's finding: anything but a typed error
+        return "crash", f"{type(exc).__name__}: {exc} | {traceback.format_exc(limit=-1).strip()[-160:]}"
+    return judge(result)
+
+
+def fuzz_rectifier(rect: Rectifier, frames, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
+    """``n_cases`` hostile frames made from ``frames`` (a dataset's rig frames), through
+    ``rect.rectify`` and, two at a time with a clean frame, ``rect.rectify_batch``."""
+    rig = np.flatnonzero(frames.scene == "rig")
+    done = 0
+    while done < n_cases:
+        b = int(rng.choice(rig))
+        m = frames.valid[b]
+        x, X, K = frames.points_2d[b][m], frames.points_3d[b][m], frames.K_true[b]
+        for name, p2, p3 in _frame_variants(rng, x, X, K):
+            if done >= n_cases:
+                break
+            done += 1
+            outcome, detail = _outcome(
+                lambda p2=p2, p3=p3: rect.rectify(p2, p3), lambda r, p3=p3: _judge_frame(rect, p3, r)
+            )
+            report.add("rectify", name, outcome, detail)
+            try:
+                a2, a3 = np.asarray(p2, dtype=np.float64), np.asarray(p3, dtype=np.float64)
+            except (TypeError, ValueError):
+                continue
+            if a2.ndim != 2 or a2.shape != (len(x), 2) or a3.shape != (len(x), 3):
+                continue
+            p2b, p3b = np.stack([x, a2]), np.stack([X, a3])
+
+            def batch_call(p2b=p2b, p3b=p3b):
+                return rect.rectify_batch(p2b, p3b, np.ones(p2b.shape[:2], bool))
+
+            def batch_judge(r, p3b=p3b):
+                one = type("Frame", (), {})()
+                one.rvec, one.tvec, one.fallback, one.K = r.rvec[1], r.tvec[1], r.fallback[1], r.K[1]
+                one.reprojection_error_px = r.reprojection_error_px[1]
+                one.K_cov = None if r.K_cov is None or np.all(np.isnan(r.K_cov[1])) else r.K_cov[1]
+                return _judge_frame(rect, p3b[1], one)
+
+            outcome, detail = _outcome(batch_call, batch_judge)
+            report.add("rectify_batch", name, outcome, detail)
+
+
+def _mutations(rng: np.random.Generator, blob: bytes) -> Iterator[tuple[str, bytes]]:
+    """Byte-level mutations of a file: bit flips, truncation, a zeroed or random run, appended junk."""
+    n = len(blob)
+    while True:
+        kind = int(rng.integers(5))
+        b = bytearray(blob)
+        if kind == 0:
+            for i in rng.integers(0, n, int(rng.integers(1, 8))):
+                b[i] ^= 1 << int(rng.integers(8))
+            yield "bit flips", bytes(b)
+        elif kind == 1:
+            yield "truncated", bytes(b[: int(rng.integers(0, n))])
+        elif kind == 2:
+            i, k = int(rng.integers(n)), int(rng.integers(1, 256))
+            b[i : i + k] = bytes(min(k, n - i))
+            yield "zeroed run", bytes(b)
+        elif kind == 3:
+            i, k = int(rng.integers(n)), int(rng.integers(1, 256))
+            b[i : i + k] = rng.integers(0, 256, min(k, n - i), dtype=np.uint8).tobytes()
+            yield "random run", bytes(b)
+        else:
+            yield "appended junk", bytes(b) + rng.integers(0, 256, int(rng.integers(1, 4096)), dtype=np.uint8).tobytes()
+
+
+def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
+    """``n_cases`` mutated files of each kind, read by their reader: a dataset (the example frames),
+    the bundled model, the paper rig. A reader that returns counts as ok: a mutation may miss
+    what the reader reads (e.g. zip padding)."""
+    folder = Path(folder)
+    sources = {
+        "dataset file": (asset("example_frames.npz").read_bytes(), "data.npz", read_dataset),
+        "model file": (asset("default_model.onnx").read_bytes(), "model.onnx", None),
+        "rig file": (asset("paper_rig.json").read_bytes(), "rig.json", load_rig),
+    }
+    for area, (blob, name, reader) in sources.items():
+        mutations = _mutations(rng, blob)
+        for _ in range(n_cases):
+            case, data = next(mutations)
+            path = folder / name
+            path.write_bytes(data)
+            if reader is None:
+                call = lambda data=data, name=name: onnx_model_from_bytes(data, name)  # noqa: E731
+            else:
+                call = lambda reader=reader, path=path: reader(path)  # noqa: E731
+            outcome, detail = _outcome(call, lambda result: ("ok", ""))
+            report.add(area, case, outcome, detail)
