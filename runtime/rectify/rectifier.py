@@ -317,7 +317,7 @@ class Rectifier:
             poses=(rvec_c0[None], tvec_c0[None]),
             return_points=True,
         )
-        if cv2.minMaxLoc(points[0, 4])[0] <= 0:  # 1 / Z_C0: a point behind the camera under K_c
+        if not cv2.checkRange(points[0, 4], True, 0.0, np.inf)[0]:  # 1 / Z_C0 <= 0: a point behind the camera
             raise behind_camera_error(int(np.count_nonzero(points[0, 4] <= 0)), len(p2))
         lap("features")
         delta_k = self.model.frame_delta_k(feats)
