@@ -1,9 +1,10 @@
 """The rectifier's rules, each written once: what input it accepts and when it falls back to K_c.
 
 Input (``InputError`` naming the problem, and the frame in a batch): real arrays of the right
-shape; at least ``MIN_POINTS`` correspondences; finite values, 3D coordinates within
-+-MAX_COORDINATE; 2D points inside the image the model was trained for; points that fix a pose
-(not coincident, not collinear); a pose under K_c with every point in front of the camera.
+shape; at least ``MIN_POINTS`` correspondences, of distinct 2D and distinct 3D points; finite
+values, 3D coordinates within +-MAX_COORDINATE; 2D points inside the image the model was
+trained for; points that fix a pose (not coincident, not collinear); a pose under K_c with
+every point in front of the camera.
 
 Fallback (K_c's own solution is returned and the result's ``fallback`` says why): the frame's
 points fit K_c worse than any frame the model was made for (mean error e(K_c) above
@@ -100,6 +101,18 @@ class ImageBounds:
             f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
             f"outside the {self.width}x{self.height} px image the model was trained for"
         )
+
+
+def too_few_distinct(points_2d: np.ndarray, points_3d: np.ndarray, minimum: int) -> Optional[int]:
+    """None when one frame's (N, 2) and (N, 3) points hold at least ``minimum`` distinct 2D and
+    distinct 3D points (repeated correspondences add nothing to a pose), else the smaller of the
+    two distinct counts. Rows of ``minimum`` distinct x coordinates suffice, so the x of the first
+    2 x minimum rows decide an ordinary frame (1 us); only when they repeat are all rows counted."""
+    head = 2 * minimum
+    if len(set(points_2d[:head, 0].tolist())) >= minimum and len(set(points_3d[:head, 0].tolist())) >= minimum:
+        return None
+    n = min(len(np.unique(a, axis=0)) for a in (points_2d, points_3d))
+    return None if n >= minimum else n
 
 
 def clearly_spread(trace, minors, scale, dims: int):

@@ -55,6 +55,7 @@ from dimenet.runtime.rectify.checks import (
     out_of_range_reason,
     real_array,
     spread_frames,
+    too_few_distinct,
     worse,
     worse_reason,
 )
@@ -259,7 +260,11 @@ class Rectifier:
             raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
         if not all_inside(self._image, p2, p3):
             self._image.raise_bad_values(p2, p3, True, "")
-        return p2, p3, check_spread(p2, p3)
+        invariants_3d = check_spread(p2, p3)
+        distinct = too_few_distinct(p2, p3, MIN_POINTS)
+        if distinct is not None:
+            raise InputError(f"{distinct} distinct points of {n}: rectification needs at least {MIN_POINTS}")
+        return p2, p3, invariants_3d
 
     def _frame_covariance(self, feats: np.ndarray, n_points: int, pmd_px: float, invariants_3d: tuple) -> np.ndarray:
         """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count,
@@ -409,6 +414,13 @@ class Rectifier:
         spread = spread_3d & spread_frames(p2, mask)[0]
         for b in np.flatnonzero(~spread):
             _in_frame(b, check_spread, *frames[b])
+        for b, (x, X) in enumerate(frames):
+            distinct = too_few_distinct(x, X, MIN_POINTS)
+            if distinct is not None:
+                raise InputError(
+                    f"frame {b}: {distinct} distinct valid points of {len(x)}: "
+                    f"rectification needs at least {MIN_POINTS}"
+                )
         return _Frames(p2, p3, valid, infer, mask, frames, invariants_3d)
 
     def _c0_poses(self, fr: _Frames) -> tuple[np.ndarray, np.ndarray]:

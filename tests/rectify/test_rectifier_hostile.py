@@ -120,3 +120,14 @@ def test_ordinary_frames_stay_in_range(bundled, frames):
     test = np.flatnonzero(frames.split == "test")
     batch = bundled.rectify_batch(frames.points_2d[test], frames.points_3d[test], frames.valid[test])
     assert not any(f is not None and "beyond" in f for f in batch.fallback)
+
+
+def test_repeated_correspondences_do_not_count_toward_the_minimum(bundled, frames):
+    x, X, _ = _rig_frame(frames)
+    spread = np.linspace(0, len(x) - 1, 6).astype(int)  # six points over the rig, not one board row
+    p2, p3 = np.resize(x[spread[:5]], (40, 2)), np.resize(X[spread[:5]], (40, 3))  # 40 rows, 5 distinct points
+    with pytest.raises(InputError, match="5 distinct points of 40: rectification needs at least 6"):
+        bundled.rectify(p2, p3)
+    with pytest.raises(InputError, match="frame 1: 5 distinct valid points of 40"):
+        bundled.rectify_batch(np.stack([x[:40], p2]), np.stack([X[:40], p3]), np.ones((2, 40), bool))
+    bundled.rectify(np.resize(x[spread], (40, 2)), np.resize(X[spread], (40, 3)))  # six distinct ones are enough
