@@ -78,16 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
         cmd.add_arguments(p)
-        _require_paths(p)
         p.set_defaults(_run=cmd.run)
     return parser
-
-
-def _require_paths(p: argparse.ArgumentParser) -> None:
-    """Every subcommand's --out is a non-empty path, also where the command gives it no type."""
-    for action in p._actions:
-        if "--out" in action.option_strings and action.type is None:
-            action.type = nonempty_path
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

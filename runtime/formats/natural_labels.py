@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dimenet.runtime.errors import LabelsError
+from dimenet.runtime.formats.text import read_text
 
 OBJECT_HEADER = ("point_id", "X_mm", "Y_mm", "Z_mm")
 LABELS_HEADER = ("image", "point_id", "x_px", "y_px")
@@ -49,18 +50,7 @@ class ImageLabels:
 
 def _text(path: Path) -> str:
     """The file's text: UTF-8 (a BOM ignored), at most MAX_CSV_BYTES."""
-    try:
-        with path.open("rb") as f:
-            data = f.read(MAX_CSV_BYTES + 1)
-    except OSError as exc:
-        raise LabelsError(f"{path}: cannot read the CSV file ({exc})") from None
-    if len(data) > MAX_CSV_BYTES:
-        raise LabelsError(f"{path}: larger than {MAX_CSV_BYTES} bytes, too large for a CSV of points")
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise LabelsError(f"{path}:{line}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    return read_text(path, MAX_CSV_BYTES, "CSV file of points", LabelsError)
 
 
 def _rows(path: Path, header: tuple[str, ...], max_rows: int) -> Iterator[tuple[int, list[str]]]:

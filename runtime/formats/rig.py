@@ -19,6 +19,7 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import RigError
+from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.geometry import rvec_to_matrix
 from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
 
@@ -247,18 +248,7 @@ def load_rig(path: str | Path) -> Rig:
     Raises RigError (the message starts with the path).
     """
     path = Path(path)
-    try:
-        with path.open("rb") as f:
-            data = f.read(MAX_RIG_BYTES + 1)
-    except OSError as exc:
-        raise RigError(f"{path}: cannot read rig file ({exc})") from None
-    if len(data) > MAX_RIG_BYTES:
-        raise RigError(f"{path}: larger than {MAX_RIG_BYTES} bytes, too large for a rig file")
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise RigError(f"{path}:{line}: cannot read rig file: not UTF-8 ({exc.reason} at byte {exc.start})") from None
+    text = read_text(path, MAX_RIG_BYTES, "rig file", RigError)
     try:
         return _parse_json(text, str(path))
     except RigError as exc:

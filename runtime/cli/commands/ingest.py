@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from dimenet.runtime.cli.main import CliError, Command, finite_float_in, parallelism
+from dimenet.runtime.cli.main import CliError, Command, finite_float_in, nonempty_path, parallelism
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out",
         required=True,
+        type=nonempty_path,
         help="dataset file to write (dimenet-dataset/1 .npz); the report goes beside it as <name>.report.json",
     )
     p.add_argument(
