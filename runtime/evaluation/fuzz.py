@@ -14,6 +14,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Callable
 
 import cv2
@@ -146,10 +147,14 @@ def fuzz_rectifier(rect: Rectifier, frames, n_cases: int, rng: np.random.Generat
                 return rect.rectify_batch(p2b, p3b, np.ones(p2b.shape[:2], bool))
 
             def batch_judge(r, p3b=p3b):
-                one = type("Frame", (), {})()
-                one.rvec, one.tvec, one.fallback, one.K = r.rvec[1], r.tvec[1], r.fallback[1], r.K[1]
-                one.reprojection_error_px = r.reprojection_error_px[1]
-                one.K_cov = None if r.K_cov is None or np.all(np.isnan(r.K_cov[1])) else r.K_cov[1]
+                one = SimpleNamespace(
+                    rvec=r.rvec[1],
+                    tvec=r.tvec[1],
+                    fallback=r.fallback[1],
+                    K=r.K[1],
+                    reprojection_error_px=r.reprojection_error_px[1],
+                    K_cov=None if r.K_cov is None or np.all(np.isnan(r.K_cov[1])) else r.K_cov[1],
+                )
                 return _judge_frame(rect, p3b[1], one)
 
             outcome, detail = _outcome(batch_call, batch_judge)

@@ -48,18 +48,13 @@ class ImageLabels:
     points_px: np.ndarray
 
 
-def _text(path: Path) -> str:
-    """The file's text: UTF-8 (a BOM ignored), at most MAX_CSV_BYTES."""
-    return read_text(path, MAX_CSV_BYTES, "CSV file of points", LabelsError)
-
-
 def _rows(path: Path, header: tuple[str, ...], max_rows: int) -> Iterator[tuple[int, list[str]]]:
     """(line number, stripped fields) of every non-empty data row, read as they are needed.
 
     LabelsError unless the header is ``header``, for a row of another field count and for more than
     ``max_rows`` rows.
     """
-    reader = csv.reader(io.StringIO(_text(path), newline=""))
+    reader = csv.reader(io.StringIO(read_text(path, MAX_CSV_BYTES, "CSV file of points", LabelsError), newline=""))
     start, n_rows, seen_header = 1, 0, False
     try:
         for row in reader:

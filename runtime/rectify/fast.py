@@ -28,11 +28,16 @@ def frame_residuals(
 ) -> np.ndarray:
     """One frame's reprojection residuals pi(K (R X + t)) - x, (N, 2) px: points_2d (N, 2) px,
     points_3d (N, 3) mm float64, the pose {W}->{C} as R (3, 3) and tvec (3,) mm."""
-    Rt = np.empty((3, 4))
-    Rt[:, :3], Rt[:, 3] = R, tvec
-    d = cv2.convertPointsFromHomogeneous(cv2.transform(points_3d.reshape(-1, 1, 3), K @ Rt)).reshape(-1, 2)
+    d = cv2.convertPointsFromHomogeneous(_homogeneous_pixels(points_3d, K, R, tvec)).reshape(-1, 2)
     d -= points_2d
     return d
+
+
+def _homogeneous_pixels(points_3d: np.ndarray, K: np.ndarray, R: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """(N, 1, 3) K (R X + t) of one frame's (N, 3) points through OpenCV: z (u, v, 1), z = Z_C."""
+    Rt = np.empty((3, 4))
+    Rt[:, :3], Rt[:, 3] = R, tvec
+    return cv2.transform(points_3d.reshape(-1, 1, 3), K @ Rt)
 
 
 def frame_mean_norm(residuals: np.ndarray) -> float:
@@ -44,9 +49,7 @@ def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, f
     """One frame's mean Euclidean reprojection error (px) of its (N, 2) px / (N, 3) mm points under
     K (3, 3) at the pose rvec, tvec (3,), and the smallest depth Z_C of its points (mm, <= 0:
     a point behind the camera): OpenCV's transform gives z (u, v, 1), z = Z_C for a pinhole K."""
-    Rt = np.empty((3, 4))
-    Rt[:, :3], Rt[:, 3] = cv2.Rodrigues(rvec)[0], tvec
-    h = cv2.transform(points_3d.reshape(-1, 1, 3), K @ Rt)
+    h = _homogeneous_pixels(points_3d, K, cv2.Rodrigues(rvec)[0], tvec)
     d = cv2.convertPointsFromHomogeneous(h).reshape(-1, 2)
     d -= points_2d
     return frame_mean_norm(d.T), cv2.minMaxLoc(h[:, 0, 2])[0]
