@@ -6,6 +6,7 @@ its results load on first use, so ``import dimenet.runtime`` (the CLI, the error
 
 from dimenet.runtime.errors import (
     CalibrationError,
+    CameraError,
     DatasetError,
     DimenetError,
     IdentificationError,
@@ -21,6 +22,7 @@ __version__ = "0.1.0"
 _RECTIFY = ("Rectifier", "Rectification", "BatchRectification")
 __all__ = [
     "CalibrationError",
+    "CameraError",
     "DatasetError",
     "DimenetError",
     "IdentificationError",

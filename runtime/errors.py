@@ -27,6 +27,10 @@ class RigError(DimenetError):
     """A rig description does not conform to ``dimenet-rig/1``."""
 
 
+class CameraError(DimenetError):
+    """A camera (K_c and image size) file or value does not conform; the message names the file and the field."""
+
+
 class PhotoError(DimenetError):
     """A photo cannot be read or decoded, or its format is not supported (the message names the file)."""
 

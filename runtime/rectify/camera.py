@@ -1,0 +1,211 @@
+"""The user's camera at run time, and the pixel map between it and a model's own pixel frame.
+
+A model infers K in its own pixel frame ("model px"): a device model in the pixels of the
+camera it was trained for, a generic model in those of a canonical camera whose fx is the
+spec's ``generic.focal_px`` (so the PMD is measured in units of f_c, whatever the stream's
+resolution). The user's camera (K_c (3, 3) px and image size (width, height) px, OpenCV's
+convention: the centre of the top-left pixel at (0, 0), so pixel edges at -0.5) maps onto it
+by a scale about the image's top-left corner plus a shift:
+
+    x_model = scale * (x + 0.5) - 0.5 + offset        (px, per axis)
+
+so a rescale of the image (half resolution: scale 2) and a crop (the offset) are exact. K
+maps the same way: f_model = scale * f, c_model = scale * (c + 0.5) - 0.5 + offset. A
+device model accepts a camera that is a consistent rescale or crop of its own (the rule:
+``device_pixel_map``); a generic model accepts any camera and needs it given.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+
+from dimenet.runtime.errors import CameraError
+from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.json_text import shown
+
+MAX_IMAGE_SIDE_PX = 100_000
+ASPECT_RANGE = (0.5, 2.0)  # allowed fy / fx (phone pixels are square: ~1)
+# A device model's camera and the user's are the same when they agree to this relative
+# precision (a JSON round trip of K_c keeps 1e-15): then no pixel map is applied.
+SAME_CAMERA_RELATIVE = 1e-9
+# The consistency rule of a rescale or crop (``device_pixel_map``): fy / fx as the model's to
+# this fraction, and the user's image inside the model's, mapped, to this fraction of its width.
+ASPECT_TOLERANCE = 0.005
+WINDOW_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera without skew: K (3, 3) float64 px, OpenCV convention (centre of the
+    top-left pixel at (0, 0)), read-only; image_size (width, height) px."""
+
+    K: np.ndarray
+    image_size: tuple
+
+
+def _fail(source: str, field: str, problem: str) -> CameraError:
+    return CameraError(f"{source}: {field} {problem}")
+
+
+def _checked_k(K: np.ndarray, width: int, height: int, source: str) -> np.ndarray:
+    """K (3, 3) float64 of finite numbers -> itself, read-only, after the pinhole-form checks."""
+    for (r, c), expected in {(1, 0): 0.0, (2, 0): 0.0, (2, 1): 0.0, (2, 2): 1.0}.items():
+        if K[r, c] != expected:
+            raise _fail(source, f"K[{r}][{c}]", f"must be {expected:g} (K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])")
+    if K[0, 1] != 0.0:
+        raise _fail(source, "K[0][1]", f"(skew) must be 0: skew is not supported, got {float(K[0, 1])!r}")
+    fx, fy, cx, cy = (float(K[r, c]) for r, c in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    if not (fx > 0 and fy > 0):
+        raise _fail(source, "K", f"must have fx, fy > 0 px, got fx = {fx!r}, fy = {fy!r}")
+    low, high = ASPECT_RANGE
+    if not low <= fy / fx <= high:
+        raise _fail(
+            source, "K", f"must have fy / fx in [{low:g}, {high:g}], got {fy / fx:.6g} (fx = {fx!r}, fy = {fy!r})"
+        )
+    if not (-width <= cx <= 2 * width and -height <= cy <= 2 * height):
+        raise _fail(
+            source,
+            "K",
+            f"principal point ({cx!r}, {cy!r}) px lies far outside the {width}x{height} px image "
+            f"(more than its size beyond an edge: cx in [{-width}, {2 * width}], cy in [{-height}, {2 * height}])",
+        )
+    K = K.copy()
+    K.setflags(write=False)
+    return K
+
+
+def _array_k(K: Any, source: str) -> np.ndarray:
+    try:
+        array = np.asarray(K)
+    except (TypeError, ValueError) as exc:  # ragged nested sequences
+        raise _fail(source, "K", f"must be a (3, 3) array of finite numbers ({exc})") from None
+    if array.dtype.kind not in "iuf":
+        raise _fail(source, "K", f"must be a (3, 3) array of real numbers, got dtype {array.dtype}")
+    if array.shape != (3, 3):
+        raise _fail(source, "K", f"must be a (3, 3) array, got shape {array.shape}")
+    array = array.astype(np.float64)
+    if not np.all(np.isfinite(array)):
+        raise _fail(source, "K", f"must hold finite numbers, got {shown(array.tolist())}")
+    return array
+
+
+def _array_size(image_size: Any, source: str) -> tuple[int, int]:
+    if isinstance(image_size, (str, bytes)) or not isinstance(image_size, (Sequence, np.ndarray)):
+        raise _fail(source, "image_size", f"must be 2 integers (width, height), got {shown(image_size)}")
+    if len(image_size) != 2:
+        raise _fail(source, "image_size", f"must be 2 integers (width, height), got {shown(image_size)}")
+    sides = []
+    for v in image_size:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+            integral = False
+        else:
+            integral = isinstance(v, numbers.Integral) or (math.isfinite(v) and float(v).is_integer())
+        if not integral:
+            raise _fail(source, "image_size", f"must be 2 integers (width, height), got {shown(v)}")
+        if not 1 <= v <= MAX_IMAGE_SIDE_PX:
+            raise _fail(source, "image_size", f"must be 1 to {MAX_IMAGE_SIDE_PX} px, got {shown(v)}")
+        sides.append(int(v))
+    return sides[0], sides[1]
+
+
+def checked_camera(K: Any, image_size: Any, source: str = "camera") -> Camera:
+    """A Camera from values in memory: K (3, 3) real array-like px, a pinhole matrix without
+    skew ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0, fy / fx in ASPECT_RANGE, the
+    principal point within the image extended by its size on each side); image_size (width,
+    height) integers px in [1, MAX_IMAGE_SIDE_PX]. Raises CameraError naming ``source`` and the
+    field. (``formats.camera.read_camera`` reads a JSON camera file into this.)"""
+    array = _array_k(K, source)
+    width, height = _array_size(image_size, source)
+    return Camera(K=_checked_k(array, width, height, source), image_size=(width, height))
+
+
+@dataclass(frozen=True)
+class PixelMap:
+    """User px -> model px: x_model = scale * (x + 0.5) - 0.5 + offset (per axis)."""
+
+    scale: float
+    offset: tuple = (0.0, 0.0)
+
+    def points_to_model(self, points_2d: np.ndarray) -> np.ndarray:
+        """(..., 2) user px -> model px."""
+        shift = np.array(self.offset) + 0.5 * self.scale - 0.5
+        return points_2d * self.scale + shift
+
+    def k_to_model(self, k: np.ndarray) -> np.ndarray:
+        """(..., 4) (fx, fy, cx, cy) user px -> model px."""
+        k = np.asarray(k, dtype=np.float64)
+        out = k * self.scale
+        out[..., 2:] += np.array(self.offset) + 0.5 * self.scale - 0.5
+        return out
+
+    def k_to_user(self, k: np.ndarray) -> np.ndarray:
+        """(..., 4) (fx, fy, cx, cy) model px -> user px."""
+        k = np.asarray(k, dtype=np.float64)
+        out = k.copy()
+        out[..., 2:] -= np.array(self.offset) + 0.5 * self.scale - 0.5
+        return out / self.scale
+
+    def K_to_user(self, K: np.ndarray) -> np.ndarray:
+        """(..., 3, 3) model px -> user px."""
+        return k_matrix(self.k_to_user(k_params(K)))
+
+    def bounds_to_user(self, bounds: np.ndarray) -> np.ndarray:
+        """(4, 2) [low, high] model px -> user px (the map is increasing)."""
+        return np.swapaxes(self.k_to_user(np.swapaxes(bounds, 0, 1)), 0, 1)
+
+    def lengths_to_user(self, px):
+        """Pixel lengths (errors, Delta K) model px -> user px."""
+        return np.asarray(px) / self.scale
+
+    def covariance_to_user(self, cov: np.ndarray) -> np.ndarray:
+        """(..., 4, 4) px^2 of (fx, fy, cx, cy) model -> user px^2."""
+        return np.asarray(cov) / self.scale**2
+
+
+def same_camera(k_a: np.ndarray, size_a, k_b: np.ndarray, size_b) -> bool:
+    """Equal image sizes and (fx, fy, cx, cy) equal to SAME_CAMERA_RELATIVE of fx."""
+    return tuple(size_a) == tuple(size_b) and bool(
+        np.all(np.abs(np.asarray(k_a) - np.asarray(k_b)) <= SAME_CAMERA_RELATIVE * abs(k_b[0]))
+    )
+
+
+def device_pixel_map(k_model: np.ndarray, size_model, camera: Camera, source: str) -> Optional[PixelMap]:
+    """The map from ``camera`` onto a device model's camera (k_model (4,) px, size_model (w, h)
+    px), None when they are the same; CameraError naming ``source`` unless the camera is a
+    consistent rescale or crop of the model's: scale = fx_model / fx, fy / fx as the model's
+    within ASPECT_TOLERANCE, and the camera's image, mapped, inside the model's within
+    WINDOW_TOLERANCE of the model's width on each side."""
+    k = k_params(camera.K)
+    if same_camera(k, camera.image_size, k_model, size_model):
+        return None
+    scale = float(k_model[0] / k[0])
+    if abs(k_model[1] / k[1] - scale) > ASPECT_TOLERANCE * scale:
+        raise CameraError(
+            f"{source}: K_c's fy / fx = {k[1] / k[0]:.4f} differs from the model's camera "
+            f"({k_model[1] / k_model[0]:.4f}): K_c of another lens, or a generic model is needed"
+        )
+    offset = k_model[2:] - (scale * (k[2:] + 0.5) - 0.5)
+    low = offset - 0.5
+    high = offset + scale * np.asarray(camera.image_size, dtype=np.float64) - 0.5
+    tolerance = WINDOW_TOLERANCE * size_model[0]
+    if np.any(low < -0.5 - tolerance) or np.any(high > np.asarray(size_model) - 0.5 + tolerance):
+        w, h = camera.image_size
+        raise CameraError(
+            f"{source}: the {w}x{h} px camera with fx={k[0]:.2f} is no rescale or crop of the model's "
+            f"{size_model[0]}x{size_model[1]} px camera with fx={k_model[0]:.2f} (mapped, it would cover "
+            f"x {low[0]:.0f}..{high[0]:.0f}, y {low[1]:.0f}..{high[1]:.0f} px of it): K_c of another lens or "
+            f"another calibration? Use a generic model, or train one for this camera"
+        )
+    return PixelMap(scale=scale, offset=(float(offset[0]), float(offset[1])))
+
+
+def generic_pixel_map(camera: Camera, focal_px: float) -> PixelMap:
+    """The map from ``camera`` onto a generic model's canonical camera of fx = focal_px: a pure
+    rescale, so the grid cells (fractions of the image) do not move."""
+    return PixelMap(scale=float(focal_px / camera.K[0, 0]))
