@@ -130,8 +130,8 @@ def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction)
             frames.points_3d[f][m],
             k_params(K[f]),
             K_cov[f],
-            predictor.spec.K_bounds,
-            predictor.spec.K_c,
+            predictor.K_bounds,
+            predictor.K_c,
             uncertainty=uncertainty,
         )
         if reason is None:

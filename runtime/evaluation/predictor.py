@@ -8,7 +8,7 @@ with the rectifier's batches.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import metadata
 from pathlib import Path
 from typing import Callable, Optional
@@ -18,6 +18,7 @@ import numpy as np
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
+from dimenet.runtime.rectify.camera import Camera, PixelMap
 from dimenet.runtime.rectify.inference import network_k, network_statistics
 from dimenet.runtime.rectify.model import load_onnx_model
 from dimenet.runtime.rectify.spec import ModelSpec
@@ -40,41 +41,82 @@ class KPrediction:
 
 @dataclass(frozen=True)
 class Predictor:
-    """spec: the model's dimenet-model/1 spec; delta_k: features (B, D) float32 -> (B, 4) px."""
+    """spec: the model's dimenet-model/1 spec; delta_k: features (B, D) float32 -> (B, 4) px;
+    camera: the camera served (None: a device model's own; a generic model needs one, see
+    ``for_camera``). ``K_c``, ``K_bounds`` and ``image_size`` are the camera's, in its pixels."""
 
     spec: ModelSpec
     delta_k: Callable[[np.ndarray], np.ndarray]
     source: str
+    camera: Optional[Camera] = None
+
+    def __post_init__(self) -> None:
+        if self.spec.generic is not None and self.camera is None:
+            return  # resolved once for_camera gives the camera
+        resolved, pixels = self.spec.for_camera(self.camera, self.source)
+        object.__setattr__(self, "_resolved", (resolved, pixels))
+
+    def for_camera(self, camera: Optional[Camera]) -> Predictor:
+        """This predictor serving ``camera`` (CameraError when the model cannot)."""
+        return replace(self, camera=camera)
+
+    def _model_frame(self) -> tuple[ModelSpec, Optional[PixelMap]]:
+        if not hasattr(self, "_resolved"):
+            self.spec.for_camera(None, self.source)  # the generic model's CameraError
+        return self._resolved
+
+    @property
+    def image_size(self) -> tuple:
+        return tuple(self.camera.image_size) if self.camera is not None else tuple(self._model_frame()[0].image_size)
+
+    @property
+    def K_c(self) -> np.ndarray:
+        """(3, 3) px the prior, in the camera's pixels."""
+        spec, pixels = self._model_frame()
+        if self.camera is not None and (pixels is None or spec.generic is not None):
+            return self.camera.K
+        return spec.K_c if pixels is None else pixels.K_to_user(spec.K_c)
+
+    @property
+    def K_bounds(self) -> np.ndarray:
+        """(4, 2) px the plausible K range, in the camera's pixels."""
+        spec, pixels = self._model_frame()
+        return spec.K_bounds if pixels is None else pixels.bounds_to_user(spec.K_bounds)
 
     def predict(self, frames: Dataset) -> KPrediction:
         """K and, with an uncertainty model, its covariance per frame from its inference points."""
-        spec = self.spec
-        if tuple(frames.image_size.tolist()) != tuple(spec.image_size):
+        spec, pixels = self._model_frame()
+        size = self.image_size
+        if tuple(frames.image_size.tolist()) != size:
             raise ModelError(
-                f"{self.source}: trained for {spec.image_size[0]}x{spec.image_size[1]} px images, "
-                f"the dataset has {frames.image_size[0]}x{frames.image_size[1]}"
+                f"{self.source}: serves {size[0]}x{size[1]} px images, the dataset has "
+                f"{frames.image_size[0]}x{frames.image_size[1]} (give its camera: --camera FILE)"
             )
         F = frames.n_frames
-        K = np.broadcast_to(spec.K_c, (F, 3, 3)).copy()
+        K = np.broadcast_to(self.K_c, (F, 3, 3)).copy()
         stats = np.full((F, len(STATISTICS)), np.nan)
         predicted = np.zeros(F, bool)
         usable = frames.infer_mask.sum(1) >= MIN_POINTS
         if usable.any():
             sub = frames.select(usable)
-            net = network_k(spec, self.delta_k, sub.points_2d, sub.points_3d, sub.infer_mask)
+            points_2d = sub.points_2d if pixels is None else pixels.points_to_model(sub.points_2d)
+            net = network_k(spec, self.delta_k, points_2d, sub.points_3d, sub.infer_mask)
             ok = net.plausible
             rows = np.flatnonzero(usable)[ok]
-            K[rows], predicted[rows] = k_matrix(net.k[ok]), True
+            k = net.k[ok] if pixels is None else pixels.k_to_user(net.k[ok])
+            K[rows], predicted[rows] = k_matrix(k), True
             stats[rows] = network_statistics(net, ok, sub.infer_mask, sub.points_3d, len(spec.features.channels))
         K_cov = None
         if spec.uncertainty is not None:
             K_cov = np.full((F, 4, 4), np.nan)
             K_cov[predicted] = spec.uncertainty.covariance(stats[predicted])
+            if pixels is not None:
+                K_cov = pixels.covariance_to_user(K_cov)
         return KPrediction(K=K, predicted=predicted, stats=stats, K_cov=K_cov)
 
     def predict_k(self, frames: Dataset) -> np.ndarray:
         """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few
-        inference points or the prediction is outside the spec's plausible bounds."""
+        inference points or the prediction is outside the plausible bounds."""
         return self.predict(frames).K
 
 

@@ -12,7 +12,12 @@ MAX_KC_ERROR_F times K_c's focal length: wrong correspondences, another camera, 
 unit); Delta K not finite or K outside the spec's ``K_bounds`` (``ModelSpec.k_within_bounds``); no
 pose under K, or one with a point behind the camera; or e(K) > (1 + WORSE_RELATIVE) e(K_c) +
 WORSE_ABSOLUTE_PX, i.e. the predicted K fits the frame's own points worse than K_c by more than
-5 % + 0.05 px.
+5 % + 0.05 px; or the mismatch rule: e(K_c) above MISMATCH_KC_ERROR_F f and e(K) above
+MISMATCH_SHARE e(K_c), a large error under K_c that the predicted K hardly reduces, which an
+OIS state does not make (points of another resolution, K_c of another lens, 3D points in
+another unit; training/METHOD.md, "Camera mismatch").
+
+The values in the reasons are in the user's pixels (``user_px``: user px per model px).
 """
 
 from __future__ import annotations
@@ -37,6 +42,11 @@ WORSE_ABSOLUTE_PX = 0.05
 # natural frames (8.4 px) and beyond 3 px noise on them; shuffled, flipped or other-camera
 # points lie far above (training/METHOD.md, "Runtime safety").
 MAX_KC_ERROR_F = 0.006
+# The mismatch rule: above this fraction of K_c's fx (9 px at f = 3000 px, beyond every simulated
+# rig and planar frame and all but a few natural ones), the predicted K must remove more than
+# 1 - MISMATCH_SHARE of e(K_c) (the OIS's share: on the paper's phones e drops 3.3 -> 0.5 px).
+MISMATCH_KC_ERROR_F = 0.003
+MISMATCH_SHARE = 0.8
 # Cheap sufficient test of a spread-out configuration (see clearly_spread): second largest over
 # largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
 # than check_not_degenerate's limits, which then decides the frames failing it.
@@ -156,16 +166,30 @@ def worse(e, e_c):
     return np.logical_not(e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX)
 
 
-def worse_reason(e: float, e_c: float) -> str:
+def mismatched(e, e_c, fx_c: float):
+    """The mismatch rule: e_c (px) above MISMATCH_KC_ERROR_F fx_c and e (px) above MISMATCH_SHARE
+    e_c: floats -> bool, (B,) arrays -> (B,) bool."""
+    return (e_c > MISMATCH_KC_ERROR_F * fx_c) & (e > MISMATCH_SHARE * e_c)
+
+
+def worse_reason(e: float, e_c: float, fx_c: float, user_px: float = 1.0) -> str:
+    """Why the predicted K lost against K_c: the worse rule, else the mismatch rule (e, e_c, fx_c
+    in model px)."""
+    if worse(e, e_c):
+        return (
+            f"the predicted K fits worse than K_c: {e * user_px:.3f} px vs {e_c * user_px:.3f} px "
+            f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX * user_px:.3g} px)"
+        )
     return (
-        f"the predicted K fits worse than K_c: {e:.3f} px vs {e_c:.3f} px "
-        f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX} px)"
+        f"the points do not fit this camera: the predicted K leaves {e * user_px:.1f} of their "
+        f"{e_c * user_px:.1f} px mean error under K_c, which an OIS state does not make: points of another "
+        f"resolution, K_c of another lens, or 3D points of another scene or unit?"
     )
 
 
 def implausible_reason(delta_k, k) -> str:
-    """Why K = K_c + Delta K was refused: Delta K (4,) px not finite, or k (4,) px (fx, fy, cx, cy)
-    outside K_bounds."""
+    """Why K = K_c + Delta K was refused: Delta K (4,) px not finite, or k (4,) px (fx, fy, cx, cy,
+    in the user's pixels) outside K_bounds."""
     if not np.all(np.isfinite(delta_k)):
         return "the model's Delta K is not finite"
     fx, fy, cx, cy = (float(v) for v in k)
@@ -178,9 +202,10 @@ def out_of_range(e_c, fx_c: float):
     return np.logical_not(e_c <= MAX_KC_ERROR_F * fx_c)
 
 
-def out_of_range_reason(e_c: float, fx_c: float) -> str:
+def out_of_range_reason(e_c: float, fx_c: float, user_px: float = 1.0) -> str:
     return (
-        f"the points fit K_c with a mean error of {e_c:.1f} px, beyond the {MAX_KC_ERROR_F * fx_c:.0f} px "
+        f"the points fit K_c with a mean error of {e_c * user_px:.1f} px, beyond the "
+        f"{MAX_KC_ERROR_F * fx_c * user_px:.0f} px "
         f"this model was made for: wrong correspondences, or points of another camera, resolution or unit?"
     )
 

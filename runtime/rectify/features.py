@@ -9,12 +9,19 @@ One implementation, numpy only, used by training, evaluation, export checks and 
    empty cells are zero. Flattened cell by cell in (row, column) order, channels inside.
 4. Every channel is multiplied by a fixed scale (no shift, so a zero feature stays zero).
 
+Scale-free depth (``FeatureSpec.depth_mm``, spec >= 1.5): each frame's {C0} points are first
+scaled by depth_mm / Z_mean, Z_mean the mean depth of its inference points, so X, Y and 1/Z
+no longer depend on the world unit (mm, m, inches) nor on how far the scene is: they read as
+millimetres of a scene depth_mm away. With the PMD measured in a canonical camera's pixels
+(``rectify.camera``), the whole feature is then scale free.
+
 Variants (paper Table 3): A all five channels; B PMD only; C PMD + 1/Z; D PMD + X, Y;
 E X, Y, 1/Z only.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Optional
@@ -46,8 +53,11 @@ class FeatureSpec:
     grid: Grid = Grid(8, 6)
     variant: str = "A"
     scale: dict = field(default_factory=lambda: dict(DEFAULT_SCALE))
+    depth_mm: Optional[float] = None  # None: {C0} in the frame's own unit; else scale-free depth (above)
 
     def __post_init__(self) -> None:
+        if self.depth_mm is not None and not (math.isfinite(self.depth_mm) and self.depth_mm > 0):
+            raise InputError(f"feature depth_mm must be a positive number, got {self.depth_mm!r}")
         if self.variant not in VARIANTS:
             raise InputError(f"feature variant must be one of {', '.join(VARIANTS)}, got {self.variant!r}")
         missing = [c for c in CHANNELS if c not in self.scale]
@@ -68,7 +78,10 @@ class FeatureSpec:
         return len(self.channels) * self.grid.n_cells
 
     def to_dict(self) -> dict:
-        return {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
+        d = {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
+        if self.depth_mm is not None:
+            d["depth_mm"] = self.depth_mm
+        return d
 
     @classmethod
     def from_dict(cls, d: Any, image_size: Optional[tuple] = None) -> FeatureSpec:
@@ -98,8 +111,16 @@ class FeatureSpec:
             value = scale.get(channel)
             if not (is_number(value) and value > 0):
                 raise JsonProblem(f"features.scale.{channel} must be a positive number, got {shown(value)}")
+        depth_mm = d.get("depth_mm")
+        if depth_mm is not None and not (is_number(depth_mm) and depth_mm > 0):
+            raise JsonProblem(f"features.depth_mm must be a positive number, got {shown(depth_mm)}")
         try:
-            return cls(grid=grid, variant=variant, scale={c: float(scale[c]) for c in CHANNELS})
+            return cls(
+                grid=grid,
+                variant=variant,
+                scale={c: float(scale[c]) for c in CHANNELS},
+                depth_mm=None if depth_mm is None else float(depth_mm),
+            )
         except ValueError as exc:
             raise JsonProblem(f"features: {exc}") from None
 
@@ -145,6 +166,17 @@ def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec) -> None:
     pmd -= np.swapaxes(points_2d, 1, 2)
 
 
+def _relative_depth(rows: np.ndarray, mask: Optional[np.ndarray], depth_mm: float) -> None:
+    """Scale each frame's {C0} rows X, Y, 1/Z of ``rows`` (F, 6, N) in place to a scene whose
+    inference points (``mask`` (F, N), None: all) lie depth_mm deep on average."""
+    depth = 1.0 / rows[:, 4]
+    mean = depth.mean(1) if mask is None else np.where(mask, depth, 0.0).sum(1) / np.maximum(mask.sum(1), 1)
+    # A frame with points behind the camera keeps its signs (the rectifier then refuses it).
+    factor = np.where(mean > 0, depth_mm / np.where(mean > 0, mean, 1.0), 1.0)
+    rows[:, 2:4] *= factor[:, None, None]
+    rows[:, 4] /= factor[:, None]
+
+
 def grid_features(
     points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None, return_points: bool = False
 ):
@@ -155,8 +187,9 @@ def grid_features(
     ``poses`` (rvec, tvec) of {W}->{C0} may be passed when already known (else solved here
     with SQPnP).
 
-    With ``return_points``, returns (feature, points): points (F, 6, N) the raw unscaled point
-    rows [dx, dy, X, Y, 1/Z, 1] channel-major (px, px, mm, mm, 1/mm, 1) in {C0}, arbitrary on
+    With ``return_points``, returns (feature, points): points (F, 6, N) the point rows
+    [dx, dy, X, Y, 1/Z, 1] before the channel scales, channel-major (px, px, mm, mm, 1/mm, 1)
+    in {C0} (X, Y, 1/Z at the scale-free depth when ``spec.depth_mm`` is set), arbitrary on
     unmasked points; rows 0-1 (the PMD) are each point's reprojection residual under K_c at
     the C0 pose.
     """
@@ -175,6 +208,8 @@ def grid_features(
     rows = np.empty((F, len(CHANNELS) + 1, N))
     _point_features_into(rows, points_2d, points_3d, K_c, rvec, tvec)
     rows[:, -1] = 1.0
+    if spec.depth_mm is not None:
+        _relative_depth(rows, mask, spec.depth_mm)
     points = rows
     channels = spec.channels
     if channels != CHANNELS:

@@ -19,13 +19,18 @@ stages, each timed into ``timings_us`` under its name:
    fallback rule: a refused candidate gives way to K_c's own solution (``rectify.checks``).
 
 ``rectify_batch`` runs the same stages over B frames at once (the model once for all).
+
+The camera: a device model serves its own camera, or a rescale or crop of it; a generic model
+any camera, given to ``load``. The stages run in the model's pixel frame (``rectify.camera``):
+the points are mapped onto it after validation and K, Delta K, K_cov and the errors back
+(nothing is mapped when the camera is the model's own).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property, partial
 from pathlib import Path
 from typing import Callable, Optional
@@ -34,7 +39,7 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.assets import asset
-from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.errors import CameraError, InputError, ModelError
 from dimenet.runtime.geometry import (
     MIN_POINTS,
     k_matrix,
@@ -43,6 +48,7 @@ from dimenet.runtime.geometry import (
     min_depths,
     solve_pnp_start,
 )
+from dimenet.runtime.rectify.camera import Camera, PixelMap, checked_camera
 from dimenet.runtime.rectify.checks import (
     BEHIND_REASON,
     NO_POSE_REASON,
@@ -51,6 +57,7 @@ from dimenet.runtime.rectify.checks import (
     bool_mask,
     check_spread,
     implausible_reason,
+    mismatched,
     out_of_range,
     out_of_range_reason,
     real_array,
@@ -78,8 +85,9 @@ class Rectification:
     pose); delta_k (4,) px the applied (dfx, dfy, dcx, dcy), 0 on fallback; fallback None or
     why K_c's solution (or in map mode, DIME-Net's) was returned; timings_us: microseconds per
     stage; K_cov (4, 4) px^2 the covariance of (fx, fy, cx, cy): the network's (mode dimenet)
-    or the MAP posterior (mode map); None when K is K_c's or the model has no uncertainty.
-    ``covariance`` computes K_cov when first asked for: the hot path does not pay for it."""
+    or the MAP posterior (mode map); None when K is K_c's or the model has no uncertainty;
+    K_c (3, 3) px the prior used (``Rectifier.K_c``). ``covariance`` computes K_cov when first
+    asked for: the hot path does not pay for it."""
 
     K: np.ndarray
     rvec: np.ndarray
@@ -89,6 +97,7 @@ class Rectification:
     delta_k: np.ndarray
     fallback: Optional[str]
     timings_us: dict
+    K_c: np.ndarray
     covariance: Optional[Callable[[], np.ndarray]] = field(default=None, repr=False, compare=False)
 
     @cached_property
@@ -101,7 +110,8 @@ class Rectification:
 class BatchRectification:
     """B frames, as Rectification: K (B, 3, 3), rvec (B, 3), tvec (B, 3), errors (B,) px over
     each frame's valid points, delta_k (B, 4) px, fallback: one reason or None per frame;
-    K_cov (B, 4, 4) px^2, NaN for frames whose K is K_c's, or None without an uncertainty model."""
+    K_c (3, 3) px the prior used; K_cov (B, 4, 4) px^2, NaN for frames whose K is K_c's, or
+    None without an uncertainty model."""
 
     K: np.ndarray
     rvec: np.ndarray
@@ -110,6 +120,7 @@ class BatchRectification:
     reprojection_error_kc_px: np.ndarray
     delta_k: np.ndarray
     fallback: tuple
+    K_c: np.ndarray
     K_cov: Optional[np.ndarray] = None
 
 
@@ -185,6 +196,10 @@ def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray
     return r.ravel(), t.ravel()
 
 
+def _covariance_to_user(pixels: PixelMap, covariance: Callable[[], np.ndarray]) -> np.ndarray:
+    return pixels.covariance_to_user(covariance())
+
+
 def _in_frame(b: int, call, *args):
     """``call(*args)``, its InputError prefixed with the frame index ``b`` of a batch."""
     try:
@@ -193,16 +208,57 @@ def _in_frame(b: int, call, *args):
         raise InputError(f"frame {b}: {exc}") from None
 
 
-class Rectifier:
-    """A loaded model ready to rectify frames. ``Rectifier.load()`` uses the bundled default model."""
+def _default_model(threads: int, providers) -> OnnxModel:
+    """The bundled default model, or ModelError when this installation has none."""
+    resource = asset(DEFAULT_MODEL)
+    if not resource.is_file():
+        raise ModelError(
+            f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
+            f"pass a model file from `dimenet export`"
+        )
+    return onnx_model_from_bytes(
+        resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})", threads=threads, providers=providers
+    )
 
-    def __init__(self, model: OnnxModel, mode: str = "dimenet") -> None:
+
+def _camera(model: OnnxModel, K_c, image_size) -> Optional[Camera]:
+    """The camera of ``Rectifier.load``'s arguments: None (the model's own) without either; for a
+    device model, ``image_size`` alone is a rescale of its camera and ``K_c`` alone keeps its
+    image size."""
+    if K_c is None and image_size is None:
+        return None
+    spec, source = model.spec, model.source
+    if spec.generic is None and K_c is None:
+        size = checked_camera(spec.K_c, image_size, "image_size").image_size
+        K_c = PixelMap(scale=spec.image_size[0] / size[0]).K_to_user(spec.K_c)
+    elif spec.generic is None and image_size is None:
+        image_size = spec.image_size
+    elif K_c is None or image_size is None:
+        raise CameraError(
+            f"{source} is a generic model: it needs both K_c (3, 3) px and image_size (width, height) px, "
+            f"got only {'image_size' if K_c is None else 'K_c'}"
+        )
+    return checked_camera(K_c, image_size, "camera")
+
+
+class Rectifier:
+    """A loaded model ready to rectify frames of one camera. ``Rectifier.load()`` uses the bundled
+    default model. ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera served
+    (the prior K_c used), in the user's pixels."""
+
+    def __init__(self, model: OnnxModel, mode: str = "dimenet", camera: Optional[Camera] = None) -> None:
         if mode not in MODES:
             raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
-        spec = model.spec
         if mode == "map":
-            spec.map_uncertainty(model.source)
-        self.model, self.mode = model, mode
+            model.spec.map_uncertainty(model.source)
+        spec, self._pixels = model.spec.for_camera(camera, model.source)
+        self.model, self.mode, self._spec = model, mode, spec
+        if camera is None:
+            self.K_c, self.image_size = spec.K_c.copy(), tuple(spec.image_size)
+        else:
+            generic = spec.generic is not None
+            self.K_c = camera.K.copy() if generic or self._pixels is None else self._pixels.K_to_user(spec.K_c)
+            self.image_size = tuple(camera.image_size)
         self._uncertainty = spec.uncertainty
         self._n_channels = len(spec.features.channels)
         self._K_c = np.ascontiguousarray(spec.K_c, dtype=np.float64)
@@ -210,40 +266,37 @@ class Rectifier:
         self._k_c_list = self._k_c.tolist()
         self._fx_c = float(self._k_c[0])
         self._K_bounds_list = spec.K_bounds.tolist()
-        self._image = ImageBounds(spec.image_size)
+        self._image = ImageBounds(self.image_size)
+        self._user_px = 1.0 if self._pixels is None else 1.0 / self._pixels.scale  # user px per model px
+        self.K_c.setflags(write=False)
 
     @classmethod
     def load(
         cls,
         path: Optional[str | Path] = None,
         *,
+        K_c=None,
+        image_size=None,
         threads: int = 1,
         providers: Optional[Sequence[str]] = None,
         mode: str = "dimenet",
     ) -> Rectifier:
         """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model.
-        ``mode``: "dimenet" (the paper's method) or "map" (the network's K as a prior, fused
-        with the frame's own points)."""
+        ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera (OpenCV's pixel
+        convention, the centre of the top-left pixel at (0, 0)); a generic model needs both, a
+        device model keeps its own camera without them and accepts a rescale or crop of it
+        (``image_size`` alone: a rescale). ``mode``: "dimenet" (the paper's method) or "map" (the
+        network's K as a prior, fused with the frame's own points). CameraError for a camera the
+        model cannot serve."""
         if path is not None:
-            return cls(load_onnx_model(path, threads=threads, providers=providers), mode)
-        resource = asset(DEFAULT_MODEL)
-        if not resource.is_file():
-            raise ModelError(
-                f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
-                f"pass a model file from `dimenet export`"
-            )
-        return cls(
-            onnx_model_from_bytes(
-                resource.read_bytes(),
-                f"bundled default model ({DEFAULT_MODEL})",
-                threads=threads,
-                providers=providers,
-            ),
-            mode,
-        )
+            model = load_onnx_model(path, threads=threads, providers=providers)
+        else:
+            model = _default_model(threads, providers)
+        return cls(model, mode, _camera(model, K_c, image_size))
 
     @property
     def spec(self) -> ModelSpec:
+        """The model's own spec (a generic model's has no camera: see ``K_c``, ``image_size``)."""
         return self.model.spec
 
     # -- one frame ---------------------------------------------------------------------------
@@ -273,12 +326,16 @@ class Rectifier:
             n_points, occupied_cells(feats, self._n_channels)[0], pmd_px, thickness(*invariants_3d)
         )
 
+    def _user_k(self, k) -> np.ndarray:
+        """(4,) (fx, fy, cx, cy) model px -> the user's px (for the reasons)."""
+        return np.asarray(k) if self._pixels is None else self._pixels.k_to_user(k)
+
     def _network_candidate(self, delta_k, feats, n_points: int, pmd_px: float, invariants_3d: tuple):
         """Stage model's end: (candidate, None), or (None, why) when K = K_c + Delta K breaks the
         K-bounds rule."""
         k = [c + d for c, d in zip(self._k_c_list, delta_k.tolist())]
         if not frame_within_bounds(k, self._K_bounds_list):
-            return None, implausible_reason(delta_k, k)
+            return None, implausible_reason(delta_k, self._user_k(k))
         covariance = None
         if self._uncertainty is not None:
             covariance = partial(self._frame_covariance, feats, n_points, pmd_px, invariants_3d)
@@ -292,7 +349,7 @@ class Rectifier:
             p3,
             k_net,
             K_cov_net,
-            self.spec.K_bounds,
+            self._spec.K_bounds,
             self._K_c,
             pose=(rvec_c0, tvec_c0),
             uncertainty=self._uncertainty,
@@ -308,8 +365,10 @@ class Rectifier:
         """
         lap = _Lap()
         p2, p3, invariants_3d = self._validated(points_2d, points_3d)
+        if self._pixels is not None:
+            p2 = self._pixels.points_to_model(p2)
         lap("validate")
-        spec, K_c = self.model.spec, self._K_c
+        spec, K_c = self._spec, self._K_c
         rvec_c0, tvec_c0 = solve_pnp_start(p2, p3, K_c)
         lap("pnp_kc")
         feats, points = grid_features(
@@ -329,7 +388,7 @@ class Rectifier:
         lap("model")
         e_c = frame_mean_norm(points[0, :2])  # the feature's PMD: the residuals under K_c at the C0 pose
         if out_of_range(e_c, self._fx_c):
-            cand, reason = None, out_of_range_reason(e_c, self._fx_c)
+            cand, reason = None, out_of_range_reason(e_c, self._fx_c, self._user_px)
         else:
             cand, reason = self._network_candidate(delta_k, feats, len(p2), e_c, invariants_3d)
         if reason is None and self.mode == "map":
@@ -362,14 +421,14 @@ class Rectifier:
             cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
             if depth <= 0:
                 reason = BEHIND_REASON
-        if reason is None and worse(cand.e, e_c):
-            reason = worse_reason(cand.e, e_c)
+        if reason is None and (worse(cand.e, e_c) or mismatched(cand.e, e_c, self._fx_c)):
+            reason = worse_reason(cand.e, e_c, self._fx_c, self._user_px)
         if reason is not None:  # the one fallback rule: K_c's own solution
             cand = _Candidate(
-                K=spec.K_c.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
+                K=self.K_c.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
             )
         lap("check")
-        return Rectification(
+        result = Rectification(
             K=cand.K,
             rvec=cand.rvec,
             tvec=cand.tvec,
@@ -378,7 +437,25 @@ class Rectifier:
             delta_k=cand.delta_k,
             fallback=cand.note,
             timings_us=lap.timings,
+            K_c=self.K_c,
             covariance=cand.covariance,
+        )
+        return result if self._pixels is None else self._to_user(result)
+
+    def _to_user(self, r: Rectification) -> Rectification:
+        """One result from the model's pixels to the camera's (``rectify.camera.PixelMap``)."""
+        pixels = self._pixels
+        K = self.K_c.copy() if not r.delta_k.any() else pixels.K_to_user(r.K)
+        covariance = r.covariance
+        if covariance is not None:
+            covariance = partial(_covariance_to_user, pixels, covariance)
+        return replace(
+            r,
+            K=K,
+            reprojection_error_px=float(pixels.lengths_to_user(r.reprojection_error_px)),
+            reprojection_error_kc_px=float(pixels.lengths_to_user(r.reprojection_error_kc_px)),
+            delta_k=pixels.lengths_to_user(r.delta_k),
+            covariance=covariance,
         )
 
     # -- B frames ----------------------------------------------------------------------------
@@ -409,6 +486,8 @@ class Rectifier:
         if not inside:
             for b in np.flatnonzero(np.any(valid & ~self._image.inside(p2, p3), 1)):
                 self._image.raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
+        if self._pixels is not None:
+            p2 = self._pixels.points_to_model(p2)
         frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
         spread_3d, invariants_3d = spread_frames(p3, mask)
         spread = spread_3d & spread_frames(p2, mask)[0]
@@ -470,9 +549,9 @@ class Rectifier:
         far = out_of_range(e_c0, self._fx_c)
         for b, (x, X) in enumerate(fr.frames):
             if reasons[b] is None and far[b]:
-                reasons[b] = out_of_range_reason(e_c0[b], self._fx_c)
+                reasons[b] = out_of_range_reason(e_c0[b], self._fx_c, self._user_px)
             if reasons[b] is None and not net.plausible[b]:
-                reasons[b] = implausible_reason(net.delta_k[b], net.k[b])
+                reasons[b] = implausible_reason(net.delta_k[b], self._user_k(net.k[b]))
             if reasons[b] is None:
                 try:
                     cand.rvec[b], cand.tvec[b] = solve_pnp_start(x, X, cand.K[b])
@@ -526,8 +605,8 @@ class Rectifier:
                 cand.rvec[pending],
                 cand.tvec[pending],
             )
-        for b in np.flatnonzero(pending & worse(e, e_c)):
-            cand.reasons[b] = worse_reason(e[b], e_c[b])
+        for b in np.flatnonzero(pending & (worse(e, e_c) | mismatched(e, e_c, self._fx_c))):
+            cand.reasons[b] = worse_reason(e[b], e_c[b], self._fx_c, self._user_px)
         return e
 
     def rectify_batch(
@@ -546,7 +625,7 @@ class Rectifier:
         rvec_c0, tvec_c0 = self._c0_poses(fr)
         reasons: list = [None] * len(fr.frames)
         infer, *poses_i = self._inference_poses(fr, rvec_c0, tvec_c0, reasons)
-        net = network_k(self.spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, tuple(poses_i))
+        net = network_k(self._spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, tuple(poses_i))
         # With K inferred from the valid points, the feature's PMD rows are their residuals under K_c
         # at the C0 pose: their mean norm is e_c, and the uncertainty's PMD statistic.
         pmd_px = net.pmd_norms(fr.mask) if infer is fr.valid else None
@@ -571,21 +650,27 @@ class Rectifier:
             e_c = e_c0  # the C0 pose and K_c on all valid points
         e = self._errors(cand, fr, pending, e_c)
         fell_back = ~cand.standing  # the one fallback rule: K_c's own solution
-        cand.K[fell_back], cand.delta_k[fell_back] = self._K_c, 0.0
         cand.rvec[fell_back], cand.tvec[fell_back], e[fell_back] = (
             rvec_c0[fell_back],
             tvec_c0[fell_back],
             e_c[fell_back],
         )
-        if cand.K_cov is not None:
-            cand.K_cov[fell_back] = np.nan
+        K, delta_k, K_cov = cand.K, cand.delta_k, cand.K_cov
+        if self._pixels is not None:
+            pixels = self._pixels
+            K, delta_k, e, e_c = pixels.K_to_user(K), pixels.lengths_to_user(delta_k), *pixels.lengths_to_user([e, e_c])
+            K_cov = None if K_cov is None else pixels.covariance_to_user(K_cov)
+        K[fell_back], delta_k[fell_back] = self.K_c, 0.0
+        if K_cov is not None:
+            K_cov[fell_back] = np.nan
         return BatchRectification(
-            K=cand.K,
+            K=K,
             rvec=cand.rvec,
             tvec=cand.tvec,
             reprojection_error_px=e,
             reprojection_error_kc_px=e_c,
-            delta_k=cand.delta_k,
+            delta_k=delta_k,
             fallback=tuple(r if r is not None else n for r, n in zip(reasons, cand.notes)),
-            K_cov=cand.K_cov,
+            K_c=self.K_c,
+            K_cov=K_cov,
         )

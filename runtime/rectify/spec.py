@@ -12,34 +12,60 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.errors import ModelError
+from dimenet.runtime.errors import CameraError, ModelError
 from dimenet.runtime.geometry import k_matrix, k_params
-from dimenet.runtime.json_text import JsonProblem, integer, numbers, parse_json, required, shown
+from dimenet.runtime.json_text import JsonProblem, integer, is_number, numbers, parse_json, required, shown
+from dimenet.runtime.rectify.camera import MAX_IMAGE_SIDE_PX, Camera, PixelMap, device_pixel_map, generic_pixel_map
 from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.uncertainty import PARAMETERS, Uncertainty
 
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version and reads every 1.x (the minor
 # versions and what each added: models_spec/model-v1.md).
-VERSION = "1.4.0"
+VERSION = "1.5.0"
 METADATA_KEY = "dimenet_model_spec"
 # Spec >= 1.4, optional: the sha256 of the model file's bytes with this value replaced by
 # WEIGHTS_SHA256_PLACEHOLDER (model-v1.md, "Integrity"; written by export, checked by the runtime).
 WEIGHTS_SHA256_KEY = "weights_sha256"
 WEIGHTS_SHA256_PLACEHOLDER = "0" * 64
-MAX_IMAGE_SIDE_PX = 100_000
 MAX_SPEC_CHARS = 4 << 20  # a spec is a few KiB
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
 
-def _checked(d: dict) -> dict:
-    """The ModelSpec fields of a spec dict, every one checked (``JsonProblem`` names the field)."""
+def _checked_generic(d: dict) -> dict:
+    """The camera fields of a generic spec (>= 1.5): ``generic`` {focal_px, delta_bounds}, and
+    no K_c, image_size or K_bounds of its own."""
+    for key in ("K_c", "image_size", "K_bounds"):
+        if key in d:
+            raise JsonProblem(f"a generic model has no {key} of its own (the camera is given at run time)")
+    g = d["generic"]
+    if not isinstance(g, dict):
+        raise JsonProblem(f"generic must be an object, got {shown(g)}")
+    focal = required(g, "focal_px")
+    if not (is_number(focal) and 1.0 <= focal <= MAX_IMAGE_SIDE_PX):
+        raise JsonProblem(f"generic.focal_px must be a number in [1, {MAX_IMAGE_SIDE_PX}], got {shown(focal)}")
+    bounds = numbers(required(g, "delta_bounds"), (4, 2), "generic.delta_bounds")
+    for p, name in enumerate(PARAMETERS):
+        low, high = bounds[p]
+        if not low <= 0.0 <= high or not low < high:
+            raise JsonProblem(
+                f"generic.delta_bounds of {name} must have low <= 0 <= high and low < high, got [{low}, {high}]"
+            )
+    features = FeatureSpec.from_dict(required(d, "features"))
+    if features.depth_mm is None:
+        raise JsonProblem("a generic model's features need depth_mm (the scale-free depth)")
+    generic = GenericCamera(focal_px=float(focal), delta_bounds=bounds)
+    return {"features": features, "K_c": None, "image_size": None, "K_bounds": None, "generic": generic}
+
+
+def _checked_camera(d: dict) -> dict:
+    """The camera fields of a device spec: K_c, image_size, K_bounds."""
     k_c = numbers(required(d, "K_c"), (4,), "K_c")
     if not (k_c[0] > 0 and k_c[1] > 0):
         raise JsonProblem(f"K_c must have fx, fy > 0, got {k_c.tolist()}")
@@ -54,10 +80,17 @@ def _checked(d: dict) -> dict:
             raise JsonProblem(f"K_bounds of {name} must have low < high, got [{low}, {high}]")
         if not low <= k_c[p] <= high:
             raise JsonProblem(f"K_bounds of {name} [{low}, {high}] must contain K_c's {name} {k_c[p]}")
+    features = FeatureSpec.from_dict(required(d, "features"), image_size)
+    return {"features": features, "K_c": k_matrix(k_c), "image_size": image_size, "K_bounds": bounds}
+
+
+def _checked(d: dict) -> dict:
+    """The ModelSpec fields of a spec dict, every one checked (``JsonProblem`` names the field)."""
+    camera = _checked_generic(d) if "generic" in d else _checked_camera(d)
+    features = camera["features"]
     hidden = required(d, "hidden")
     if not isinstance(hidden, list) or not hidden:
         raise JsonProblem(f"hidden must be a list of layer widths, got {shown(hidden)}")
-    features = FeatureSpec.from_dict(required(d, "features"), image_size)
     provenance = d.get("provenance", {})
     if not isinstance(provenance, dict):
         raise JsonProblem(f"provenance must be an object, got {shown(provenance)}")
@@ -65,10 +98,7 @@ def _checked(d: dict) -> dict:
     if weights_sha256 is not None and not (isinstance(weights_sha256, str) and _HEX64.fullmatch(weights_sha256)):
         raise JsonProblem(f"{WEIGHTS_SHA256_KEY} must be 64 lowercase hex digits, got {shown(weights_sha256)}")
     return {
-        "features": features,
-        "K_c": k_matrix(k_c),
-        "image_size": image_size,
-        "K_bounds": bounds,
+        **camera,
         "hidden": tuple(integer(h, "hidden", 1) for h in hidden),
         "provenance": dict(provenance),
         "uncertainty": Uncertainty.from_dict(d["uncertainty"], features.grid.n_cells) if "uncertainty" in d else None,
@@ -77,34 +107,48 @@ def _checked(d: dict) -> dict:
 
 
 @dataclass(frozen=True)
+class GenericCamera:
+    """What makes a model generic (spec >= 1.5): it infers K in a canonical camera of fx =
+    focal_px (``rectify.camera.generic_pixel_map``) and has no camera of its own; delta_bounds
+    (4, 2) [low, high] the plausible Delta K (fx, fy, cx, cy) in canonical px."""
+
+    focal_px: float
+    delta_bounds: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"focal_px": self.focal_px, "delta_bounds": np.asarray(self.delta_bounds).tolist()}
+
+
+@dataclass(frozen=True)
 class ModelSpec:
     """features: the grid feature; K_c (3, 3) px; image_size (width, height) px; K_bounds: per
     parameter (fx, fy, cx, cy) the [low, high] px range of plausible K (outside it, the runtime
-    falls back to K_c); uncertainty: the model of the network's Delta K covariance (None in
-    1.0 specs); provenance: dataset sha256, seed, versions, command; weights_sha256: the
+    falls back to K_c); generic: None for a device model; for a generic one (spec >= 1.5) its
+    canonical camera, and K_c, image_size and K_bounds are None until ``rectify.camera``
+    resolves the spec for a camera (in canonical px); uncertainty: the model of the network's
+    Delta K covariance (None in 1.0 specs); provenance: dataset sha256, seed, versions, command; weights_sha256: the
     integrity hash the model file's spec declared (None for a spec on its own or before 1.4).
     It belongs to one file, so ``to_dict`` leaves it out unless given one (export stamps it)."""
 
     features: FeatureSpec
-    K_c: np.ndarray
-    image_size: tuple
-    K_bounds: np.ndarray  # (4, 2) px
+    K_c: Optional[np.ndarray]
+    image_size: Optional[tuple]
+    K_bounds: Optional[np.ndarray]  # (4, 2) px
     hidden: tuple
     provenance: dict = field(default_factory=dict)
+    generic: Optional[GenericCamera] = None
     uncertainty: Optional[Uncertainty] = None
     weights_sha256: Optional[str] = field(default=None, compare=False)
 
     def to_dict(self, *, weights_sha256: Optional[str] = None) -> dict:
-        d = {
-            "format": FORMAT,
-            "version": VERSION,
-            "features": self.features.to_dict(),
-            "K_c": k_params(self.K_c).tolist(),
-            "image_size": [int(v) for v in self.image_size],
-            "K_bounds": np.asarray(self.K_bounds).tolist(),
-            "hidden": list(self.hidden),
-            "provenance": self.provenance,
-        }
+        d = {"format": FORMAT, "version": VERSION, "features": self.features.to_dict()}
+        if self.generic is not None:
+            d["generic"] = self.generic.to_dict()
+        else:
+            d["K_c"] = k_params(self.K_c).tolist()
+            d["image_size"] = [int(v) for v in self.image_size]
+            d["K_bounds"] = np.asarray(self.K_bounds).tolist()
+        d["hidden"], d["provenance"] = list(self.hidden), self.provenance
         if self.uncertainty is not None:
             d["uncertainty"] = self.uncertainty.to_dict()
         if weights_sha256 is not None:
@@ -148,6 +192,31 @@ class ModelSpec:
         except UnicodeDecodeError:
             raise ModelError(f"{path}: model spec is not UTF-8 text") from None
         return cls.from_json(text, source=str(path))
+
+    def for_camera(self, camera: Optional[Camera], source: str = "model") -> tuple[ModelSpec, Optional[PixelMap]]:
+        """This spec resolved for the user's ``camera`` (None: a device model's own camera): the
+        spec in model px (K_c, image_size and K_bounds of the camera mapped onto the model's
+        pixel frame) and the map from the camera's pixels to the model's (None: the same).
+        CameraError naming ``source`` for a generic model without a camera, or a camera a
+        device model cannot serve (``rectify.camera.device_pixel_map``)."""
+        if self.generic is None:
+            pixels = None if camera is None else device_pixel_map(k_params(self.K_c), self.image_size, camera, source)
+            return self, pixels
+        if camera is None:
+            raise CameraError(
+                f"{source} is a generic model: it needs your camera, K_c (3, 3) px and image_size (width, height) px "
+                f"(Rectifier.load(..., K_c=..., image_size=...), or --camera FILE)"
+            )
+        grid = self.features.grid
+        if grid.cols > camera.image_size[0] or grid.rows > camera.image_size[1]:
+            raise CameraError(
+                f"{source}: its {grid} grid has more cells than the {camera.image_size[0]}x{camera.image_size[1]} "
+                f"image has pixels"
+            )
+        pixels = generic_pixel_map(camera, self.generic.focal_px)
+        k = pixels.k_to_model(k_params(camera.K))
+        size = tuple(float(v) * pixels.scale for v in camera.image_size)
+        return replace(self, K_c=k_matrix(k), image_size=size, K_bounds=k[:, None] + self.generic.delta_bounds), pixels
 
     def map_uncertainty(self, source: str) -> Uncertainty:
         """The uncertainty model that MAP rectification needs, or ModelError naming ``source``."""

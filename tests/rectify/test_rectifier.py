@@ -37,7 +37,11 @@ def frame_points(frames, b):
 def stub_rectifier(spec, delta_k):
     """A Rectifier whose model answers a constant Delta K (px) for every frame."""
     batch = lambda f: np.tile(np.asarray(delta_k, np.float32), (len(f), 1))  # noqa: E731
-    return Rectifier(SimpleNamespace(spec=spec, delta_k=batch, frame_delta_k=lambda f: batch(f)[0].astype(np.float64)))
+    return Rectifier(
+        SimpleNamespace(
+            spec=spec, delta_k=batch, frame_delta_k=lambda f: batch(f)[0].astype(np.float64), source="stub model"
+        )
+    )
 
 
 def test_rectify_error_is_the_evaluation_metric(rectifier, frames):

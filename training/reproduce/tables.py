@@ -60,7 +60,7 @@ def run(config: ReproduceConfig) -> dict:
 
     def ev(frames, name):
         p = predictors[name]
-        return evaluate(frames, p.spec.K_c, p.predict_k)
+        return evaluate(frames, p.K_c, p.predict_k)
 
     rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
     s8 = data["galaxy-s8"]
@@ -120,7 +120,7 @@ def _baselines(data: dict, predictors: dict, config: ReproduceConfig) -> dict:
     out = {}
     for case, (frames, name) in progress(_baseline_cases(data, config).items(), desc="reproduce: baselines"):
         p = predictors[name]
-        ev = evaluate(frames, p.spec.K_c, p, methods=METHODS)
+        ev = evaluate(frames, p.K_c, p, methods=METHODS)
         out[case] = {
             "n_frames": frames.n_frames,
             "methods": {
