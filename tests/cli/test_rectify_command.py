@@ -49,7 +49,7 @@ def test_rectify_command_on_the_example_and_on_a_dataset(model_path, frames, tmp
     other = replace(frames.select(frames.scene == "natural"), image_size=np.array([4000, 3000]))
     write_dataset(other, tmp_path / "other.npz")
     assert main(["rectify", str(tmp_path / "other.npz"), *model]) == 2
-    assert "trained for 4032x3024 px images" in capsys.readouterr().err
+    assert "needs the camera's K_c: give --camera FILE" in capsys.readouterr().err
     assert main(["rectify"]) == 2
 
 

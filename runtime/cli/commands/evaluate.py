@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 
+from dimenet.runtime.cli.camera import add_camera_argument, dataset_camera
 from dimenet.runtime.cli.main import (
     CliError,
     Command,
@@ -23,6 +24,7 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
 from dimenet.runtime.evaluation.methods import METHODS, MODEL_METHODS, evaluate, format_table
 from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
 from dimenet.runtime.geometry.pnp import MIN_POINTS
 from dimenet.runtime.rectify.grid import Grid
@@ -37,6 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=nonempty_path,
         help="trained model: a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`",
     )
+    add_camera_argument(p)
     p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")
     p.add_argument(
         "--drop",
@@ -82,7 +85,11 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--methods {needs_model[0]} needs --model")
     ds = read_dataset(args.data)
     predictor = load_predictor(args.model) if args.model else None
-    K_c = predictor.spec.K_c if predictor else calibrate_dataset(ds).K_c
+    if predictor is not None:
+        predictor = predictor.for_camera(dataset_camera(predictor.spec, ds, args.camera, predictor.source))
+        K_c = predictor.K_c
+    else:
+        K_c = read_camera(args.camera).K if args.camera else calibrate_dataset(ds).K_c
     grid = Grid.parse(args.grid) if args.grid else (predictor.spec.features.grid if predictor else Grid(8, 6))
     chosen = ds.frames_in(args.split)
     if not chosen.any():

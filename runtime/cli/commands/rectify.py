@@ -13,14 +13,17 @@ from importlib import resources
 import numpy as np
 
 from dimenet.runtime.assets import asset
+from dimenet.runtime.cli.camera import add_camera_argument, dataset_camera
 from dimenet.runtime.cli.main import CliError, Command, nonempty_path
-from dimenet.runtime.errors import ModelError
+from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.rectifier import MODES, BatchRectification, Rectifier
 
 EXAMPLE_DATA = "example_frames.npz"
+EXAMPLE_CAMERA = "example_camera.json"  # the example's camera (galaxy-s8 K_c calibrated on its train split)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,6 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)",
     )
     p.add_argument("--model", type=nonempty_path, help="a .onnx from `dimenet export` (default: the bundled model)")
+    add_camera_argument(p)
     p.add_argument(
         "--mode",
         choices=MODES,
@@ -121,15 +125,29 @@ def _frames(args: argparse.Namespace) -> Dataset:
         return read_dataset(path)
 
 
+def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
+    """The model serving the dataset's camera (``cli.camera.dataset_camera``; the bundled example's
+    own camera file with --example)."""
+    model = Rectifier.load(args.model, mode=args.mode).model
+    camera_file = args.camera
+    if args.example and camera_file is None:
+        with resources.as_file(asset(EXAMPLE_CAMERA)) as path:
+            camera = read_camera(path)
+    else:
+        camera = dataset_camera(model.spec, frames, camera_file, model.source)
+    rectifier = Rectifier(model, args.mode, camera)
+    size = tuple(int(v) for v in frames.image_size)
+    if size != rectifier.image_size:
+        raise CameraError(
+            f"{args.camera or model.source}: the camera is {rectifier.image_size[0]}x{rectifier.image_size[1]} px, "
+            f"the dataset's images {size[0]}x{size[1]}"
+        )
+    return rectifier
+
+
 def run(args: argparse.Namespace) -> int:
     frames = _frames(args)
-    rectifier = Rectifier.load(args.model, mode=args.mode)
-    size = tuple(int(v) for v in frames.image_size)
-    if size != tuple(rectifier.spec.image_size):
-        raise ModelError(
-            f"{rectifier.model.source}: trained for {rectifier.spec.image_size[0]}x"
-            f"{rectifier.spec.image_size[1]} px images, the dataset has {size[0]}x{size[1]}"
-        )
+    rectifier = _rectifier(args, frames)
     res = rectifier.rectify_batch(
         frames.points_2d, frames.points_3d, frames.valid, infer_mask=frames.infer_mask, refine=args.refine
     )
@@ -156,13 +174,17 @@ def run(args: argparse.Namespace) -> int:
                     "model_sha256": rectifier.model.sha256,
                     "mode": args.mode,
                     "refine": args.refine,
+                    "K_c": k_params(rectifier.K_c).tolist(),
+                    "image_size": list(rectifier.image_size),
                     "frames": per_frame,
                     "summary": _summary(arrays),
                 }
             )
         )
     else:
-        print(_table(frames, arrays, f"{rectifier.model.source}, mode {args.mode}"))
+        fx, fy, cx, cy = k_params(rectifier.K_c)
+        camera = f"K_c fx={fx:.2f} fy={fy:.2f} cx={cx:.2f} cy={cy:.2f}"
+        print(_table(frames, arrays, f"{rectifier.model.source}, mode {args.mode}; {camera}"))
         if args.out:
             print(f"-> {args.out}")
     return 0

@@ -1,0 +1,39 @@
+"""The camera a command serves (`--camera FILE`, or the dataset's own), shared by rectify and evaluate."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Optional
+
+from dimenet.runtime.cli.main import CliError, nonempty_path
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.rectify.camera import Camera, checked_camera
+from dimenet.runtime.rectify.spec import ModelSpec
+
+
+def add_camera_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--camera",
+        type=nonempty_path,
+        metavar="FILE",
+        help='the camera, a JSON file {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "image_size": [w, h]} in px '
+        "(default: a device model's own camera when the dataset's image size is its, else K_c calibrated on the "
+        "dataset's train split as `dimenet calibrate` does)",
+    )
+
+
+def dataset_camera(spec: ModelSpec, frames: Dataset, camera_file: Optional[str], source: str) -> Optional[Camera]:
+    """The camera for ``frames``: the file's; None (the model's own) for a device model whose image
+    size the dataset has; else K_c from the dataset's train split. CliError when that is needed
+    and the dataset has no train split."""
+    if camera_file is not None:
+        return read_camera(camera_file)
+    size = tuple(int(v) for v in frames.image_size)
+    if spec.generic is None and size == tuple(spec.image_size):
+        return None
+    if not frames.frames_in("train").any():
+        kind = "a generic model" if spec.generic is not None else f"a {size[0]}x{size[1]} px dataset"
+        raise CliError(f"{source}: {kind} needs the camera's K_c: give --camera FILE (the dataset has no train split)")
+    return checked_camera(calibrate_dataset(frames).K_c, size, "K_c calibrated on the dataset's train split")
