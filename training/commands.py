@@ -18,11 +18,16 @@ REPRODUCE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(ReproduceCon
 MAX_EPOCHS = 100_000  # the paper's models train 600; 2**40 would run for ever
 MAX_FOCAL_WEIGHT = 1000.0  # 1e300 overflows the loss (NaN poses)
 epochs = integer_in(1, MAX_EPOCHS)
+MAX_TRAIN_FRAMES = 1_000_000
 
 
 def _add_train(p: argparse.ArgumentParser) -> None:
     d = TRAIN_DEFAULTS
-    p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz) with a train split")
+    p.add_argument(
+        "data",
+        help="dataset file (dimenet-dataset/1 .npz) with a train split: a device model of its camera; or a folder "
+        "of them (a camera family, `dimenet simulate --family`): a generic model for any camera",
+    )
     p.add_argument(
         "--out", required=True, type=nonempty_path, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png"
     )
@@ -45,23 +50,41 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
         f"each frame's K* (default {d.focal_weight}; 0: the paper's loss alone)",
     )
+    p.add_argument(
+        "--init",
+        metavar="MODEL",
+        help="fine-tune: start from a model's weights, 'default' (the bundled generic model), a RUN_DIR or a "
+        "MODEL.onnx; its grid, features and layer sizes are kept (a generic init stays generic)",
+    )
+    p.add_argument(
+        "--train-frames",
+        type=integer_in(2, MAX_TRAIN_FRAMES),
+        metavar="N",
+        help="keep only the first N train frames of each dataset, in file order (default: all)",
+    )
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from dimenet.runtime.formats.dataset import read_dataset
+    from .init_weights import initial_weights
+    from .trainer import read_training_data, train
 
-    from .trainer import file_sha256, train
-
-    ds = read_dataset(args.data)
+    datasets, sha256 = read_training_data(args.data)
+    init = None if args.init is None else initial_weights(args.init)
     config = TrainConfig(
-        grid=args.grid, variant=args.features, epochs=args.epochs, seed=args.seed, focal_weight=args.focal_weight
+        grid=args.grid,
+        variant=args.features,
+        epochs=args.epochs,
+        seed=args.seed,
+        focal_weight=args.focal_weight,
+        train_frames=args.train_frames,
     )
     result = train(
-        ds,
+        datasets,
         config,
         args.out,
-        dataset_sha256=file_sha256(args.data),
+        dataset_sha256=sha256,
         command="dimenet " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        init=init,
     )
     print(
         f"trained {result.best_epoch} epochs (best), val Avg(e) {result.best_val_e:.3f} px, "
@@ -73,7 +96,8 @@ def _run_train(args: argparse.Namespace) -> int:
 TRAIN = Command(
     name="train",
     summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, plus a focal term).",
-    example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0",
+    example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0; "
+    "fine-tune the default on 30 frames: dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30",
     add_arguments=_add_train,
     run=_run_train,
 )

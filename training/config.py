@@ -34,6 +34,7 @@ class TrainConfig:
     patience: Optional[int] = None
     full_share: float = 0.4  # share of frames keeping all their inference points and every cell
     focal_weight: float = 0.03  # weight of the focal term: squared error (px^2) of (fx, fy) against K*
+    train_frames: Optional[int] = None  # keep only the first N train frames of each dataset, in file order
 
 
 @dataclass(frozen=True)

@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections.abc import Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Optional, Union
 
 import numpy as np
 import torch
@@ -36,16 +38,18 @@ from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
 from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
-from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import MIN_POINTS, k_params, project
+from dimenet.runtime.formats.dataset import Dataset, read_dataset
+from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, project
+from dimenet.runtime.rectify.camera import Camera, generic_pixel_map
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.map_fit import map_rectify
-from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 
 from . import bpnp
 from .config import TrainConfig
+from .init_weights import InitialWeights
 from .model import DimeNet
 from .predictor import torch_predictor
 from .run_dir import write_run
@@ -58,6 +62,10 @@ K_BOUNDS_MARGIN = 1.0
 # re-imaged, under as many augmentation draws as it takes (at least 8), plus a third as many
 # draws each clean, at 64 points and of one plane, and as many two-object draws.
 UNCERTAINTY_SAMPLES = 240
+# A generic model's canonical camera: fx (px) and scene depth (mm) of the features; the paper's
+# phones' f and rig distance, so the device models' constants (noise, scales, limits) carry over.
+GENERIC_FOCAL_PX = 3000.0
+GENERIC_DEPTH_MM = 500.0
 # Per-axis std range (px) of the label noise on the two-object draws: hand labels of natural
 # features are a few px off (the paper's LEGO test; the simulator's natural scene: 4.9 px).
 OBJECT_LABEL_NOISE_PX = (2.0, 8.0)
@@ -90,7 +98,11 @@ def split_train_val(dataset: Dataset, config: TrainConfig) -> tuple[np.ndarray, 
 
 def k_bounds(K_star: np.ndarray) -> np.ndarray:
     """(4, 2) px plausible range of (fx, fy, cx, cy): the K* range widened by its span."""
-    p = k_params(K_star)
+    return parameter_bounds(k_params(K_star))
+
+
+def parameter_bounds(p: np.ndarray) -> np.ndarray:
+    """(4, 2) plausible range of (F, 4) parameters (px): their range widened by its span."""
     lo, hi = p.min(0), p.max(0)
     span = np.maximum(hi - lo, 1.0)
     return np.stack([lo - K_BOUNDS_MARGIN * span, hi + K_BOUNDS_MARGIN * span], -1)
@@ -178,10 +190,11 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
 
 
 def fit_network_uncertainty(
-    model: DimeNet, spec: ModelSpec, frames: Dataset, truth: FrameTruth, config: TrainConfig, rng: np.random.Generator
+    model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, rng: np.random.Generator
 ) -> tuple[Uncertainty, dict]:
-    """The uncertainty model of the trained network's K - K' on ``frames`` (the early-stopping
-    frames, ``truth`` their calibration), each draw on the frames re-imaged by ``resynthesise``
+    """The uncertainty model of the trained network's K - K' on the early-stopping frames of
+    ``units`` (each camera's ``val``, ``val_truth`` their calibration; in model px), each
+    draw on the frames re-imaged by ``resynthesise``
     (every frame under another's principal point; K' the K it is then imaged under): so the
     fit sees many pairings of pose and OIS state, not only the few frames' own. The draws:
     clean, at 64 points and with the points of one plane (a third as many each as there are
@@ -193,8 +206,7 @@ def fit_network_uncertainty(
     (the augmentation's and the two-object ones: their K' does not know that noise, while the
     other draws' K' was fitted to the very points MAP reads). Returns the model and its
     1-sigma coverage there."""
-    predictor = torch_predictor(model, spec, "training")
-    draws = max(8, -(-UNCERTAINTY_SAMPLES // frames.n_frames))
+    draws = max(8, -(-UNCERTAINTY_SAMPLES // sum(unit.val.n_frames for unit in units)))
     few = -(-draws // 3)
     conditions = [(False, lambda ds: ds)] * few
     conditions += [(False, lambda ds: drop_inference_points(ds, config.min_points, rng))] * few
@@ -204,31 +216,39 @@ def fit_network_uncertainty(
         (True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0, rng))
     ] * draws
     residuals, stats, noisy = [], [], []
-    for added_noise, condition in conditions:
-        reimaged, K_reimaged = resynthesise(frames, truth, rng, 1.0)
-        drawn = condition(reimaged)
-        pred = predictor.predict(drawn)
-        residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
-        stats.append(pred.stats[pred.predicted])
-        if added_noise:
-            noisy.append((drawn, pred, K_reimaged))
+    for unit in units:
+        predictor = torch_predictor(model, spec, "training").for_camera(unit.camera)
+        for added_noise, condition in conditions:
+            reimaged, K_reimaged = resynthesise(unit.val, unit.val_truth, rng, 1.0)
+            drawn = condition(reimaged)
+            pred = predictor.predict(drawn)
+            residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
+            stats.append(pred.stats[pred.predicted])
+            if added_noise:
+                noisy.append((drawn, pred, K_reimaged, predictor))
     residuals, stats = np.concatenate(residuals), np.concatenate(stats)
     uncertainty = fit_uncertainty(residuals, stats)
-    uncertainty = replace(uncertainty, data_correlation=fit_data_correlation(*_map_errors(noisy, uncertainty, spec)))
+    uncertainty = replace(uncertainty, data_correlation=fit_data_correlation(*_map_errors(noisy, uncertainty)))
     return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
 
 
-def _map_errors(draws: list, uncertainty: Uncertainty, spec: ModelSpec) -> tuple:
-    """Over the frames of ``draws`` [(frames, prediction, K' (F, 3, 3))] that MAP rectifies under
-    ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4) px, its posterior
-    standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames' 2D noise (F,) px."""
+def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
+    """Over the frames of ``draws`` [(frames, prediction, K' (F, 3, 3), predictor)] that MAP
+    rectifies under ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4) px, its
+    posterior standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames'
+    2D noise (F,) px."""
     errors, sigma, ratio, noise = [], [], [], []
-    for frames, pred, K_ref in draws:
+    for frames, pred, K_ref, predictor in draws:
         K_cov = uncertainty.covariance(pred.stats)
         for f in np.flatnonzero(pred.predicted):
             m = frames.infer_mask[f]
             fit, _ = map_rectify(
-                frames.points_2d[f][m], frames.points_3d[f][m], k_params(pred.K[f]), K_cov[f], spec.K_bounds, spec.K_c
+                frames.points_2d[f][m],
+                frames.points_3d[f][m],
+                k_params(pred.K[f]),
+                K_cov[f],
+                predictor.K_bounds,
+                predictor.K_c,
             )
             if fit is not None:
                 errors.append(fit.k - k_params(K_ref[f]))
@@ -236,6 +256,58 @@ def _map_errors(draws: list, uncertainty: Uncertainty, spec: ModelSpec) -> tuple
                 ratio.append(np.diag(fit.K_cov) / np.diag(K_cov[f]))
                 noise.append(fit.noise_px)
     return tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio)) + (np.array(noise),)
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One camera's training frames, in the model's pixels (a generic model's canonical camera,
+    ``rectify.camera``): fit and val the fitting and early-stopping frames, truth and
+    val_truth their calibration, K_c (3, 3) px its prior, camera the camera the predictor
+    serves (the model's pixels), train_K_star (T, 3, 3) px every train frame's K*."""
+
+    name: str
+    fit: Dataset
+    val: Dataset
+    truth: FrameTruth
+    val_truth: FrameTruth
+    K_c: np.ndarray
+    camera: Camera
+    train_K_star: np.ndarray
+
+
+def first_train_frames(dataset: Dataset, n: int) -> Dataset:
+    """The dataset with only its first ``n`` train frames in file order (the other splits kept)."""
+    train = dataset.frames_in("train")
+    if train.sum() < n:
+        raise DatasetError(f"split: --train-frames {n} asks for more than the {int(train.sum())} train frames")
+    return dataset.select(~train | (np.cumsum(train) <= n))
+
+
+def training_unit(dataset: Dataset, config: TrainConfig, focal_px: Optional[float], name: str) -> Unit:
+    """A dataset as a Unit: its train split calibrated as ``calibrate`` does, then (for a generic
+    model, ``focal_px`` its canonical fx) every 2D point and K mapped onto the canonical camera;
+    the image size rounds to whole canonical pixels (<= 0.5 px of a ~4000 px image)."""
+    cal = calibrate_dataset(dataset)
+    K_c, K_star, frames = cal.K_c, cal.K_star, dataset
+    if focal_px is not None:
+        pixels = generic_pixel_map(Camera(K_c, tuple(int(v) for v in dataset.image_size)), focal_px)
+        K_c, K_star = (k_matrix(pixels.k_to_model(k_params(K))) for K in (K_c, K_star))
+        frames = replace(
+            dataset,
+            points_2d=pixels.points_to_model(dataset.points_2d),
+            image_size=np.round(dataset.image_size * pixels.scale).astype(np.int64),
+        )
+    fit_idx, val_idx = split_train_val(frames, config)
+    return Unit(
+        name=name,
+        fit=frames.select(fit_idx),
+        val=frames.select(val_idx),
+        truth=frame_truth(frames.select(fit_idx), K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx]),
+        val_truth=frame_truth(frames.select(val_idx), K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx]),
+        K_c=K_c,
+        camera=Camera(K_c, tuple(int(v) for v in frames.image_size)),
+        train_K_star=K_star[frames.frames_in("train")],
+    )
 
 
 def _tensors(frames: Dataset):
@@ -256,7 +328,7 @@ def reprojection_loss(delta_k: torch.Tensor, K_c: torch.Tensor, p2, p3, w) -> tu
     # An untrained net may emit a wild Delta K under which PnP has no solution; the clamp is
     # the identity on realistic values (the runtime uses Delta K unclamped).
     dk = delta_k.double().clamp(-DELTA_K_LIMIT_PX, DELTA_K_LIMIT_PX)
-    K = K_c.expand(len(dk), 3, 3).clone()
+    K = K_c.expand(len(dk), 3, 3).clone()  # K_c (3, 3), or (B, 3, 3) one per frame
     K[:, 0, 0] = K[:, 0, 0] + dk[:, 0]
     K[:, 1, 1] = K[:, 1, 1] + dk[:, 1]
     K[:, 0, 2] = K[:, 0, 2] + dk[:, 2]
@@ -282,52 +354,104 @@ def torch_threads(n: int):
 
 
 def train(
-    dataset: Dataset, config: TrainConfig, run_dir: str | Path, *, dataset_sha256: str = "", command: str = ""
+    dataset: Union[Dataset, Sequence[Dataset]],
+    config: TrainConfig,
+    run_dir: str | Path,
+    *,
+    dataset_sha256: str = "",
+    command: str = "",
+    init: Optional[InitialWeights] = None,
 ) -> TrainResult:
-    """Train on the dataset's train split and write RUN_DIR (weights, spec.json, curve.png)."""
+    """Train on the dataset's train split and write RUN_DIR (weights, spec.json, curve.png).
+
+    One dataset and no ``init``: a device model of that camera. Several datasets (a camera
+    family), or ``init`` from a generic model: a generic model (canonical fx
+    ``GENERIC_FOCAL_PX``, scale-free depth ``GENERIC_DEPTH_MM``; the init's, when given), each
+    dataset calibrated on its own train split. ``init`` starts from a model's weights (its
+    grid, variant and hidden sizes replace the config's)."""
     with torch_threads(1):
-        return _train(dataset, config, run_dir, dataset_sha256, command)
+        return _train(dataset, config, run_dir, dataset_sha256, command, init)
 
 
-def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, command: str) -> TrainResult:
+def _feature_spec(config: TrainConfig, generic: bool, init: Optional[InitialWeights]) -> FeatureSpec:
+    if init is not None:
+        return init.spec.features
+    return FeatureSpec(
+        grid=Grid.parse(config.grid), variant=config.variant, depth_mm=GENERIC_DEPTH_MM if generic else None
+    )
+
+
+def _units(datasets: list, config: TrainConfig, focal_px: Optional[float]) -> list:
+    if config.train_frames is not None:
+        datasets = [first_train_frames(ds, config.train_frames) for ds in datasets]
+    named = [(ds.meta.get("profile") or f"dataset {i}", ds) for i, ds in enumerate(datasets)]
+    if len(named) == 1:
+        return [training_unit(named[0][1], config, focal_px, named[0][0])]
+    return [training_unit(ds, config, focal_px, name) for name, ds in progress(named, desc="calibrate")]
+
+
+def _stack(parts: list) -> tuple:
+    """Concatenate per-camera (features, p2, p3, w, K_c) tensors, padding p2, p3, w's point axis."""
+    P = max(p[1].shape[1] for p in parts)
+    pad = lambda t: torch.nn.functional.pad(t, (0, 0) * (t.dim() - 2) + (0, P - t.shape[1]))  # noqa: E731
+    return tuple(torch.cat([pad(p[k]) if k in (1, 2, 3) else p[k] for p in parts]) for k in range(len(parts[0])))
+
+
+def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec) -> tuple:
+    """(features, p2, p3, w, K_c per frame) tensors of one camera's frames (model px)."""
+    feats = grid_features(
+        frames.points_2d, frames.points_3d, frames.infer_mask, unit.K_c, frames.image_size, spec_features
+    )
+    K_c = torch.from_numpy(np.broadcast_to(unit.K_c, (frames.n_frames, 3, 3)).copy())
+    return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c)
+
+
+def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command: str, init) -> TrainResult:
     start = time.monotonic()
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    spec_features = FeatureSpec(grid=Grid.parse(config.grid), variant=config.variant)
-    cal = calibrate_dataset(dataset)
-    K_c = cal.K_c
-    fit_idx, val_idx = split_train_val(dataset, config)
-    train_frames, val_frames = dataset.select(fit_idx), dataset.select(val_idx)
-    truth = frame_truth(train_frames, cal.K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx])
+    datasets = [datasets] if isinstance(datasets, Dataset) else list(datasets)
+    generic = len(datasets) > 1 or (init is not None and init.spec.generic is not None)
+    focal_px = None
+    if generic:
+        focal_px = init.spec.generic.focal_px if init is not None and init.spec.generic else GENERIC_FOCAL_PX
+    spec_features = _feature_spec(config, generic, init)
+    units = _units(datasets, config, focal_px)
     # Re-imaging keeps a frame's own focal length, so its K* f stays the target of every draw.
-    delta_f_star = torch.from_numpy(k_params(truth.K_star)[:, :2] - k_params(K_c)[:2])
-    val_sets = [
-        val_frames,
-        drop_inference_points(val_frames, config.min_points, np.random.default_rng(config.seed + 1)),
-    ]
-    image_size = dataset.image_size
-    feats_of = lambda fr: torch.from_numpy(  # noqa: E731
-        grid_features(fr.points_2d, fr.points_3d, fr.infer_mask, K_c, image_size, spec_features).astype(np.float32)
+    delta_f_star = torch.from_numpy(
+        np.concatenate([k_params(u.truth.K_star)[:, :2] - k_params(u.K_c)[:2] for u in units])
     )
-    val_inputs = [(feats_of(v), *_tensors(v)) for v in val_sets]
-    K_c_t = torch.from_numpy(K_c)
+    val_inputs = []
+    for reduced in (False, True):
+        parts = []
+        for u in units:
+            frames = u.val
+            if reduced:
+                frames = drop_inference_points(frames, config.min_points, np.random.default_rng(config.seed + 1))
+            parts.append(_inputs(u, frames, spec_features))
+        val_inputs.append(_stack(parts))
 
-    model = DimeNet(spec_features.size, config.hidden)
+    hidden = tuple(init.spec.hidden) if init is not None else tuple(config.hidden)
+    model = DimeNet(spec_features.size, hidden)
+    if init is not None:
+        model.load_state_dict(init.state_dict)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs)
     best = (np.inf, 0, None)
     history = []
     for epoch in progress(range(1, config.epochs + 1), desc="train"):
-        frames = augment(resynthesise(train_frames, truth, rng, config.resynthesis)[0], config, spec_features.grid, rng)
-        feats = feats_of(frames)
-        p2, p3, w = _tensors(frames)
-        order = torch.from_numpy(rng.permutation(frames.n_frames))
+        parts = []
+        for u in units:
+            frames = augment(resynthesise(u.fit, u.truth, rng, config.resynthesis)[0], config, spec_features.grid, rng)
+            parts.append(_inputs(u, frames, spec_features))
+        feats, p2, p3, w, K_c = _stack(parts)
+        order = torch.from_numpy(rng.permutation(len(feats)))
         model.train()
         losses = []
         for i in range(0, len(order), config.batch_size):
             b = order[i : i + config.batch_size]
             delta_k = model(feats[b])
-            mse = reprojection_loss(delta_k, K_c_t, p2[b], p3[b], w[b])[0]
+            mse = reprojection_loss(delta_k, K_c[b], p2[b], p3[b], w[b])[0]
             loss = mse + config.focal_weight * focal_loss(delta_k, delta_f_star[b])
             opt.zero_grad()
             loss.backward()
@@ -336,34 +460,36 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
         sched.step()
         model.eval()
         with torch.no_grad():
-            val_e = float(np.mean([reprojection_loss(model(f), K_c_t, *t)[1].mean() for f, *t in val_inputs]))
+            val_e = float(np.mean([reprojection_loss(model(f), K, *t)[1].mean() for f, *t, K in val_inputs]))
         history.append({"epoch": epoch, "train_mse_px2": float(np.mean(losses)), "val_e_px": val_e})
         if val_e < best[0]:
             best = (val_e, epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
         elif config.patience is not None and epoch - best[1] >= config.patience:
             break
     model.load_state_dict(best[2])
-    spec = ModelSpec(
-        features=spec_features,
-        K_c=K_c,
-        image_size=tuple(int(v) for v in image_size),
-        K_bounds=k_bounds(cal.K_star[dataset.frames_in("train")]),
-        hidden=tuple(config.hidden),
-        provenance={
-            "dataset_sha256": dataset_sha256,
-            "seed": config.seed,
-            "dimenet_version": __version__,
-            "torch_version": torch.__version__,
-            "config": asdict(config),
-            "command": command,
-            "best_epoch": best[1],
-            "best_val_e_px": best[0],
-        },
-    )
-    val_truth = frame_truth(val_frames, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
-    uncertainty, val_coverage = fit_network_uncertainty(
-        model, spec, val_frames, val_truth, config, np.random.default_rng(config.seed + 2)
-    )
+    provenance = {
+        "dataset_sha256": dataset_sha256,
+        "seed": config.seed,
+        "dimenet_version": __version__,
+        "torch_version": torch.__version__,
+        "config": asdict(config),
+        "command": command,
+        "best_epoch": best[1],
+        "best_val_e_px": best[0],
+    }
+    if init is not None:
+        provenance["init"] = init.source
+    if generic:
+        delta = np.concatenate([k_params(u.train_K_star) - k_params(u.K_c) for u in units])
+        generic_camera = GenericCamera(focal_px, parameter_bounds(delta))
+        camera = {"K_c": None, "image_size": None, "K_bounds": None, "generic": generic_camera}
+        provenance["cameras"] = [u.name for u in units]
+    else:
+        u = units[0]
+        camera = {"K_c": u.K_c, "image_size": u.camera.image_size, "K_bounds": k_bounds(u.train_K_star)}
+    spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
+    uncertainty_rng = np.random.default_rng(config.seed + 2)
+    uncertainty, val_coverage = fit_network_uncertainty(model, spec, units, config, uncertainty_rng)
     spec = replace(
         spec, uncertainty=uncertainty, provenance={**spec.provenance, "uncertainty_val_coverage": val_coverage}
     )
@@ -371,6 +497,24 @@ def _train(dataset: Dataset, config: TrainConfig, run_dir, dataset_sha256: str, 
     return TrainResult(
         run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0], seconds=time.monotonic() - start, history=history
     )
+
+
+def read_training_data(path: str | Path) -> tuple[list, str]:
+    """The datasets of ``dimenet train DATA``: one .npz file, or every .npz file of a folder (a
+    camera family) in name order; and the sha256 of the file (of a folder: of its files' names
+    and sha256s). DatasetError when a folder has none."""
+    path = Path(path)
+    if not path.is_dir():
+        return [read_dataset(path)], file_sha256(path)
+    files = sorted(path.glob("*.npz"))
+    if not files:
+        raise DatasetError(f"{path}: a folder without dataset files (*.npz)")
+    h = hashlib.sha256()
+    datasets = []
+    for f in progress(files, desc="read"):
+        datasets.append(read_dataset(f))
+        h.update(f"{f.name} {file_sha256(f)}\n".encode())
+    return datasets, h.hexdigest()
 
 
 def file_sha256(path: str | Path) -> str:

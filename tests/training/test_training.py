@@ -28,6 +28,7 @@ from dimenet.training.trainer import (
     resynthesise,
     split_train_val,
     train,
+    training_unit,
 )
 
 SMALL = dataclasses.replace(PROFILES["galaxy-s8"], name="small-s8", n_train=30, n_test=8)
@@ -98,13 +99,13 @@ def test_focal_term_teaches_the_net_focus_breathing(small, tmp_path):
 @pytest.fixture(scope="module")
 def fitting(small, tmp_path_factory):
     """A briefly trained run on ``small`` and what its uncertainty fit reads: (run dir, model,
-    spec, early-stopping frames, their calibration)."""
+    spec, early-stopping frames, the training unit holding them and their calibration)."""
     run = train(small, TrainConfig(epochs=2, seed=5), tmp_path_factory.mktemp("fitting") / "run").run_dir
     model, spec = load_run(run)
     _, val_idx = split_train_val(small, TrainConfig())
-    val = small.select(val_idx)
-    cal = calibrate_dataset(small)
-    return run, model, spec, val, frame_truth(val, cal.K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx])
+    unit = training_unit(small, TrainConfig(), None, "small")
+    np.testing.assert_array_equal(unit.val.points_2d, small.select(val_idx).points_2d)
+    return run, model, spec, unit.val, unit
 
 
 def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
@@ -112,7 +113,7 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
     of all the early-stopping frames, with a 2-8 px label noise on each."""
     from dimenet.training import trainer
 
-    _, model, spec, val, truth = fitting
+    _, model, spec, val, unit = fitting
     drawn, noise = [], {}  # the two-object draws; the 2D noise std added to each dataset, by id
     two_objects, add_noise = trainer.two_objects, trainer.add_noise
 
@@ -126,7 +127,7 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
 
     monkeypatch.setattr(trainer, "two_objects", drawing)
     monkeypatch.setattr(trainer, "add_noise", noising)
-    trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
+    trainer.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
     assert len(drawn) == max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
     for ds in drawn:
         assert ds.n_frames == val.n_frames and np.all(ds.infer_mask.sum(1) <= 100)
@@ -138,7 +139,7 @@ def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(fitt
     not know, enter the fit; its result is what the model carries."""
     from dimenet.training import trainer
 
-    _, model, spec, val, truth = fitting
+    _, model, spec, val, unit = fitting
     seen = {}
 
     def spy(errors, sigma, ratio, noise):
@@ -146,7 +147,7 @@ def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(fitt
         return np.array([0.0, 0.1, 0.2, 0.3])
 
     monkeypatch.setattr(trainer, "fit_data_correlation", spy)
-    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
+    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
     np.testing.assert_array_equal(uncertainty.data_correlation, [0.0, 0.1, 0.2, 0.3])
     draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
     assert 0.9 * 2 * draws * val.n_frames <= len(seen["noise"]) <= 2 * draws * val.n_frames
@@ -180,7 +181,7 @@ def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(fitting, 
     whose K is off by 1000 px in cx makes the fitted sigma of cx about that large."""
     from dimenet.training import trainer
 
-    run, model, spec, val, truth = fitting
+    run, model, spec, val, unit = fitting
     calls = []
 
     def shifted(frames, frame_truth_, rng, share):
@@ -191,7 +192,7 @@ def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(fitting, 
         return reimaged, K
 
     monkeypatch.setattr(trainer, "resynthesise", shifted)
-    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, val, truth, TrainConfig(), np.random.default_rng(0))
+    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
     draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
     assert calls == [1.0] * (2 * draws + 3 * -(-draws // 3))  # one re-imaging of all frames per draw
     pred = load_predictor(str(run)).predict(val)
