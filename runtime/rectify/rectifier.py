@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
 from typing import Callable, Optional
@@ -428,7 +428,9 @@ class Rectifier:
                 K=self.K_c.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
             )
         lap("check")
-        result = Rectification(
+        if self._pixels is not None:
+            return self._user_result(cand, e_c, lap.timings)
+        return Rectification(
             K=cand.K,
             rvec=cand.rvec,
             tvec=cand.tvec,
@@ -440,21 +442,24 @@ class Rectifier:
             K_c=self.K_c,
             covariance=cand.covariance,
         )
-        return result if self._pixels is None else self._to_user(result)
 
-    def _to_user(self, r: Rectification) -> Rectification:
-        """One result from the model's pixels to the camera's (``rectify.camera.PixelMap``)."""
-        pixels = self._pixels
-        K = self.K_c.copy() if not r.delta_k.any() else pixels.K_to_user(r.K)
-        covariance = r.covariance
+    def _user_result(self, cand: _Candidate, e_c: float, timings: dict) -> Rectification:
+        """The result of one frame whose stages ran in the model's pixels, in the camera's
+        (``rectify.camera.PixelMap``; the pose is the same in both)."""
+        pixels, to_user = self._pixels, self._user_px
+        covariance = cand.covariance
         if covariance is not None:
             covariance = partial(_covariance_to_user, pixels, covariance)
-        return replace(
-            r,
-            K=K,
-            reprojection_error_px=float(pixels.lengths_to_user(r.reprojection_error_px)),
-            reprojection_error_kc_px=float(pixels.lengths_to_user(r.reprojection_error_kc_px)),
-            delta_k=pixels.lengths_to_user(r.delta_k),
+        return Rectification(
+            K=self.K_c.copy() if cand.note is not None and not cand.delta_k.any() else pixels.K_to_user(cand.K),
+            rvec=cand.rvec,
+            tvec=cand.tvec,
+            reprojection_error_px=cand.e * to_user,
+            reprojection_error_kc_px=e_c * to_user,
+            delta_k=cand.delta_k * to_user,
+            fallback=cand.note,
+            timings_us=timings,
+            K_c=self.K_c,
             covariance=covariance,
         )
 

@@ -17,12 +17,15 @@ def reference_features(p2, p3, mask, K_c, rvec, tvec, spec):
     out = np.zeros((v, u, C))
     count = np.zeros((v, u))
     R = g.rvec_to_matrix(rvec)
+    # Scale-free depth: the {C0} points scaled so that the inference points' mean depth is depth_mm.
+    z_mean = np.mean([(R @ X + tvec)[2] for X, m in zip(p3, mask) if m])
+    f = 1.0 if spec.depth_mm is None else spec.depth_mm / z_mean
     for x, X, m in zip(p2, p3, mask):
         if not m:
             continue
         Xc = R @ X + tvec
         proj = K_c @ (Xc / Xc[2])
-        full = {"dx": proj[0] - x[0], "dy": proj[1] - x[1], "X": Xc[0], "Y": Xc[1], "inv_z": 1 / Xc[2]}
+        full = {"dx": proj[0] - x[0], "dy": proj[1] - x[1], "X": f * Xc[0], "Y": f * Xc[1], "inv_z": 1 / (f * Xc[2])}
         col = min(int(x[0] // (IMAGE[0] / u)), u - 1)
         row = min(int(x[1] // (IMAGE[1] / v)), v - 1)
         out[row, col] += [full[c] * spec.scale[c] for c in spec.channels]
@@ -31,12 +34,13 @@ def reference_features(p2, p3, mask, K_c, rvec, tvec, spec):
     return out.reshape(-1)
 
 
+@pytest.mark.parametrize("depth_mm", [None, 500.0])
 @pytest.mark.parametrize("variant", ["A", "B", "C", "D", "E"])
-def test_vectorised_feature_equals_per_point_reference(variant):
+def test_vectorised_feature_equals_per_point_reference(variant, depth_mm):
     rng = np.random.default_rng(0)
     x, X, K, rvec, tvec = random_frames(rng, frames=3, points=50, noise_px=2.0)
     mask = rng.random((3, 50)) > 0.3
-    spec = FeatureSpec(grid=Grid(8, 6), variant=variant)
+    spec = FeatureSpec(grid=Grid(8, 6), variant=variant, depth_mm=depth_mm)
     K_c = K_TEST.copy()
     K_c[0, 2] += 12.0
     feats = grid_features(x, X, mask, K_c, IMAGE, spec, poses=(rvec, tvec))
@@ -84,6 +88,19 @@ def test_batch_equals_single_frames_and_masked_points_have_no_effect():
         np.testing.assert_allclose(
             grid_features(x2[b : b + 1], X[b : b + 1], mask[b : b + 1], K_TEST, IMAGE, spec)[0], batch[b], atol=1e-9
         )
+
+
+def test_scale_free_depth_one_frame_equals_the_batch_and_ignores_the_world_unit():
+    """The one-frame float path of the depth factor equals the batch's array path, and 3D points
+    in metres give the millimetres' feature."""
+    rng = np.random.default_rng(3)
+    x, X, *_ = random_frames(rng, frames=3, points=40, noise_px=1.0)
+    spec = FeatureSpec(depth_mm=500.0)
+    batch = grid_features(x, X, None, K_TEST, IMAGE, spec)
+    for b in range(3):
+        np.testing.assert_allclose(grid_features(x[b : b + 1], X[b : b + 1], None, K_TEST, IMAGE, spec)[0], batch[b])
+    np.testing.assert_allclose(grid_features(x, X / 1000.0, None, K_TEST, IMAGE, spec), batch, atol=1e-9)
+    assert not np.allclose(grid_features(x, X / 1000.0, None, K_TEST, IMAGE, FeatureSpec()), batch)
 
 
 def test_spec_round_trip_and_bad_variant():
