@@ -1,0 +1,93 @@
+"""Training across a camera family (a generic model), fine-tuning from a model's weights, and
+--train-frames: the spec they write, and that the result serves cameras it was not trained on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("onnx")
+
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.methods import evaluate
+from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.sim.family import simulate_family
+from dimenet.training.config import TrainConfig
+from dimenet.training.init_weights import initial_weights
+from dimenet.training.run_dir import load_run
+from dimenet.training.trainer import first_train_frames, train
+
+
+@pytest.fixture(scope="module")
+def family():
+    """Three small cameras of a family (16 train + 4 test rig frames each)."""
+    return [ds for _, ds in simulate_family(3, 7, frames=(16, 4))]
+
+
+@pytest.fixture(scope="module")
+def generic_run(family, tmp_path_factory):
+    return train(family[:2], TrainConfig(epochs=3, seed=1), tmp_path_factory.mktemp("generic") / "run")
+
+
+def camera_of(ds):
+    return Camera(calibrate_dataset(ds).K_c, tuple(int(v) for v in ds.image_size))
+
+
+def test_a_family_trains_a_generic_model_that_serves_an_unseen_camera(family, generic_run):
+    model, spec = load_run(generic_run.run_dir)
+    assert spec.generic is not None and spec.K_c is None and spec.features.depth_mm is not None
+    assert spec.provenance["cameras"] == [ds.meta["profile"] for ds in family[:2]]
+    bounds = spec.generic.delta_bounds
+    assert np.all(bounds[:, 0] < 0) and np.all(bounds[:, 1] > 0)
+    assert spec.uncertainty is not None
+    unseen = family[2]
+    predictor = load_predictor(generic_run.run_dir).for_camera(camera_of(unseen))
+    test = unseen.select(unseen.frames_in("test"))
+    ev = evaluate(test, predictor.K_c, predictor, methods=("dimenet", "map"))
+    assert ev.fallbacks["dimenet"] < test.n_frames and np.isfinite(ev.methods["map"]["overall"].avg_e)
+
+
+def test_train_frames_keeps_the_first_n_train_frames_in_file_order(family):
+    ds = family[0]
+    kept = first_train_frames(ds, 5)
+    train_ids = ds.frame_id[ds.frames_in("train")]
+    assert list(kept.frame_id[kept.frames_in("train")]) == list(train_ids[:5])
+    assert kept.frames_in("test").sum() == ds.frames_in("test").sum()
+    with pytest.raises(ValueError, match="more than the 16 train frames"):
+        first_train_frames(ds, 17)
+
+
+def test_fine_tuning_starts_from_the_init_weights_and_keeps_a_generic_model_generic(family, generic_run, tmp_path):
+    init = initial_weights(str(generic_run.run_dir))
+    run = train(family[2], TrainConfig(epochs=1, seed=2, train_frames=8), tmp_path / "tuned", init=init)
+    model, spec = load_run(run.run_dir)
+    assert spec.generic is not None and spec.provenance["init"] == str(generic_run.run_dir)
+    assert spec.provenance["cameras"] == [family[2].meta["profile"]]
+    # One epoch of AdamW moves the weights, but only a little from where they started.
+    start = init.state_dict["fc1.weight"]
+    moved = (model.state_dict()["fc1.weight"] - start).norm() / start.norm()
+    assert 0 < float(moved) < 0.2
+
+
+def test_the_train_command_reads_a_family_folder_and_fine_tunes(family, tmp_path, capsys):
+    folder = tmp_path / "family"
+    folder.mkdir()
+    for ds in family[:2]:
+        write_dataset(ds, folder / f"{ds.meta['profile']}.npz")
+    assert main(["train", str(folder), "--out", str(tmp_path / "g"), "--epochs", "1"]) == 0
+    assert load_run(tmp_path / "g")[1].generic is not None
+    data = tmp_path / "one.npz"
+    write_dataset(family[2], data)
+    argv = ["train", str(data), "--out", str(tmp_path / "t"), "--epochs", "1", "--init", str(tmp_path / "g")]
+    assert main([*argv, "--train-frames", "6"]) == 0
+    spec = load_run(tmp_path / "t")[1]
+    assert spec.generic is not None and spec.provenance["config"]["train_frames"] == 6
+    capsys.readouterr()
+    assert main(["train", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]) == 2
+    (tmp_path / "empty").mkdir()
+    assert main(["train", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]) == 2
+    assert "without dataset files" in capsys.readouterr().err

@@ -1,0 +1,156 @@
+"""The generic default model beside the per-device ones (issue 21's targets): zero-shot on the
+paper's three profiles, on every camera of a fresh camera family, fine-tuned from a few frames,
+and its invariance to the stream's resolution and the world unit."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dimenet.runtime.assets import asset
+from dimenet.runtime.cli.progress import progress
+from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.conditions import drop_inference_points
+from dimenet.runtime.evaluation.methods import evaluate
+from dimenet.runtime.evaluation.predictor import Predictor, load_onnx_predictor, load_predictor
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.model import onnx_model_from_bytes
+from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL, Rectifier
+from dimenet.runtime.sim.family import hfov_deg, simulate_family
+
+from ..config import ReproduceConfig, TrainConfig
+from ..init_weights import initial_weights
+from ..trainer import train
+from .paper import DEVICES
+
+# The family the bundled model was trained on is seed 0 (models_spec/default-model.md); this
+# one it never saw.
+FRESH_FAMILY_SEED = 101
+FRESH_FAMILY_CAMERAS = 20
+FINE_TUNE_FRAMES = 30
+SMALL_POINTS = 64
+
+
+def _camera(ds: Dataset) -> Camera:
+    """The dataset's camera: K_c from its train split, as `dimenet calibrate` computes it."""
+    return Camera(calibrate_dataset(ds).K_c, tuple(int(v) for v in ds.image_size))
+
+
+def _rho(ev, method: str = "dimenet") -> float:
+    return ev.methods[method]["overall"].rho
+
+
+def _test(ds: Dataset, scene: str) -> Dataset:
+    return ds.select(ds.frames_in("test") & (ds.scene == scene))
+
+
+def default_predictor() -> Predictor:
+    return load_onnx_predictor(asset(DEFAULT_MODEL))
+
+
+def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceConfig) -> dict:
+    """Per paper profile: rho of the generic model (its camera from the train split) and of the
+    device model on the same frames: rig at all points and at 64, galaxy-s8 natural and planar
+    in both modes; the 1-sigma coverage against K_true on rig and planar."""
+    rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
+    rows = {}
+    for d in DEVICES:
+        p = generic.for_camera(_camera(data[d]))
+        rig = _test(data[d], "rig")
+        cases = {"rig": rig, f"rig {SMALL_POINTS} pts": drop_inference_points(rig, SMALL_POINTS, rng(40))}
+        for scene in ("natural", "planar"):
+            frames = _test(data[d], scene)
+            if frames.n_frames:
+                cases[scene] = frames
+        for case, frames in cases.items():
+            ev = evaluate(frames, p.K_c, p, methods=("dimenet", "map"))
+            ev_device = evaluate(frames, device[d].K_c, device[d], methods=("dimenet", "map"))
+            rows[f"{d} {case}"] = {
+                "n_frames": frames.n_frames,
+                "generic": {m: _rho(ev, m) for m in ("dimenet", "map")},
+                "device": {m: _rho(ev_device, m) for m in ("dimenet", "map")},
+                "coverage_true": ev.coverage_true,
+            }
+    return rows
+
+
+def fresh_family(generic: Predictor) -> list:
+    """rho (rig, all points) of the generic model on each camera of a family it never saw."""
+    rows = []
+    family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
+    for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
+        p = generic.for_camera(_camera(ds))
+        ev = evaluate(_test(ds, "rig"), p.K_c, p, methods=("dimenet",))
+        w, h = camera.image_size_px
+        rows.append({"camera": camera.name, "size": [w, h], "hfov_deg": hfov_deg(camera), "rho": _rho(ev)})
+    return rows
+
+
+def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> dict:
+    """The default fine-tuned on the first FINE_TUNE_FRAMES galaxy-s8 train frames against the
+    device model trained on all: rho on rig at 64 points and on natural frames."""
+    t0 = time.monotonic()
+    s8 = data["galaxy-s8"]
+    cfg = TrainConfig(epochs=config.epochs, seed=config.seed, train_frames=FINE_TUNE_FRAMES)
+    run = train(s8, cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", init=initial_weights("default"))
+    tuned = load_predictor(run.run_dir).for_camera(_camera(s8))
+    rng = lambda: np.random.default_rng(config.seed + 41)  # noqa: E731
+    cases = {
+        f"rig {SMALL_POINTS} pts": drop_inference_points(_test(s8, "rig"), SMALL_POINTS, rng()),
+        "natural": _test(s8, "natural"),
+    }
+    rows = {}
+    for case, frames in cases.items():
+        mine = evaluate(frames, tuned.K_c, tuned, methods=("dimenet",))
+        theirs = evaluate(frames, device["galaxy-s8"].K_c, device["galaxy-s8"], methods=("dimenet",))
+        rows[case] = {"fine_tuned": _rho(mine), "device": _rho(theirs)}
+    return {"frames": FINE_TUNE_FRAMES, "seconds": time.monotonic() - t0, "rows": rows}
+
+
+def invariance(data: dict) -> dict:
+    """The bundled model on the galaxy-s8 rig test frames: mean |K_half (scaled up) - K_full| px,
+    max |K_m - K_mm| px, and how many frames of half-resolution points under the full-resolution
+    K_c get a K (silently: any is wrong) rather than a fallback."""
+    s8 = data["galaxy-s8"]
+    camera = _camera(s8)
+    frames = _test(s8, "rig")
+    blob = asset(DEFAULT_MODEL).read_bytes()
+    model = onnx_model_from_bytes(blob, DEFAULT_MODEL)
+    w, h = camera.image_size
+    half = Camera(_half_k(camera.K), (w // 2, h // 2))
+    p2, p3, valid = frames.points_2d, frames.points_3d, frames.valid
+    p2_half = np.where(valid[..., None], (p2 + 0.5) / 2 - 0.5, 0.0)
+    full = Rectifier(model, "dimenet", camera).rectify_batch(p2, p3, valid)
+    halved = Rectifier(model, "dimenet", half).rectify_batch(p2_half, p3, valid)
+    metres = Rectifier(model, "dimenet", camera).rectify_batch(p2, p3 / 1000.0, valid)
+    mismatched = Rectifier(model, "dimenet", camera).rectify_batch(p2_half, p3, valid)
+    k_half = k_params(halved.K)
+    k_up = np.concatenate([2 * k_half[:, :2], (k_half[:, 2:] + 0.5) * 2 - 0.5], 1)
+    return {
+        "n_frames": frames.n_frames,
+        "half_vs_full_mean_px": float(np.abs(k_up - k_params(full.K)).mean()),
+        "m_vs_mm_max_px": float(np.abs(k_params(metres.K) - k_params(full.K)).max()),
+        "half_points_full_k_c_silent": int(sum(r is None for r in mismatched.fallback)),
+        "fallbacks_full": int(sum(r is not None for r in full.fallback)),
+    }
+
+
+def _half_k(K: np.ndarray) -> np.ndarray:
+    k = k_params(K)
+    return k_matrix(np.r_[k[:2] / 2, (k[2:] + 0.5) / 2 - 0.5])
+
+
+def run_generic(data: dict, device: dict, out: Path, config: ReproduceConfig) -> dict:
+    """Every row of the generic comparison (``report`` writes them)."""
+    generic = default_predictor()
+    return {
+        "model": generic.source,
+        "zero_shot": zero_shot(data, generic, device, config),
+        "fresh_family": fresh_family(generic),
+        "fine_tune": fine_tune(data, device, out, config),
+        "invariance": invariance(data),
+    }
