@@ -4,11 +4,15 @@
 ``random_torch_model`` and ``random_model_file``: a random-init DimeNet exported to ONNX (needs
 torch and onnx, else the calling test is skipped). ``constant_uncertainty`` and
 ``point_thickness``: uncertainty-model helpers. ``importable``: whether modules can be imported.
+``DEVICE_MODEL``: the bundled default before the generic one (a galaxy-s8 device model, spec 1.4),
+kept so device models and their spec are tested without torch. ``default_rectifier``: the
+bundled (generic) model serving the example frames' camera.
 """
 
 from __future__ import annotations
 
-from importlib import import_module
+from importlib import import_module, resources
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +22,26 @@ from dimenet.runtime.geometry import covariance_invariants, k_matrix, k_params
 from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.spec import ModelSpec
 from dimenet.runtime.rectify.uncertainty import Uncertainty, thickness
+
+DEVICE_MODEL = Path(__file__).parent / "data" / "device_model_galaxy_s8.onnx"
+
+
+def example_camera():
+    """The bundled example frames' camera (runtime/assets/example_camera.json)."""
+    from dimenet.runtime.assets import asset
+    from dimenet.runtime.formats.camera import read_camera
+
+    with resources.as_file(asset("example_camera.json")) as path:
+        return read_camera(path)
+
+
+def default_rectifier(mode: str = "dimenet"):
+    """The bundled default model serving the example camera (galaxy-s8 4032x3024)."""
+    from dimenet.runtime.rectify.rectifier import Rectifier
+
+    camera = example_camera()
+    return Rectifier.load(K_c=camera.K, image_size=camera.image_size, mode=mode)
+
 
 K_TEST = np.array([[3000.0, 0.0, 2016.0], [0.0, 3010.0, 1512.0], [0.0, 0.0, 1.0]])
 

@@ -35,6 +35,9 @@ class TrainConfig:
     full_share: float = 0.4  # share of frames keeping all their inference points and every cell
     focal_weight: float = 0.03  # weight of the focal term: squared error (px^2) of (fx, fy) against K*
     train_frames: Optional[int] = None  # keep only the first N train frames of each dataset, in file order
+    # Learning rate when starting from a model's weights (--init): a tenth of lr keeps what the
+    # init knows (at lr, 30 galaxy-s8 frames took the default's natural rho 76 -> 66 %; METHOD.md).
+    fine_tune_lr: float = 2e-4
 
 
 @dataclass(frozen=True)

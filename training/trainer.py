@@ -62,6 +62,9 @@ K_BOUNDS_MARGIN = 1.0
 # re-imaged, under as many augmentation draws as it takes (at least 8), plus a third as many
 # draws each clean, at 64 points and of one plane, and as many two-object draws.
 UNCERTAINTY_SAMPLES = 240
+# Fewer early-stopping frames than this fit no uncertainty model of their own when fine-tuning:
+# the init's is kept (training/METHOD.md, "Fine-tuning").
+MIN_UNCERTAINTY_FRAMES = 20
 # A generic model's canonical camera: fx (px) and scene depth (mm) of the features; the paper's
 # phones' f and rig distance, so the device models' constants (noise, scales, limits) carry over.
 GENERIC_FOCAL_PX = 3000.0
@@ -406,6 +409,28 @@ def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec) -> tuple:
     return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c)
 
 
+def _uncertainty_fields(model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, init) -> dict:
+    """The spec's uncertainty model and its provenance: fitted on the early-stopping frames; a
+    fine-tuned model keeps its init's when they are fewer than MIN_UNCERTAINTY_FRAMES or the fit
+    breaks the spec's sigma range rule (a few frames cannot fit five slopes per parameter). A
+    fit that breaks the rule with nothing to keep is a DatasetError: the model would not load."""
+    inherited = init.spec.uncertainty if init is not None else None
+    n_val = sum(u.val.n_frames for u in units)
+    if inherited is not None and n_val < MIN_UNCERTAINTY_FRAMES:
+        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
+    rng = np.random.default_rng(config.seed + 2)
+    uncertainty, val_coverage = fit_network_uncertainty(model, spec, units, config, rng)
+    try:
+        Uncertainty.from_dict(uncertainty.to_dict(), spec.features.grid.n_cells)
+    except ValueError as exc:
+        if inherited is None:
+            raise DatasetError(
+                f"split: {n_val} early-stopping frames fit no usable uncertainty model ({exc})"
+            ) from None
+        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
+    return {"uncertainty": uncertainty, "provenance": {**spec.provenance, "uncertainty_val_coverage": val_coverage}}
+
+
 def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command: str, init) -> TrainResult:
     start = time.monotonic()
     torch.manual_seed(config.seed)
@@ -435,7 +460,8 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     model = DimeNet(spec_features.size, hidden)
     if init is not None:
         model.load_state_dict(init.state_dict)
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    lr = config.lr if init is None else config.fine_tune_lr
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs)
     best = (np.inf, 0, None)
     history = []
@@ -488,11 +514,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         u = units[0]
         camera = {"K_c": u.K_c, "image_size": u.camera.image_size, "K_bounds": k_bounds(u.train_K_star)}
     spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
-    uncertainty_rng = np.random.default_rng(config.seed + 2)
-    uncertainty, val_coverage = fit_network_uncertainty(model, spec, units, config, uncertainty_rng)
-    spec = replace(
-        spec, uncertainty=uncertainty, provenance={**spec.provenance, "uncertainty_val_coverage": val_coverage}
-    )
+    spec = replace(spec, **_uncertainty_fields(model, spec, units, config, init))
     run_dir = write_run(run_dir, model, spec, history)
     return TrainResult(
         run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0], seconds=time.monotonic() - start, history=history

@@ -22,7 +22,7 @@ import onnxruntime as ort
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.rectify.camera import Camera
-from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.rectifier import Rectifier, load_model
 from dimenet.runtime.sim.simulator import get_profile, simulate
 
 BENCH_PROFILE = "galaxy-s8"
@@ -127,10 +127,10 @@ def run_bench(
             raise InputError(f"--{name} must be >= 1, got {value}")
     cv2.setNumThreads(threads)
     start = time.perf_counter_ns()
-    rectifier = Rectifier.load(model, threads=threads, mode=mode)
+    onnx_model = load_model(model, threads=threads)
     session_ms = (time.perf_counter_ns() - start) / 1e6
-    if rectifier.spec.generic is not None:  # it serves the bench's camera
-        rectifier = Rectifier(rectifier.model, mode, bench_camera())
+    # A generic model serves the bench profile's camera, a device model its own.
+    rectifier = Rectifier(onnx_model, mode, bench_camera() if onnx_model.spec.generic is not None else None)
     p2, p3 = bench_frames(frames, points, rectifier.image_size, seed=seed)
     start = time.perf_counter_ns()
     rectifier.rectify(p2[0], p3[0], refine=refine)

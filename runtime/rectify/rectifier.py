@@ -208,8 +208,11 @@ def _in_frame(b: int, call, *args):
         raise InputError(f"frame {b}: {exc}") from None
 
 
-def _default_model(threads: int, providers) -> OnnxModel:
-    """The bundled default model, or ModelError when this installation has none."""
+def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers=None) -> OnnxModel:
+    """A ``dimenet-model/1`` .onnx file, or without a path the bundled default model (ModelError
+    when this installation has none)."""
+    if path is not None:
+        return load_onnx_model(path, threads=threads, providers=providers)
     resource = asset(DEFAULT_MODEL)
     if not resource.is_file():
         raise ModelError(
@@ -288,16 +291,22 @@ class Rectifier:
         (``image_size`` alone: a rescale). ``mode``: "dimenet" (the paper's method) or "map" (the
         network's K as a prior, fused with the frame's own points). CameraError for a camera the
         model cannot serve."""
-        if path is not None:
-            model = load_onnx_model(path, threads=threads, providers=providers)
-        else:
-            model = _default_model(threads, providers)
+        model = load_model(path, threads=threads, providers=providers)
         return cls(model, mode, _camera(model, K_c, image_size))
 
     @property
     def spec(self) -> ModelSpec:
         """The model's own spec (a generic model's has no camera: see ``K_c``, ``image_size``)."""
         return self.model.spec
+
+    @property
+    def K_bounds(self) -> np.ndarray:
+        """(4, 2) [low, high] px the plausible (fx, fy, cx, cy), in the camera's pixels."""
+        return self._spec.K_bounds if self._pixels is None else self._pixels.bounds_to_user(self._spec.K_bounds)
+
+    def k_within_bounds(self, k: np.ndarray) -> bool:
+        """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""
+        return bool(self._spec.k_within_bounds(k if self._pixels is None else self._pixels.k_to_model(k)))
 
     # -- one frame ---------------------------------------------------------------------------
 

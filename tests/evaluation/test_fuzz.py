@@ -2,15 +2,15 @@
 
 import numpy as np
 import pytest
+from helpers import default_rectifier
 
-from dimenet.runtime import Rectifier
 from dimenet.runtime.evaluation.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
 
 
 @pytest.mark.parametrize("mode", ["dimenet", "map"])
 def test_hostile_frames_end_typed_or_without_a_confident_wrong_k(frames, mode):
     report = FuzzReport()
-    fuzz_rectifier(Rectifier.load(mode=mode), frames, 84, np.random.default_rng(3), report)
+    fuzz_rectifier(default_rectifier(mode), frames, 84, np.random.default_rng(3), report)
     assert report.bad == 0, report.table()
     assert report.counts["rectify"]["typed"] > 20 and report.counts["rectify"]["ok"] > 5  # both kinds happen
 

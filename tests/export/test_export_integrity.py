@@ -16,6 +16,8 @@ import pytest
 onnx = pytest.importorskip("onnx")
 torch = pytest.importorskip("torch")
 
+from helpers import DEVICE_MODEL
+
 from dimenet.export.onnx_export import export_model, restamp_model, stamp_weights_sha256
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import ModelError
@@ -156,8 +158,13 @@ def test_restamp_gives_an_old_file_the_hash_and_keeps_graph_and_weights(blob):
     )
 
 
-def test_the_bundled_model_was_stamped_by_restamp_model():
-    bundled = asset(DEFAULT_MODEL).read_bytes()
+def test_the_earlier_device_model_was_stamped_by_restamp_model():
+    bundled = DEVICE_MODEL.read_bytes()
     assert _meta(bundled)["version"] == "1.4.0"
+    assert restamp_model(_as_spec_1_3(bundled), "bundled 1.3") == restamp_model(bundled, "bundled")
+
+
+def test_the_bundled_generic_model_is_as_export_stamps_it():
+    bundled = asset(DEFAULT_MODEL).read_bytes()
+    assert _meta(bundled)["version"] == "1.5.0" and "generic" in _meta(bundled)
     assert restamp_model(bundled, "bundled") == bundled  # idempotent, and the one implementation
-    assert restamp_model(_as_spec_1_3(bundled), "bundled 1.3") == bundled

@@ -3,8 +3,9 @@ from the declared one, and a model file whose bytes differ from the sha256 in it
 ModelError naming the file (never a traceback, never a model that loads and then fails or falls
 back on every frame). Spec 1.0-1.3 files still load, without the integrity check.
 
-The spec cases edit the bundled default model's spec; the file cases need ``onnx`` to build or
-edit a graph (skipped without it), except the byte-flip cases, which need the runtime only.
+The spec cases edit the spec of the device model bundled before the generic default
+(tests/data); the file cases need ``onnx`` to build or edit a graph (skipped without it), except
+the byte-flip cases, which need the runtime only.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import math
 import numpy as np
 import onnxruntime as ort
 import pytest
+from helpers import DEVICE_MODEL
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import ModelError
@@ -38,12 +40,13 @@ SOURCE = "suspect.onnx"
 
 @pytest.fixture(scope="module")
 def bundled() -> bytes:
-    return asset(DEFAULT_MODEL).read_bytes()
+    """The device model the project bundled before the generic default (spec 1.4, stamped)."""
+    return DEVICE_MODEL.read_bytes()
 
 
 @pytest.fixture(scope="module")
 def base(bundled) -> dict:
-    """The bundled model's spec as a dict (read through ONNX Runtime: no onnx needed)."""
+    """The device model's spec as a dict (read through ONNX Runtime: no onnx needed)."""
     session = ort.InferenceSession(bundled, providers=["CPUExecutionProvider"])
     return json.loads(session.get_modelmeta().custom_metadata_map[METADATA_KEY])
 
@@ -302,8 +305,18 @@ def test_the_sigma_rule_is_the_documented_box(base):
     assert 1e-3 < sigma.min() and sigma.max() < 1e6
 
 
-def test_the_bundled_model_is_spec_1_4_and_its_hash_verifies_without_onnx(bundled, base):
-    assert base["version"] == VERSION == "1.4.0"
+def test_the_bundled_generic_model_is_spec_1_5_and_its_hash_verifies_without_onnx():
+    blob = asset(DEFAULT_MODEL).read_bytes()
+    model = onnx_model_from_bytes(blob, "bundled")
+    assert model.spec.generic is not None and model.spec.K_c is None and model.spec.uncertainty is not None
+    d = model.spec.to_dict(weights_sha256=model.spec.weights_sha256)
+    assert d["version"] == VERSION == "1.5.0"
+    digest = model.spec.weights_sha256
+    assert hashlib.sha256(blob.replace(digest.encode(), WEIGHTS_SHA256_PLACEHOLDER.encode())).hexdigest() == digest
+
+
+def test_the_earlier_device_model_is_spec_1_4_and_its_hash_verifies_without_onnx(bundled, base):
+    assert base["version"] == "1.4.0"
     digest = base[WEIGHTS_SHA256_KEY]
     assert bundled.count(digest.encode()) == 1
     assert hashlib.sha256(bundled.replace(digest.encode(), WEIGHTS_SHA256_PLACEHOLDER.encode())).hexdigest() == digest
@@ -407,14 +420,14 @@ def test_spec_1_3_and_unstamped_1_4_models_load_without_the_check(bundled, tmp_p
     old = tmp_path / "v13.onnx"
     old.write_bytes(_with_spec_text(bundled, as_1_3))
     p2, p3 = _example_frame()
-    expected = Rectifier.load().rectify(p2, p3)
+    expected = Rectifier.load(DEVICE_MODEL).rectify(p2, p3)
     for path in (old,):
         got = Rectifier.load(path).rectify(p2, p3)
         np.testing.assert_array_equal(got.K, expected.K)
         np.testing.assert_array_equal(got.K_cov, expected.K_cov)
     assert load_onnx_model(old).spec.weights_sha256 is None
     # no hash, no check: a weight flip in a 1.3 file goes unnoticed (re-export or re-stamp to get the check)
-    assert load_onnx_model(old).spec.to_dict() == load_onnx_model(asset(DEFAULT_MODEL)).spec.to_dict()
+    assert load_onnx_model(old).spec.to_dict() == load_onnx_model(DEVICE_MODEL).spec.to_dict()
     unstamped = tmp_path / "v14_unstamped.onnx"
     unstamped.write_bytes(_with_spec_text(bundled, lambda d: d.pop(WEIGHTS_SHA256_KEY)))
     np.testing.assert_array_equal(Rectifier.load(unstamped).rectify(p2, p3).K, expected.K)

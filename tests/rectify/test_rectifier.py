@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
-from helpers import model_spec, random_model_file
+from helpers import default_rectifier, model_spec, random_model_file
 
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
@@ -26,7 +26,7 @@ from dimenet.runtime.rectify.rectifier import Rectifier
 
 @pytest.fixture(scope="module")
 def rectifier(model_path):
-    return Rectifier.load(model_path)
+    return Rectifier.load(model_path) if model_path is not None else default_rectifier()
 
 
 def frame_points(frames, b):
@@ -50,12 +50,12 @@ def test_rectify_error_is_the_evaluation_metric(rectifier, frames):
     K = np.array([r.K for r in results])
     p2, p3, valid = frames.points_2d[test], frames.points_3d[test], frames.valid[test]
     e = reprojection_error_under_k(p2, p3, valid, K)
-    e_c = reprojection_error_under_k(p2, p3, valid, rectifier.spec.K_c)
+    e_c = reprojection_error_under_k(p2, p3, valid, rectifier.K_c)
     np.testing.assert_allclose([r.reprojection_error_px for r in results], e, atol=1e-3)
     np.testing.assert_allclose([r.reprojection_error_kc_px for r in results], e_c, atol=1e-3)
     for r in results:
         assert r.K.shape == (3, 3) and r.rvec.shape == r.tvec.shape == (3,) and r.delta_k.shape == (4,)
-        np.testing.assert_array_equal(r.K, k_matrix(k_params(rectifier.spec.K_c) + r.delta_k))
+        np.testing.assert_array_equal(r.K, k_matrix(k_params(rectifier.K_c) + r.delta_k))
         assert set(r.timings_us) == {"validate", "pnp_kc", "features", "model", "pnp_k", "refine", "check"}
 
 
@@ -95,11 +95,11 @@ def test_batch_infers_k_from_the_infer_mask(rectifier, frames):
     few[0, np.flatnonzero(few[0])[3:]] = False
     res = rectifier.rectify_batch(p2, p3, valid, infer_mask=few)
     assert res.fallback[0].startswith("no K inferred: 3 inference points")
-    np.testing.assert_array_equal(res.K[0], rectifier.spec.K_c)
+    np.testing.assert_array_equal(res.K[0], rectifier.K_c)
     full = rectifier.rectify_batch(p2, p3, valid, infer_mask=infer, refine=True)
     np.testing.assert_allclose(res.K[1:], full.K[1:], atol=1e-9)
     # poses and errors use all valid points
-    K_c = rectifier.spec.K_c
+    K_c = rectifier.K_c
     np.testing.assert_allclose(full.reprojection_error_kc_px, reprojection_error_under_k(p2, p3, valid, K_c), atol=1e-3)
     np.testing.assert_allclose(full.reprojection_error_px, reprojection_error_under_k(p2, p3, valid, full.K), atol=1e-3)
     with pytest.raises(InputError, match="infer_mask: must be a subset of valid"):

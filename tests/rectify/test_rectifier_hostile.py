@@ -4,8 +4,8 @@ never a pose with a point behind the camera (issue 20's reproducers)."""
 import cv2
 import numpy as np
 import pytest
+from helpers import default_rectifier
 
-from dimenet.runtime import Rectifier
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import min_depths
 from dimenet.runtime.rectify.checks import MAX_KC_ERROR_F
@@ -13,7 +13,7 @@ from dimenet.runtime.rectify.checks import MAX_KC_ERROR_F
 
 @pytest.fixture(scope="module", params=["dimenet", "map"])
 def bundled(request):
-    return Rectifier.load(mode=request.param)
+    return default_rectifier(request.param)
 
 
 def _rig_frame(frames, b=0):
@@ -56,7 +56,7 @@ def _assert_no_confident_wrong_k(rect, x, X, res):
     Z = X @ cv2.Rodrigues(res.rvec)[0][2] + res.tvec[2]
     assert Z.min() > 0, "a pose with a point behind the camera was returned"
     assert res.fallback is not None and not res.fallback.startswith("map:")
-    np.testing.assert_array_equal(res.K, rect.spec.K_c)
+    np.testing.assert_array_equal(res.K, rect.K_c)
     assert res.K_cov is None
 
 
@@ -76,13 +76,13 @@ def test_out_of_range_frames_name_the_likely_cause_in_single_and_batch(bundled, 
     x, X = HOSTILE[case](frames)
     res = bundled.rectify(x, X)
     assert "beyond" in res.fallback and "another camera, resolution or unit" in res.fallback
-    assert res.reprojection_error_kc_px > MAX_KC_ERROR_F * bundled.spec.K_c[0, 0]
+    assert res.reprojection_error_kc_px > MAX_KC_ERROR_F * bundled.K_c[0, 0]
     good_x, good_X, _ = _rig_frame(frames, 1)
     n = min(len(x), len(good_x))
     batch = bundled.rectify_batch(np.stack([good_x[:n], x[:n]]), np.stack([good_X[:n], X[:n]]), np.ones((2, n), bool))
     assert batch.fallback[0] is None or batch.fallback[0].startswith("map:")
     assert "beyond" in batch.fallback[1]
-    np.testing.assert_array_equal(batch.K[1], bundled.spec.K_c)
+    np.testing.assert_array_equal(batch.K[1], bundled.K_c)
     assert batch.K_cov is None or np.all(np.isnan(batch.K_cov[1]))
 
 

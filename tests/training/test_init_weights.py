@@ -18,7 +18,7 @@ from dimenet.export.commands import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 from dimenet.export.onnx_export import export_model
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify.model import load_onnx_model
-from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.rectifier import load_model
 from dimenet.runtime.rectify.spec import METADATA_KEY
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training import init_weights as init_weights_module
@@ -101,7 +101,7 @@ def test_a_run_dir_gives_back_its_weights_and_spec(tmp_path, torch_model, spec):
 
 def test_the_default_model_reproduces_onnx_runtime(spec):
     weights = initial_weights("default")
-    bundled = Rectifier.load().model
+    bundled = load_model()
     assert weights.source == "default" and weights.spec.to_dict() == bundled.spec.to_dict()
     features = _features(bundled.spec, frames=64)
     got = _outputs(weights.state_dict, weights.spec, features)

@@ -63,9 +63,8 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
         rig = _test(data[d], "rig")
         cases = {"rig": rig, f"rig {SMALL_POINTS} pts": drop_inference_points(rig, SMALL_POINTS, rng(40))}
         for scene in ("natural", "planar"):
-            frames = _test(data[d], scene)
-            if frames.n_frames:
-                cases[scene] = frames
+            if np.any(data[d].frames_in("test") & (data[d].scene == scene)):
+                cases[scene] = _test(data[d], scene)
         for case, frames in cases.items():
             ev = evaluate(frames, p.K_c, p, methods=("dimenet", "map"))
             ev_device = evaluate(frames, device[d].K_c, device[d], methods=("dimenet", "map"))

@@ -20,7 +20,7 @@ from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.rectify.rectifier import MODES, BatchRectification, Rectifier
+from dimenet.runtime.rectify.rectifier import MODES, BatchRectification, Rectifier, load_model
 
 EXAMPLE_DATA = "example_frames.npz"
 EXAMPLE_CAMERA = "example_camera.json"  # the example's camera (galaxy-s8 K_c calibrated on its train split)
@@ -128,7 +128,7 @@ def _frames(args: argparse.Namespace) -> Dataset:
 def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
     """The model serving the dataset's camera (``cli.camera.dataset_camera``; the bundled example's
     own camera file with --example)."""
-    model = Rectifier.load(args.model, mode=args.mode).model
+    model = load_model(args.model)
     camera_file = args.camera
     if args.example and camera_file is None:
         with resources.as_file(asset(EXAMPLE_CAMERA)) as path:
