@@ -41,7 +41,7 @@ def bench_frames(n_frames: int, n_points: int, image_size, *, seed: int = 0) -> 
     if tuple(image_size) != tuple(profile.image_size_px):
         raise ModelError(
             f"the bench simulates {BENCH_PROFILE} frames of {profile.image_size_px[0]}x"
-            f"{profile.image_size_px[1]} px; the model was trained for {image_size[0]}x{image_size[1]} px"
+            f"{profile.image_size_px[1]} px; the model serves {image_size[0]}x{image_size[1]} px"
         )
     ds = simulate(profile, seed=seed)
     counts = ds.valid.sum(1)

@@ -2,8 +2,8 @@
 
 Input (``InputError`` naming the problem, and the frame in a batch): real arrays of the right
 shape; at least ``MIN_POINTS`` correspondences, of distinct 2D and distinct 3D points; finite
-values, 3D coordinates within +-MAX_COORDINATE; 2D points inside the image the model was
-trained for; points that fix a pose (not coincident, not collinear); a pose under K_c with
+values, 3D coordinates within +-MAX_COORDINATE; 2D points inside the camera's
+image; points that fix a pose (not coincident, not collinear); a pose under K_c with
 every point in front of the camera.
 
 Fallback (K_c's own solution is returned and the result's ``fallback`` says why): the frame's
@@ -76,7 +76,7 @@ def bool_mask(value, name: str, shape: tuple) -> np.ndarray:
 
 
 class ImageBounds:
-    """The image a model was trained for: pixel centres run from 0 to size - 1 (OpenCV), so it
+    """The camera's image: pixel centres run from 0 to size - 1 (OpenCV), so it
     covers [-0.5, width - 0.5] x [-0.5, height - 0.5] px."""
 
     def __init__(self, image_size) -> None:
@@ -109,7 +109,7 @@ class ImageBounds:
         i = int(np.argmax(valid & ~self.inside(points_2d, points_3d)))
         raise InputError(
             f"{where}points_2d: point {i} at ({points_2d[i, 0]:.1f}, {points_2d[i, 1]:.1f}) px is "
-            f"outside the {self.width}x{self.height} px image the model was trained for"
+            f"outside the camera's {self.width}x{self.height} px image"
         )
 
 

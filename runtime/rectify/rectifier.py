@@ -4,7 +4,7 @@ numpy, OpenCV and ONNX Runtime only. ``Rectifier.rectify`` runs one frame throug
 stages, each timed into ``timings_us`` under its name:
 
 1. ``validate``: the input rules of ``rectify.checks`` (shapes, >= MIN_POINTS points, finite,
-   inside the model's image, not degenerate);
+   inside the camera's image, not degenerate);
 2. ``pnp_kc``: SQPnP pose {W}->{C0} under the prior K_c;
 3. ``features``: the grid feature (``rectify.features.grid_features``) at that pose;
 4. ``model``: one ONNX Runtime call, Delta K (px); the candidate K = K_c + Delta K, refused

@@ -130,7 +130,7 @@ BAD_INPUTS = {
     "points_2d has .* points and points_3d .*: they must correspond": lambda p2, p3: (p2[:-1], p3),
     "points_2d: point 3 is not finite": lambda p2, p3: (np.where(np.arange(len(p2))[:, None] == 3, np.nan, p2), p3),
     "points_3d: point 0 is not finite": lambda p2, p3: (p2, np.where(np.arange(len(p3))[:, None] == 0, np.inf, p3)),
-    "point 2 at \\(5000.0, .*outside the 4032x3024 px image": lambda p2, p3: (
+    "point 2 at \\(5000.0, .*outside the camera.s 4032x3024 px image": lambda p2, p3: (
         np.where(np.arange(len(p2))[:, None] == 2, [5000.0, 100.0], p2),
         p3,
     ),

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from helpers import constant_uncertainty, model_spec
+from helpers import constant_uncertainty, example_camera, model_spec
 from test_pixel_map import generic_spec, half
 
 from dimenet.runtime.errors import CameraError
@@ -107,3 +107,21 @@ def test_half_resolution_points_under_a_full_resolution_k_c_never_get_a_silent_k
         assert all(res.fallback), res.fallback
         assert all(("K_c" in r) or ("camera" in r) for r in res.fallback)
         np.testing.assert_array_equal(res.K, np.broadcast_to(K_c, res.K.shape))
+
+
+def test_the_bundled_generic_model_serves_any_resolution_and_refuses_a_mismatched_one(frames):
+    """The bundled default: the camera is required; half resolution gives K/2 and metres the
+    millimetres' K; half-resolution points under the full-resolution K_c never get a K."""
+    with pytest.raises(CameraError, match="generic model"):
+        Rectifier.load()
+    camera = example_camera()
+    full = Rectifier.load(K_c=camera.K, image_size=camera.image_size)
+    halved = Rectifier.load(K_c=half(camera.K), image_size=(2016, 1512))
+    p2, p3, valid = rig_frames(frames)
+    rf = full.rectify_batch(p2, p3, valid)
+    assert not any(rf.fallback)
+    rh = halved.rectify_batch(np.where(valid[..., None], to_half(p2), 0.0), p3, valid)
+    assert np.abs(up(k_params(rh.K)) - k_params(rf.K)).mean() < 1e-6
+    assert np.abs(k_params(full.rectify_batch(p2, p3 / 1000.0, valid).K) - k_params(rf.K)).max() < 1e-6
+    mismatched = full.rectify_batch(np.where(valid[..., None], to_half(p2), 0.0), p3, valid)
+    assert all(mismatched.fallback)
