@@ -96,8 +96,9 @@ def _run_train(args: argparse.Namespace) -> int:
 TRAIN = Command(
     name="train",
     summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, plus a focal term).",
-    example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0; "
-    "fine-tune the default on 30 frames: dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30",
+    example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0\n"
+    "  dimenet train family --out runs/generic --epochs 200   (a folder from `dimenet simulate --family`)\n"
+    "  dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30   (fine-tune the default)",
     add_arguments=_add_train,
     run=_run_train,
 )

@@ -193,8 +193,9 @@ def run(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="rectify",
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
-    example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz   "
-    "(or: dimenet rectify --example)",
+    example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz\n"
+    "  dimenet rectify frames.npz --camera cam.json --json   (the bundled generic model, your camera)\n"
+    "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,
 )
