@@ -245,8 +245,8 @@ def _camera(model: OnnxModel, K_c, image_size) -> Optional[Camera]:
 
 
 class Rectifier:
-    """A loaded model ready to rectify frames of one camera. ``Rectifier.load()`` uses the bundled
-    default model. ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera served
+    """A loaded model ready to rectify frames of one camera. ``Rectifier.load(K_c=..., image_size=...)``
+    uses the bundled (generic) default model. ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera served
     (the prior K_c used), in the user's pixels."""
 
     def __init__(self, model: OnnxModel, mode: str = "dimenet", camera: Optional[Camera] = None) -> None:
