@@ -61,7 +61,8 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
     for d in DEVICES:
         p = generic.for_camera(_camera(data[d]))
         rig = _test(data[d], "rig")
-        cases = {"rig": rig, f"rig {SMALL_POINTS} pts": drop_inference_points(rig, SMALL_POINTS, rng(40))}
+        # The 64-point draw of Table 4 (seed + 2), so the per-device row is Table 4's.
+        cases = {"rig": rig, f"rig {SMALL_POINTS} pts": drop_inference_points(rig, SMALL_POINTS, rng(2))}
         for scene in ("natural", "planar"):
             if np.any(data[d].frames_in("test") & (data[d].scene == scene)):
                 cases[scene] = _test(data[d], scene)
@@ -97,9 +98,10 @@ def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> d
     cfg = TrainConfig(epochs=config.epochs, seed=config.seed, train_frames=FINE_TUNE_FRAMES)
     run = train(s8, cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", init=initial_weights("default"))
     tuned = load_predictor(run.run_dir).for_camera(_camera(s8))
-    rng = lambda: np.random.default_rng(config.seed + 41)  # noqa: E731
     cases = {
-        f"rig {SMALL_POINTS} pts": drop_inference_points(_test(s8, "rig"), SMALL_POINTS, rng()),
+        f"rig {SMALL_POINTS} pts": drop_inference_points(
+            _test(s8, "rig"), SMALL_POINTS, np.random.default_rng(config.seed + 2)
+        ),
         "natural": _test(s8, "natural"),
     }
     rows = {}
@@ -147,7 +149,7 @@ def run_generic(data: dict, device: dict, out: Path, config: ReproduceConfig) ->
     """Every row of the generic comparison (``report`` writes them)."""
     generic = default_predictor()
     return {
-        "model": generic.source,
+        "model": f"the bundled default model ({DEFAULT_MODEL})",
         "zero_shot": zero_shot(data, generic, device, config),
         "fresh_family": fresh_family(generic),
         "fine_tune": fine_tune(data, device, out, config),
