@@ -232,15 +232,18 @@ def grid_features(
     # Per channel and cell, the sum of its points' values in point order.
     sums = np.bincount(index.ravel(), weights=weights.ravel(), minlength=width * bins).reshape(width, bins)
     means = sums[:-1] / np.maximum(sums[-1], 1.0)
-    means *= spec.channel_scale[:, None]
-    if relative:  # X, Y times the frame's depth factor, 1/Z over it: cell means scale alike
+    if not relative:
+        means *= spec.channel_scale[:, None]
+    else:  # X, Y times the frame's depth factor, 1/Z over it: cell means scale alike
         # One frame (the rectifier's hot path): float arithmetic, 1 µs against _depth_factors's 12 µs of
         # tiny array calls; tests/rectify/test_features.py holds the two equal.
         if F == 1 and mask is None:
             z_sum = float(z_sums[0])
-            means *= ((spec.depth_mm * N / z_sum if z_sum > 0 else 1.0) ** spec.depth_exponents)[:, None]
+            factor = spec.depth_mm * N / z_sum if z_sum > 0 else 1.0
+            means *= (spec.channel_scale * factor**spec.depth_exponents)[:, None]
         else:
             factor = _depth_factors(z_sums, N if mask is None else mask.sum(1), spec.depth_mm)
-            means.reshape(width - 1, F, -1)[...] *= factor[None, :, None] ** spec.depth_exponents[:, None, None]
+            scale = spec.channel_scale[:, None, None] * factor[None, :, None] ** spec.depth_exponents[:, None, None]
+            means.reshape(width - 1, F, -1)[...] *= scale
     feats = means.T.reshape(F, bins // F * (width - 1))
     return (feats, points) if return_points else feats
