@@ -8,6 +8,7 @@ import sys
 from dataclasses import replace
 
 import numpy as np
+from helpers import example_camera
 
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.formats.dataset import write_dataset
@@ -44,7 +45,13 @@ def test_rectify_command_on_the_example_and_on_a_dataset(model_path, frames, tmp
         np.testing.assert_allclose(npz["e"], [f["e_px"] for f in report["frames"]])
     data = tmp_path / "natural.npz"
     write_dataset(frames.select(frames.scene == "natural"), data)
-    assert main(["rectify", str(data), *model]) == 0
+    camera_file = []
+    if model_path is None:  # the generic default needs the camera: no train split to calibrate it from
+        camera = example_camera()
+        cam = tmp_path / "cam.json"
+        cam.write_text(json.dumps({"K": camera.K.tolist(), "image_size": list(camera.image_size)}))
+        camera_file = ["--camera", str(cam)]
+    assert main(["rectify", str(data), *model, *camera_file]) == 0
     assert "3 frames: Avg(e_c)" in capsys.readouterr().out
     other = replace(frames.select(frames.scene == "natural"), image_size=np.array([4000, 3000]))
     write_dataset(other, tmp_path / "other.npz")
