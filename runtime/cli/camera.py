@@ -6,10 +6,10 @@ import argparse
 from typing import Optional
 
 from dimenet.runtime.cli.main import CliError, nonempty_path
-from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.rectify.camera import Camera, checked_camera
+from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.spec import ModelSpec
 
 
@@ -24,7 +24,7 @@ def add_camera_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
-def dataset_camera(spec: ModelSpec, frames: Dataset, camera_file: Optional[str], source: str) -> Optional[Camera]:
+def served_camera(spec: ModelSpec, frames: Dataset, camera_file: Optional[str], source: str) -> Optional[Camera]:
     """The camera for ``frames``: the file's; None (the model's own) for a device model whose image
     size the dataset has; else K_c from the dataset's train split. CliError when that is needed
     and the dataset has no train split."""
@@ -36,4 +36,4 @@ def dataset_camera(spec: ModelSpec, frames: Dataset, camera_file: Optional[str],
     if not frames.frames_in("train").any():
         kind = "a generic model" if spec.generic is not None else f"a {size[0]}x{size[1]} px dataset"
         raise CliError(f"{source}: {kind} needs the camera's K_c: give --camera FILE (the dataset has no train split)")
-    return checked_camera(calibrate_dataset(frames).K_c, size, "K_c calibrated on the dataset's train split")
+    return dataset_camera(frames)

@@ -24,6 +24,7 @@ from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry.least_squares import calibrate
+from dimenet.runtime.rectify.camera import Camera, checked_camera
 
 CALIBRATION_KEYS = ("K_c", "K_star", "rvec", "tvec", "e_star")
 # A train frame is left out of K_c when a K* parameter or its e* lies this many robust standard
@@ -93,6 +94,13 @@ def calibrate_dataset(dataset: Dataset) -> Calibration:
         e_star=e_star,
         outliers=tuple(int(b) for b in rows[out]),
     )
+
+
+def dataset_camera(dataset: Dataset) -> Camera:
+    """The dataset's camera as ``dimenet calibrate`` finds it: K_c from its train split, and its
+    image size."""
+    size = tuple(int(v) for v in dataset.image_size)
+    return checked_camera(calibrate_dataset(dataset).K_c, size, "K_c calibrated on the dataset's train split")
 
 
 def write_calibration(cal: Calibration, path: str | Path) -> Path:

@@ -20,7 +20,7 @@ import numpy as np
 import onnxruntime as ort
 
 from dimenet.runtime.errors import InputError, ModelError
-from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
 from dimenet.runtime.sim.simulator import get_profile, simulate
@@ -61,8 +61,7 @@ def bench_frames(n_frames: int, n_points: int, image_size, *, seed: int = 0) -> 
 
 def bench_camera() -> Camera:
     """The bench profile's camera, as a user would know it: K_c calibrated on its train split."""
-    ds = simulate(get_profile(BENCH_PROFILE), seed=0)
-    return Camera(calibrate_dataset(ds).K_c, tuple(int(v) for v in ds.image_size))
+    return dataset_camera(simulate(get_profile(BENCH_PROFILE), seed=0))
 
 
 def cpu_model() -> str:

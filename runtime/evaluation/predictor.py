@@ -9,6 +9,7 @@ with the rectifier's batches.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 from importlib import metadata
 from pathlib import Path
 from typing import Callable, Optional
@@ -18,10 +19,10 @@ import numpy as np
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
-from dimenet.runtime.rectify.camera import Camera, PixelMap
+from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.inference import network_k, network_statistics
 from dimenet.runtime.rectify.model import load_onnx_model
-from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera
 from dimenet.runtime.rectify.uncertainty import STATISTICS
 
 
@@ -50,42 +51,35 @@ class Predictor:
     source: str
     camera: Optional[Camera] = None
 
-    def __post_init__(self) -> None:
-        if self.spec.generic is not None and self.camera is None:
-            return  # resolved once for_camera gives the camera
-        resolved, pixels = self.spec.for_camera(self.camera, self.source)
-        object.__setattr__(self, "_resolved", (resolved, pixels))
-
     def for_camera(self, camera: Optional[Camera]) -> Predictor:
         """This predictor serving ``camera`` (CameraError when the model cannot)."""
-        return replace(self, camera=camera)
+        predictor = replace(self, camera=camera)
+        predictor.served  # noqa: B018 (resolved now: a camera the model cannot serve fails here)
+        return predictor
 
-    def _model_frame(self) -> tuple[ModelSpec, Optional[PixelMap]]:
-        if not hasattr(self, "_resolved"):
-            self.spec.for_camera(None, self.source)  # the generic model's CameraError
-        return self._resolved
+    @cached_property
+    def served(self) -> ServedCamera:
+        """The spec serving the camera (``ModelSpec.for_camera``; a generic model's CameraError
+        without one)."""
+        return self.spec.for_camera(self.camera, self.source)
 
     @property
     def image_size(self) -> tuple:
-        return tuple(self.camera.image_size) if self.camera is not None else tuple(self._model_frame()[0].image_size)
+        return self.served.image_size
 
     @property
     def K_c(self) -> np.ndarray:
         """(3, 3) px the prior, in the camera's pixels."""
-        spec, pixels = self._model_frame()
-        if self.camera is not None and (pixels is None or spec.generic is not None):
-            return self.camera.K
-        return spec.K_c if pixels is None else pixels.K_to_user(spec.K_c)
+        return self.served.K_c
 
     @property
     def K_bounds(self) -> np.ndarray:
         """(4, 2) px the plausible K range, in the camera's pixels."""
-        spec, pixels = self._model_frame()
-        return spec.K_bounds if pixels is None else pixels.bounds_to_user(spec.K_bounds)
+        return self.served.K_bounds
 
     def predict(self, frames: Dataset) -> KPrediction:
         """K and, with an uncertainty model, its covariance per frame from its inference points."""
-        spec, pixels = self._model_frame()
+        spec, pixels = self.served.model, self.served.pixels
         size = self.image_size
         if tuple(frames.image_size.tolist()) != size:
             raise ModelError(

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import CameraError
-from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.json_text import shown
 
 MAX_IMAGE_SIDE_PX = 100_000
@@ -135,40 +135,32 @@ class PixelMap:
     offset: tuple = (0.0, 0.0)
 
     @cached_property
-    def _affine(self) -> np.ndarray:
-        """(2, 3) the map as an affine matrix (for cv2.transform)."""
+    def _matrix(self) -> np.ndarray:
+        """(3, 3) the map as a matrix on homogeneous pixels: K_model = matrix @ K_user."""
         shift = np.array(self.offset) + 0.5 * self.scale - 0.5
-        return np.array([[self.scale, 0.0, shift[0]], [0.0, self.scale, shift[1]]])
+        return np.array([[self.scale, 0.0, shift[0]], [0.0, self.scale, shift[1]], [0.0, 0.0, 1.0]])
+
+    @cached_property
+    def _inverse(self) -> np.ndarray:
+        return np.linalg.inv(self._matrix)
 
     def points_to_model(self, points_2d: np.ndarray) -> np.ndarray:
         """(..., 2) float64 user px -> model px (NaN stays NaN). One cv2.transform: 1 µs for
         320 points, against 4 µs for numpy's scale-and-shift."""
         points_2d = np.ascontiguousarray(points_2d, dtype=np.float64)
-        return cv2.transform(points_2d.reshape(-1, 1, 2), self._affine).reshape(points_2d.shape)
+        return cv2.transform(points_2d.reshape(-1, 1, 2), self._matrix[:2]).reshape(points_2d.shape)
 
     def k_to_model(self, k: np.ndarray) -> np.ndarray:
         """(..., 4) (fx, fy, cx, cy) user px -> model px."""
-        k = np.asarray(k, dtype=np.float64)
-        out = k * self.scale
-        out[..., 2:] += np.array(self.offset) + 0.5 * self.scale - 0.5
-        return out
-
-    def k_to_user(self, k: np.ndarray) -> np.ndarray:
-        """(..., 4) (fx, fy, cx, cy) model px -> user px."""
-        k = np.asarray(k, dtype=np.float64)
-        out = k.copy()
-        out[..., 2:] -= np.array(self.offset) + 0.5 * self.scale - 0.5
-        return out / self.scale
-
-    @cached_property
-    def _inverse(self) -> np.ndarray:
-        """(3, 3) model px -> user px as a matrix: K_user = inverse @ K_model."""
-        a = np.vstack([self._affine, [0.0, 0.0, 1.0]])
-        return np.linalg.inv(a)
+        return k_params(np.matmul(self._matrix, k_matrix(k)))
 
     def K_to_user(self, K: np.ndarray) -> np.ndarray:
         """(..., 3, 3) model px -> user px (one 3 x 3 product: 1 µs; via (fx, fy, cx, cy) 8 µs)."""
         return np.matmul(self._inverse, K)
+
+    def k_to_user(self, k: np.ndarray) -> np.ndarray:
+        """(..., 4) (fx, fy, cx, cy) model px -> user px."""
+        return k_params(self.K_to_user(k_matrix(k)))
 
     def bounds_to_user(self, bounds: np.ndarray) -> np.ndarray:
         """(4, 2) [low, high] model px -> user px (the map is increasing)."""

@@ -246,22 +246,19 @@ def _camera(model: OnnxModel, K_c, image_size) -> Optional[Camera]:
 
 class Rectifier:
     """A loaded model ready to rectify frames of one camera. ``Rectifier.load(K_c=..., image_size=...)``
-    uses the bundled (generic) default model. ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera served
-    (the prior K_c used), in the user's pixels."""
+    uses the bundled (generic) default model. ``K_c`` (3, 3) px, ``image_size`` (width, height)
+    px and ``K_bounds`` (4, 2) px: the camera served (the prior K_c used) and the plausible K, in
+    the user's pixels."""
 
     def __init__(self, model: OnnxModel, mode: str = "dimenet", camera: Optional[Camera] = None) -> None:
         if mode not in MODES:
             raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
         if mode == "map":
             model.spec.map_uncertainty(model.source)
-        spec, self._pixels = model.spec.for_camera(camera, model.source)
+        served = model.spec.for_camera(camera, model.source)
+        spec, self._pixels = served.model, served.pixels
         self.model, self.mode, self._spec = model, mode, spec
-        if camera is None:
-            self.K_c, self.image_size = spec.K_c.copy(), tuple(spec.image_size)
-        else:
-            generic = spec.generic is not None
-            self.K_c = camera.K.copy() if generic or self._pixels is None else self._pixels.K_to_user(spec.K_c)
-            self.image_size = tuple(camera.image_size)
+        self.K_c, self.image_size, self.K_bounds = served.K_c.copy(), served.image_size, served.K_bounds
         self._uncertainty = spec.uncertainty
         self._n_channels = len(spec.features.channels)
         self._K_c = np.ascontiguousarray(spec.K_c, dtype=np.float64)
@@ -298,11 +295,6 @@ class Rectifier:
     def spec(self) -> ModelSpec:
         """The model's own spec (a generic model's has no camera: see ``K_c``, ``image_size``)."""
         return self.model.spec
-
-    @property
-    def K_bounds(self) -> np.ndarray:
-        """(4, 2) [low, high] px the plausible (fx, fy, cx, cy), in the camera's pixels."""
-        return self._spec.K_bounds if self._pixels is None else self._pixels.bounds_to_user(self._spec.K_bounds)
 
     def k_within_bounds(self, k: np.ndarray) -> bool:
         """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""

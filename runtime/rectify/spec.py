@@ -193,15 +193,18 @@ class ModelSpec:
             raise ModelError(f"{path}: model spec is not UTF-8 text") from None
         return cls.from_json(text, source=str(path))
 
-    def for_camera(self, camera: Optional[Camera], source: str = "model") -> tuple[ModelSpec, Optional[PixelMap]]:
-        """This spec resolved for the user's ``camera`` (None: a device model's own camera): the
-        spec in model px (K_c, image_size and K_bounds of the camera mapped onto the model's
-        pixel frame) and the map from the camera's pixels to the model's (None: the same).
+    def for_camera(self, camera: Optional[Camera], source: str = "model") -> ServedCamera:
+        """This spec serving the user's ``camera`` (None: a device model's own camera).
         CameraError naming ``source`` for a generic model without a camera, or a camera a
         device model cannot serve (``rectify.camera.device_pixel_map``)."""
         if self.generic is None:
-            pixels = None if camera is None else device_pixel_map(k_params(self.K_c), self.image_size, camera, source)
-            return self, pixels
+            if camera is None:
+                return ServedCamera(self, None, self.K_c, tuple(self.image_size), self.K_bounds)
+            pixels = device_pixel_map(k_params(self.K_c), self.image_size, camera, source)
+            if pixels is None:
+                return ServedCamera(self, None, camera.K, tuple(camera.image_size), self.K_bounds)
+            K_c = pixels.K_to_user(self.K_c)  # the model's prior, in the camera's pixels
+            return ServedCamera(self, pixels, K_c, tuple(camera.image_size), pixels.bounds_to_user(self.K_bounds))
         if camera is None:
             raise CameraError(
                 f"{source} is a generic model: it needs your camera, K_c (3, 3) px and image_size (width, height) px "
@@ -216,7 +219,9 @@ class ModelSpec:
         pixels = generic_pixel_map(camera, self.generic.focal_px)
         k = pixels.k_to_model(k_params(camera.K))
         size = tuple(float(v) * pixels.scale for v in camera.image_size)
-        return replace(self, K_c=k_matrix(k), image_size=size, K_bounds=k[:, None] + self.generic.delta_bounds), pixels
+        bounds = k[:, None] + self.generic.delta_bounds
+        model = replace(self, K_c=k_matrix(k), image_size=size, K_bounds=bounds)
+        return ServedCamera(model, pixels, camera.K, tuple(camera.image_size), pixels.bounds_to_user(bounds))
 
     def map_uncertainty(self, source: str) -> Uncertainty:
         """The uncertainty model that MAP rectification needs, or ModelError naming ``source``."""
@@ -231,3 +236,17 @@ class ModelSpec:
         """The K-bounds rule: k (..., 4) px (fx, fy, cx, cy) -> (...,) bool, every parameter inside
         [low, high] of K_bounds. A NaN fails it, so a non-finite K is refused too."""
         return np.all((k >= self.K_bounds[:, 0]) & (k <= self.K_bounds[:, 1]), axis=-1)
+
+
+@dataclass(frozen=True)
+class ServedCamera:
+    """A spec serving one camera (``ModelSpec.for_camera``): ``model`` the spec in model px
+    (K_c, image_size and K_bounds of the camera mapped onto the model's pixels); ``pixels`` the
+    map from the camera's pixels onto the model's (None: the same); and in the camera's pixels
+    K_c (3, 3) the prior used, image_size (width, height) and K_bounds (4, 2)."""
+
+    model: ModelSpec
+    pixels: Optional[PixelMap]
+    K_c: np.ndarray
+    image_size: tuple
+    K_bounds: np.ndarray

@@ -93,11 +93,13 @@ def test_a_generic_spec_round_trips_and_resolves_for_any_camera():
     with pytest.raises(CameraError, match="generic model: it needs your camera"):
         spec.for_camera(None, "generic.onnx")
     for K, size in ((K_TEST, SIZE), (half(K_TEST), (2016, 1512))):
-        resolved, pixels = spec.for_camera(Camera(K, size), "generic.onnx")
-        k = k_params(resolved.K_c)
+        served = spec.for_camera(Camera(K, size), "generic.onnx")
+        k = k_params(served.model.K_c)
         assert k[0] == pytest.approx(3000.0)
-        np.testing.assert_allclose(resolved.K_bounds, k[:, None] + spec.generic.delta_bounds)
-        np.testing.assert_allclose(pixels.K_to_user(resolved.K_c), K, atol=1e-9)
+        np.testing.assert_allclose(served.model.K_bounds, k[:, None] + spec.generic.delta_bounds)
+        np.testing.assert_allclose(served.pixels.K_to_user(served.model.K_c), K, atol=1e-9)
+        np.testing.assert_array_equal(served.K_c, K)
+        np.testing.assert_allclose(served.pixels.k_to_model(served.K_bounds.T), served.model.K_bounds.T, atol=1e-9)
     with pytest.raises(CameraError, match="more cells than"):
         spec.for_camera(Camera(k_matrix([5.0, 5.0, 2.0, 2.0]), (4, 3)), "generic.onnx")
 

@@ -76,7 +76,7 @@ def test_batch_equals_per_frame(rectifier, frames):
 def test_frame_delta_k_is_the_batch_call_in_every_thread(rectifier, frames):
     from concurrent.futures import ThreadPoolExecutor
 
-    spec = rectifier.spec.for_camera(Camera(rectifier.K_c, rectifier.image_size))[0]  # a generic one: canonical
+    spec = rectifier.spec.for_camera(Camera(rectifier.K_c, rectifier.image_size)).model  # a generic one: canonical
     feats = grid_features(
         frames.points_2d, frames.points_3d, frames.infer_mask, spec.K_c, spec.image_size, spec.features
     )

@@ -11,7 +11,7 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.progress import progress
-from dimenet.runtime.evaluation.calibration import calibrate_dataset
+from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import Predictor, load_onnx_predictor, load_predictor
@@ -35,11 +35,6 @@ FINE_TUNE_FRAMES = 30
 SMALL_POINTS = 64
 
 
-def _camera(ds: Dataset) -> Camera:
-    """The dataset's camera: K_c from its train split, as `dimenet calibrate` computes it."""
-    return Camera(calibrate_dataset(ds).K_c, tuple(int(v) for v in ds.image_size))
-
-
 def _rho(ev, method: str = "dimenet") -> float:
     return ev.methods[method]["overall"].rho
 
@@ -59,7 +54,7 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
     rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
     rows = {}
     for d in DEVICES:
-        p = generic.for_camera(_camera(data[d]))
+        p = generic.fordataset_camera(dataset_camera(data[d]))
         rig = _test(data[d], "rig")
         # The 64-point draw of Table 4 (seed + 2), so the per-device row is Table 4's.
         cases = {"rig": rig, f"rig {SMALL_POINTS} pts": drop_inference_points(rig, SMALL_POINTS, rng(2))}
@@ -83,7 +78,7 @@ def fresh_family(generic: Predictor) -> list:
     rows = []
     family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
     for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
-        p = generic.for_camera(_camera(ds))
+        p = generic.fordataset_camera(dataset_camera(ds))
         ev = evaluate(_test(ds, "rig"), p.K_c, p, methods=("dimenet",))
         w, h = camera.image_size_px
         rows.append({"camera": camera.name, "size": [w, h], "hfov_deg": hfov_deg(camera), "rho": _rho(ev)})
@@ -97,7 +92,7 @@ def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> d
     s8 = data["galaxy-s8"]
     cfg = TrainConfig(epochs=config.epochs, seed=config.seed, train_frames=FINE_TUNE_FRAMES)
     run = train(s8, cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", init=initial_weights("default"))
-    tuned = load_predictor(run.run_dir).for_camera(_camera(s8))
+    tuned = load_predictor(run.run_dir).fordataset_camera(dataset_camera(s8))
     cases = {
         f"rig {SMALL_POINTS} pts": drop_inference_points(
             _test(s8, "rig"), SMALL_POINTS, np.random.default_rng(config.seed + 2)
@@ -117,7 +112,7 @@ def invariance(data: dict) -> dict:
     max |K_m - K_mm| px, and how many frames of half-resolution points under the full-resolution
     K_c get a K (silently: any is wrong) rather than a fallback."""
     s8 = data["galaxy-s8"]
-    camera = _camera(s8)
+    camera = dataset_camera(s8)
     frames = _test(s8, "rig")
     blob = asset(DEFAULT_MODEL).read_bytes()
     model = onnx_model_from_bytes(blob, DEFAULT_MODEL)

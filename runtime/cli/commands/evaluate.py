@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 
-from dimenet.runtime.cli.camera import add_camera_argument, dataset_camera
+from dimenet.runtime.cli.camera import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import (
     CliError,
     Command,
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     ds = read_dataset(args.data)
     predictor = load_predictor(args.model) if args.model else None
     if predictor is not None:
-        predictor = predictor.for_camera(dataset_camera(predictor.spec, ds, args.camera, predictor.source))
+        predictor = predictor.for_camera(served_camera(predictor.spec, ds, args.camera, predictor.source))
         K_c = predictor.K_c
     else:
         K_c = read_camera(args.camera).K if args.camera else calibrate_dataset(ds).K_c

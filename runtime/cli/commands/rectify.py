@@ -13,7 +13,7 @@ from importlib import resources
 import numpy as np
 
 from dimenet.runtime.assets import asset
-from dimenet.runtime.cli.camera import add_camera_argument, dataset_camera
+from dimenet.runtime.cli.camera import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command, nonempty_path
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.atomic import atomic_write
@@ -126,7 +126,7 @@ def _frames(args: argparse.Namespace) -> Dataset:
 
 
 def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
-    """The model serving the dataset's camera (``cli.camera.dataset_camera``; the bundled example's
+    """The model serving the dataset's camera (``cli.camera.served_camera``; the bundled example's
     own camera file with --example)."""
     model = load_model(args.model)
     camera_file = args.camera
@@ -134,7 +134,7 @@ def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
         with resources.as_file(asset(EXAMPLE_CAMERA)) as path:
             camera = read_camera(path)
     else:
-        camera = dataset_camera(model.spec, frames, camera_file, model.source)
+        camera = served_camera(model.spec, frames, camera_file, model.source)
     rectifier = Rectifier(model, args.mode, camera)
     size = tuple(int(v) for v in frames.image_size)
     if size != rectifier.image_size:
