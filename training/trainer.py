@@ -436,7 +436,12 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     datasets = [datasets] if isinstance(datasets, Dataset) else list(datasets)
-    generic = len(datasets) > 1 or (init is not None and init.spec.generic is not None)
+    generic = len(datasets) > 1 if init is None else init.spec.generic is not None
+    if init is not None and not generic and len(datasets) > 1:
+        raise DatasetError(
+            f"--init {init.source} is a device model: it fine-tunes on one dataset of its camera, "
+            f"not on {len(datasets)} (start a family from a generic model, or from scratch)"
+        )
     focal_px = None
     if generic:
         focal_px = init.spec.generic.focal_px if init is not None and init.spec.generic else GENERIC_FOCAL_PX

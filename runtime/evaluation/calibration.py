@@ -100,7 +100,11 @@ def dataset_camera(dataset: Dataset) -> Camera:
     """The dataset's camera as ``dimenet calibrate`` finds it: K_c from its train split, and its
     image size."""
     size = tuple(int(v) for v in dataset.image_size)
-    return checked_camera(calibrate_dataset(dataset).K_c, size, "K_c calibrated on the dataset's train split")
+    train = dataset.frames_in("train")
+    if not train.any():
+        raise DatasetError("split: K_c comes from the train frames and this dataset has none")
+    K_c = calibrate_dataset(dataset.select(train)).K_c  # the other frames' K* are not needed
+    return checked_camera(K_c, size, "K_c calibrated on the dataset's train split")
 
 
 def write_calibration(cal: Calibration, path: str | Path) -> Path:

@@ -21,7 +21,8 @@ import onnxruntime as ort
 
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.calibration import dataset_camera
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.rectify.model import OnnxModel
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
 from dimenet.runtime.sim.simulator import get_profile, simulate
 
@@ -59,9 +60,14 @@ def bench_frames(n_frames: int, n_points: int, image_size, *, seed: int = 0) -> 
     return p2, p3
 
 
-def bench_camera() -> Camera:
-    """The bench profile's camera, as a user would know it: K_c calibrated on its train split."""
-    return dataset_camera(simulate(get_profile(BENCH_PROFILE), seed=0))
+def bench_rectifier(model: OnnxModel, mode: str, frames: Optional[Dataset] = None) -> Rectifier:
+    """``model`` serving the bench's simulated phone: a device model its own camera, a generic one
+    the phone's camera as a user would know it, K_c calibrated on the train split of ``frames``
+    (default: the bench profile's seed-0 set)."""
+    if model.spec.generic is None:
+        return Rectifier(model, mode)
+    frames = simulate(get_profile(BENCH_PROFILE), seed=0) if frames is None else frames
+    return Rectifier(model, mode, dataset_camera(frames))
 
 
 def cpu_model() -> str:
@@ -128,8 +134,7 @@ def run_bench(
     start = time.perf_counter_ns()
     onnx_model = load_model(model, threads=threads)
     session_ms = (time.perf_counter_ns() - start) / 1e6
-    # A generic model serves the bench profile's camera, a device model its own.
-    rectifier = Rectifier(onnx_model, mode, bench_camera() if onnx_model.spec.generic is not None else None)
+    rectifier = bench_rectifier(onnx_model, mode)
     p2, p3 = bench_frames(frames, points, rectifier.image_size, seed=seed)
     start = time.perf_counter_ns()
     rectifier.rectify(p2[0], p3[0], refine=refine)

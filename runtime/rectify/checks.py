@@ -172,9 +172,15 @@ def mismatched(e, e_c, fx_c: float):
     return (e_c > MISMATCH_KC_ERROR_F * fx_c) & (e > MISMATCH_SHARE * e_c)
 
 
+def loses_to_k_c(e, e_c, fx_c: float):
+    """The predicted K gives way to K_c's solution: the worse rule or the mismatch rule (e, e_c,
+    fx_c in model px): floats -> bool, (B,) arrays -> (B,) bool."""
+    return worse(e, e_c) | mismatched(e, e_c, fx_c)
+
+
 def worse_reason(e: float, e_c: float, fx_c: float, user_px: float = 1.0) -> str:
-    """Why the predicted K lost against K_c: the worse rule, else the mismatch rule (e, e_c, fx_c
-    in model px)."""
+    """Why ``loses_to_k_c``: the worse rule, else the mismatch rule (e, e_c, fx_c in model px;
+    the reason in the user's, ``user_px`` per model px)."""
     if worse(e, e_c):
         return (
             f"the predicted K fits worse than K_c: {e * user_px:.3f} px vs {e_c * user_px:.3f} px "

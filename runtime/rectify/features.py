@@ -102,7 +102,7 @@ class FeatureSpec:
             grid = Grid.parse(grid_text)
         except ValueError as exc:
             raise JsonProblem(f"features.{exc}") from None
-        if image_size is not None and (grid.cols > image_size[0] or grid.rows > image_size[1]):
+        if image_size is not None and not grid.fits(image_size):
             raise JsonProblem(
                 f"features.grid {grid} has more cells than the {image_size[0]}x{image_size[1]} image has pixels"
             )

@@ -32,6 +32,10 @@ class Grid:
     def __str__(self) -> str:
         return f"{self.cols}x{self.rows}"
 
+    def fits(self, image_size) -> bool:
+        """Whether every cell of an image of ``image_size`` (width, height) px holds a pixel."""
+        return self.cols <= image_size[0] and self.rows <= image_size[1]
+
     @classmethod
     def parse(cls, text: str) -> Grid:
         """'8x6' -> Grid(cols=8, rows=6)."""

@@ -57,13 +57,12 @@ from dimenet.runtime.rectify.checks import (
     bool_mask,
     check_spread,
     implausible_reason,
-    mismatched,
+    loses_to_k_c,
     out_of_range,
     out_of_range_reason,
     real_array,
     spread_frames,
     too_few_distinct,
-    worse,
     worse_reason,
 )
 from dimenet.runtime.rectify.fast import all_inside, frame_error_and_depth, frame_mean_norm, frame_within_bounds
@@ -298,7 +297,7 @@ class Rectifier:
 
     def k_within_bounds(self, k: np.ndarray) -> bool:
         """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""
-        return bool(self._spec.k_within_bounds(k if self._pixels is None else self._pixels.k_to_model(k)))
+        return frame_within_bounds(list(k), self.K_bounds.tolist())
 
     # -- one frame ---------------------------------------------------------------------------
 
@@ -422,7 +421,7 @@ class Rectifier:
             cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
             if depth <= 0:
                 reason = BEHIND_REASON
-        if reason is None and (worse(cand.e, e_c) or mismatched(cand.e, e_c, self._fx_c)):
+        if reason is None and loses_to_k_c(cand.e, e_c, self._fx_c):
             reason = worse_reason(cand.e, e_c, self._fx_c, self._user_px)
         if reason is not None:  # the one fallback rule: K_c's own solution
             cand = _Candidate(
@@ -430,7 +429,7 @@ class Rectifier:
             )
         lap("check")
         if self._pixels is not None:
-            return self._user_result(cand, e_c, lap.timings)
+            return self._user_result(cand, e_c, lap.timings, reason is not None)
         return Rectification(
             K=cand.K,
             rvec=cand.rvec,
@@ -444,15 +443,15 @@ class Rectifier:
             covariance=cand.covariance,
         )
 
-    def _user_result(self, cand: _Candidate, e_c: float, timings: dict) -> Rectification:
+    def _user_result(self, cand: _Candidate, e_c: float, timings: dict, fell_back: bool) -> Rectification:
         """The result of one frame whose stages ran in the model's pixels, in the camera's
-        (``rectify.camera.PixelMap``; the pose is the same in both)."""
+        (``rectify.camera.PixelMap``; the pose is the same in both); on fallback K is K_c."""
         pixels, to_user = self._pixels, self._user_px
         covariance = cand.covariance
         if covariance is not None:
             covariance = partial(_covariance_to_user, pixels, covariance)
         return Rectification(
-            K=self.K_c.copy() if cand.note is not None and not cand.delta_k.any() else pixels.K_to_user(cand.K),
+            K=self.K_c.copy() if fell_back else pixels.K_to_user(cand.K),
             rvec=cand.rvec,
             tvec=cand.tvec,
             reprojection_error_px=cand.e * to_user,
@@ -611,7 +610,7 @@ class Rectifier:
                 cand.rvec[pending],
                 cand.tvec[pending],
             )
-        for b in np.flatnonzero(pending & (worse(e, e_c) | mismatched(e, e_c, self._fx_c))):
+        for b in np.flatnonzero(pending & loses_to_k_c(e, e_c, self._fx_c)):
             cand.reasons[b] = worse_reason(e[b], e_c[b], self._fx_c, self._user_px)
         return e
 

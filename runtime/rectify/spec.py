@@ -211,7 +211,7 @@ class ModelSpec:
                 f"(Rectifier.load(..., K_c=..., image_size=...), or --camera FILE)"
             )
         grid = self.features.grid
-        if grid.cols > camera.image_size[0] or grid.rows > camera.image_size[1]:
+        if not grid.fits(camera.image_size):
             raise CameraError(
                 f"{source}: its {grid} grid has more cells than the {camera.image_size[0]}x{camera.image_size[1]} "
                 f"image has pixels"

@@ -91,3 +91,10 @@ def test_the_train_command_reads_a_family_folder_and_fine_tunes(family, tmp_path
     (tmp_path / "empty").mkdir()
     assert main(["train", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]) == 2
     assert "without dataset files" in capsys.readouterr().err
+
+
+def test_a_device_init_fine_tunes_one_dataset_not_a_family(family, tmp_path):
+    from helpers import DEVICE_MODEL
+
+    with pytest.raises(ValueError, match="is a device model: it fine-tunes on one dataset"):
+        train(family[:2], TrainConfig(epochs=1), tmp_path / "x", init=initial_weights(str(DEVICE_MODEL)))

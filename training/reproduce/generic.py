@@ -54,7 +54,7 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
     rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
     rows = {}
     for d in DEVICES:
-        p = generic.fordataset_camera(dataset_camera(data[d]))
+        p = generic.for_camera(dataset_camera(data[d]))
         rig = _test(data[d], "rig")
         # The 64-point draw of Table 4 (seed + 2), so the per-device row is Table 4's.
         cases = {"rig": rig, f"rig {SMALL_POINTS} pts": drop_inference_points(rig, SMALL_POINTS, rng(2))}
@@ -78,7 +78,7 @@ def fresh_family(generic: Predictor) -> list:
     rows = []
     family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
     for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
-        p = generic.fordataset_camera(dataset_camera(ds))
+        p = generic.for_camera(dataset_camera(ds))
         ev = evaluate(_test(ds, "rig"), p.K_c, p, methods=("dimenet",))
         w, h = camera.image_size_px
         rows.append({"camera": camera.name, "size": [w, h], "hfov_deg": hfov_deg(camera), "rho": _rho(ev)})
@@ -92,7 +92,7 @@ def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> d
     s8 = data["galaxy-s8"]
     cfg = TrainConfig(epochs=config.epochs, seed=config.seed, train_frames=FINE_TUNE_FRAMES)
     run = train(s8, cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", init=initial_weights("default"))
-    tuned = load_predictor(run.run_dir).fordataset_camera(dataset_camera(s8))
+    tuned = load_predictor(run.run_dir).for_camera(dataset_camera(s8))
     cases = {
         f"rig {SMALL_POINTS} pts": drop_inference_points(
             _test(s8, "rig"), SMALL_POINTS, np.random.default_rng(config.seed + 2)

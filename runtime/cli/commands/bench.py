@@ -155,18 +155,17 @@ def _run_fuzz(args: argparse.Namespace) -> int:
     import numpy as np
 
     from dimenet.runtime.evaluation.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
-    from dimenet.runtime.evaluation.latency import bench_camera
-    from dimenet.runtime.rectify.rectifier import Rectifier, load_model
+    from dimenet.runtime.evaluation.latency import bench_rectifier
+    from dimenet.runtime.rectify.rectifier import load_model
     from dimenet.runtime.sim.simulator import simulate
 
     o = _options(args, FUZZ)
     rng = np.random.default_rng(o["seed"])
     frames = simulate("galaxy-s8", seed=o["seed"])
     report = FuzzReport()
+    model = load_model()
     for mode in ("dimenet", "map"):
-        model = load_model()  # a generic default serves the simulated phone's camera
-        rect = Rectifier(model, mode, bench_camera() if model.spec.generic is not None else None)
-        fuzz_rectifier(rect, frames, args.fuzz, rng, report)
+        fuzz_rectifier(bench_rectifier(model, mode, frames), frames, args.fuzz, rng, report)
     with tempfile.TemporaryDirectory() as folder:
         fuzz_files(folder, args.fuzz, rng, report)
     counts = {area: dict(c) for area, c in report.counts.items()}
