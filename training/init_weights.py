@@ -23,10 +23,10 @@ import onnx
 import torch
 from onnx import helper, numpy_helper
 
-from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify.model import OnnxModel, onnx_model_from_bytes
-from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL
+from dimenet.runtime.rectify.rectifier import DEFAULT_SOURCE as BUNDLED_SOURCE
+from dimenet.runtime.rectify.rectifier import default_model_bytes
 from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import OUTPUT_SCALE_PX, DimeNet
@@ -197,10 +197,7 @@ def initial_weights(source: str) -> InitialWeights:
     RUN_DIR (weights.safetensors + spec.json) or a MODEL.onnx file from `dimenet export`.
     Raises ModelError naming the source."""
     if source == DEFAULT_SOURCE:
-        resource = asset(DEFAULT_MODEL)
-        if not resource.is_file():
-            raise ModelError(f"{source}: this installation has no bundled default model ({DEFAULT_MODEL})")
-        state_dict, spec = onnx_initial_weights(resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})")
+        state_dict, spec = onnx_initial_weights(default_model_bytes(), BUNDLED_SOURCE)
         return InitialWeights(state_dict=state_dict, spec=spec, source=source)
     path = Path(source)
     if path.is_dir():

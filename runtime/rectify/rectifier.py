@@ -74,6 +74,7 @@ from dimenet.runtime.rectify.spec import ModelSpec
 from dimenet.runtime.rectify.uncertainty import occupied_cells, thickness
 
 DEFAULT_MODEL = "default_model.onnx"
+DEFAULT_SOURCE = f"bundled default model ({DEFAULT_MODEL})"  # how errors and reports name it
 MODES = ("dimenet", "map")
 
 
@@ -212,15 +213,18 @@ def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers
     when this installation has none)."""
     if path is not None:
         return load_onnx_model(path, threads=threads, providers=providers)
+    return onnx_model_from_bytes(default_model_bytes(), DEFAULT_SOURCE, threads=threads, providers=providers)
+
+
+def default_model_bytes() -> bytes:
+    """The bundled default model's file, or ModelError when this installation has none."""
     resource = asset(DEFAULT_MODEL)
     if not resource.is_file():
         raise ModelError(
             f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
             f"pass a model file from `dimenet export`"
         )
-    return onnx_model_from_bytes(
-        resource.read_bytes(), f"bundled default model ({DEFAULT_MODEL})", threads=threads, providers=providers
-    )
+    return resource.read_bytes()
 
 
 def _camera(model: OnnxModel, K_c, image_size) -> Optional[Camera]:

@@ -9,17 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.evaluation.methods import evaluate
-from dimenet.runtime.evaluation.predictor import Predictor, load_onnx_predictor, load_predictor
+from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.rectify.camera import Camera
-from dimenet.runtime.rectify.model import onnx_model_from_bytes
-from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL, Rectifier
+from dimenet.runtime.rectify.model import OnnxModel
+from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.sim.family import hfov_deg, simulate_family
 
 from ..config import ReproduceConfig, TrainConfig
@@ -41,10 +40,6 @@ def _rho(ev, method: str = "dimenet") -> float:
 
 def _test(ds: Dataset, scene: str) -> Dataset:
     return ds.select(ds.frames_in("test") & (ds.scene == scene))
-
-
-def default_predictor() -> Predictor:
-    return load_onnx_predictor(asset(DEFAULT_MODEL))
 
 
 def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceConfig) -> dict:
@@ -107,23 +102,22 @@ def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> d
     return {"frames": FINE_TUNE_FRAMES, "seconds": time.monotonic() - t0, "rows": rows}
 
 
-def invariance(data: dict) -> dict:
+def invariance(data: dict, model: OnnxModel) -> dict:
     """The bundled model on the galaxy-s8 rig test frames: mean |K_half (scaled up) - K_full| px,
     max |K_m - K_mm| px, and how many frames of half-resolution points under the full-resolution
     K_c get a K (silently: any is wrong) rather than a fallback."""
     s8 = data["galaxy-s8"]
     camera = dataset_camera(s8)
     frames = _test(s8, "rig")
-    blob = asset(DEFAULT_MODEL).read_bytes()
-    model = onnx_model_from_bytes(blob, DEFAULT_MODEL)
     w, h = camera.image_size
     half = Camera(_half_k(camera.K), (w // 2, h // 2))
     p2, p3, valid = frames.points_2d, frames.points_3d, frames.valid
     p2_half = np.where(valid[..., None], (p2 + 0.5) / 2 - 0.5, 0.0)
-    full = Rectifier(model, "dimenet", camera).rectify_batch(p2, p3, valid)
+    rectifier = Rectifier(model, "dimenet", camera)
+    full = rectifier.rectify_batch(p2, p3, valid)
     halved = Rectifier(model, "dimenet", half).rectify_batch(p2_half, p3, valid)
-    metres = Rectifier(model, "dimenet", camera).rectify_batch(p2, p3 / 1000.0, valid)
-    mismatched = Rectifier(model, "dimenet", camera).rectify_batch(p2_half, p3, valid)
+    metres = rectifier.rectify_batch(p2, p3 / 1000.0, valid)
+    mismatched = rectifier.rectify_batch(p2_half, p3, valid)
     k_half = k_params(halved.K)
     k_up = np.concatenate([2 * k_half[:, :2], (k_half[:, 2:] + 0.5) * 2 - 0.5], 1)
     return {
@@ -140,13 +134,13 @@ def _half_k(K: np.ndarray) -> np.ndarray:
     return k_matrix(np.r_[k[:2] / 2, (k[2:] + 0.5) / 2 - 0.5])
 
 
-def run_generic(data: dict, device: dict, out: Path, config: ReproduceConfig) -> dict:
-    """Every row of the generic comparison (``report`` writes them)."""
-    generic = default_predictor()
+def run_generic(data: dict, device: dict, out: Path, config: ReproduceConfig, model: OnnxModel) -> dict:
+    """Every row of the generic comparison of ``model`` (the bundled default; ``report`` writes them)."""
+    generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
     return {
-        "model": f"the bundled default model ({DEFAULT_MODEL})",
+        "model": model.source,
         "zero_shot": zero_shot(data, generic, device, config),
         "fresh_family": fresh_family(generic),
         "fine_tune": fine_tune(data, device, out, config),
-        "invariance": invariance(data),
+        "invariance": invariance(data, model),
     }

@@ -16,11 +16,12 @@ from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.rectify.rectifier import load_model
 from dimenet.runtime.sim.simulator import simulate
 
 from ..config import ReproduceConfig, TrainConfig
 from ..trainer import train
-from .generic import default_predictor, run_generic
+from .generic import run_generic
 from .paper import DEVICES, ETAS, GRIDS, NATURAL_FRAMES, NOISE_2D_PX, NOISE_3D_MM, PLANAR_FRAMES, POINTS, VARIANTS
 from .report import plot_eta, plot_methods, plot_points, report
 
@@ -88,8 +89,9 @@ def run(config: ReproduceConfig) -> dict:
             t2[g].append({"eta": eta, "gamma": occupancy(frames, grid), **_row(ev(frames, f"galaxy-s8-{g}-A"))})
     results["table2"] = t2
     results["baselines"] = _baselines(data, predictors, config)
-    if default_predictor().spec.generic is not None:
-        results["generic"] = run_generic(data, {d: predictors[f"{d}-8x6-A"] for d in DEVICES}, out, config)
+    default = load_model()
+    if default.spec.generic is not None:
+        results["generic"] = run_generic(data, {d: predictors[f"{d}-8x6-A"] for d in DEVICES}, out, config, default)
     results["seconds"] = time.monotonic() - start
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
