@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import shlex
 import sys
+from pathlib import Path
 
 from dimenet.runtime.cli.main import Command, finite_float_in, grid_size, integer_in, nonempty_path, seed
 
@@ -128,17 +129,20 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
         default=d["seed"],
         help=f"seed of simulation, training and conditions (default {d['seed']})",
     )
+    from dimenet.runtime.cli.engine import add_address_argument
+
+    add_address_argument(p, "9 trainings")
 
 
 def _run_reproduce(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from .reproduce import run
 
     results = run(
         ReproduceConfig(
             out_dir=Path(args.out), epochs=args.epochs, ablation_epochs=args.ablation_epochs, seed=args.seed
-        )
+        ),
+        address=args.address,
+        cpus_per_job=args.cpus_per_job,
     )
     for name, r in results["table5"].items():
         rho = "-" if r["rho"] is None else f"{100 * r['rho']:.1f}%"
@@ -156,4 +160,36 @@ REPRODUCE = Command(
     example="dimenet reproduce --out reproduction",
     add_arguments=_add_reproduce,
     run=_run_reproduce,
+)
+
+
+def _add_fleet(p: argparse.ArgumentParser) -> None:
+    from dimenet.runtime.cli.engine import add_address_argument
+
+    p.add_argument("action", choices=("train",), help="train: one `dimenet train` per job of the manifest")
+    p.add_argument(
+        "manifest", type=nonempty_path, help='a JSON manifest {"jobs": [{"name": ..., "dataset": ...}, ...]}'
+    )
+    p.add_argument(
+        "--out", required=True, type=nonempty_path, metavar="DIR", help="folder of the run dirs and the summary"
+    )
+    add_address_argument(p, "jobs")
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    from .fleet import SUMMARY_MD, fleet_train
+
+    summary = fleet_train(args.manifest, args.out, address=args.address, cpus_per_job=args.cpus_per_job)
+    print((Path(args.out) / SUMMARY_MD).read_text(encoding="utf-8"), end="")
+    for name in summary["failed"]:
+        print(f"failed: {name}", file=sys.stderr)
+    return 1 if summary["failed"] else 0
+
+
+FLEET = Command(
+    name="fleet",
+    summary="Train many models at once from a manifest (one `dimenet train` each), here or as Ray jobs.",
+    example="dimenet fleet train devices.json --out fleet --address local:2",
+    add_arguments=_add_fleet,
+    run=_run_fleet,
 )

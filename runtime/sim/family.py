@@ -191,5 +191,15 @@ def simulate_family(
     is ``simulate(camera, seed=camera_seed(seed, i), natural_frames=..., planar_frames=...)`` with
     ``family`` = {"seed", "index", "cameras"} added to its meta."""
     for i, profile in enumerate(family_profiles(n, seed, frames)):
-        ds = simulate(profile, seed=camera_seed(seed, i), natural_frames=natural_frames, planar_frames=planar_frames)
-        yield profile, replace(ds, meta={**ds.meta, "family": {"seed": int(seed), "index": i, "cameras": int(n)}})
+        yield profile, family_member(profile, i, seed, n, natural_frames=natural_frames, planar_frames=planar_frames)
+
+
+def family_member(
+    profile: DeviceProfile, index: int, seed: int, n: int, *, natural_frames: int = 0, planar_frames: int = 0
+) -> Dataset:
+    """The dataset of camera ``index`` (``profile``) of the family of ``seed`` and ``n`` cameras:
+    ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed",
+    "index", "cameras"} added to its meta. It depends on nothing else, so cameras can be
+    simulated apart (``dimenet simulate --family N --address``)."""
+    ds = simulate(profile, seed=camera_seed(seed, index), natural_frames=natural_frames, planar_frames=planar_frames)
+    return replace(ds, meta={**ds.meta, "family": {"seed": int(seed), "index": index, "cameras": int(n)}})

@@ -1,5 +1,5 @@
 """The rectifier's import boundary: an app importing it loads no dataset, simulator, ingest,
-evaluation or CLI code, and neither torch, onnx nor the training and export packages."""
+evaluation or CLI code, and neither torch, onnx, ray nor the training and export packages."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ FORBIDDEN = (
     "dimenet.export",
     "torch",
     "onnx",
+    "ray",
 )
 
 CODE = """\

@@ -6,10 +6,13 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
+from dimenet.runtime.cli.engine import run_all
 from dimenet.runtime.cli.progress import progress
+from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
 from dimenet.runtime.evaluation.methods import METHODS, evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
@@ -35,8 +38,17 @@ def _rig_test(ds: Dataset) -> Dataset:
     return ds.select(ds.frames_in("test") & (ds.scene == "rig"))
 
 
-def run(config: ReproduceConfig) -> dict:
-    """Train, evaluate and write the report; returns the results dictionary."""
+def _train_job(item: tuple) -> str:
+    """One of the trainings (a job of ``runtime.cli.engine.run_all``): item = (dataset, TrainConfig,
+    run dir); returns the run dir."""
+    dataset, cfg, run_dir = item
+    return str(train(dataset, cfg, run_dir).run_dir)
+
+
+def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
+    """Train, evaluate and write the report; returns the results dictionary. The trainings run
+    one after another, or as Ray jobs with ``address`` (``runtime.cli.engine``): the same
+    models either way, each trained on one thread from its seed."""
     start = time.monotonic()
     out = Path(config.out_dir)
     runs = out / "runs"
@@ -52,13 +64,17 @@ def run(config: ReproduceConfig) -> dict:
     jobs = [(d, "8x6", "A", config.epochs) for d in DEVICES]
     jobs += [("galaxy-s8", "8x6", v, config.ablation_epochs) for v in VARIANTS[1:]]
     jobs += [("galaxy-s8", g, "A", config.ablation_epochs) for g in GRIDS[:2]]
+    names = [f"{device}-{grid}-{variant}" for device, grid, variant, _ in jobs]
+    items = [
+        (data[device], TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed), runs / name)
+        for (device, grid, variant, epochs), name in zip(jobs, names)
+    ]
+    outcomes = run_all(_train_job, items, address=address, cpus_per_job=cpus_per_job, desc="reproduce: training")
     predictors, train_seconds = {}, {}
-    for device, grid, variant, epochs in progress(jobs, desc="reproduce: training"):
-        name = f"{device}-{grid}-{variant}"
-        t0 = time.monotonic()
-        cfg = TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed)
-        predictors[name] = load_predictor(train(data[device], cfg, runs / name).run_dir)
-        train_seconds[name] = time.monotonic() - t0
+    for name, outcome in zip(names, outcomes):
+        if outcome.error is not None:
+            raise DimenetError(f"reproduce: training {name} failed: {outcome.error}")
+        predictors[name], train_seconds[name] = load_predictor(outcome.value), outcome.seconds
 
     def ev(frames, name):
         p = predictors[name]

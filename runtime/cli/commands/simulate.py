@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dimenet.runtime.cli.main import Command, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.engine import add_address_argument, run_all
+from dimenet.runtime.cli.main import CliError, Command, integer_in, nonempty_path, seed
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
-from dimenet.runtime.sim.family import MAX_FAMILY, hfov_deg, simulate_family
+from dimenet.runtime.sim.family import MAX_FAMILY, family_member, family_profiles, hfov_deg
 from dimenet.runtime.sim.simulator import PROFILES, DeviceProfile, simulate
 
 MAX_EXTRA_FRAMES = 10_000  # natural or planar frames: ~13 KB and ~4 ms each (2**40: MemoryError)
@@ -45,6 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=nonempty_path,
         help="dataset file to write (dimenet-dataset/1 .npz); with --family a directory, one <camera>.npz each",
     )
+    add_address_argument(p, "cameras of --family")
 
 
 def frame_counts(ds: Dataset) -> str:
@@ -66,16 +68,29 @@ def camera_summary(profile: DeviceProfile) -> str:
     )
 
 
+def write_member(job: tuple) -> tuple[str, int]:
+    """One camera of a family to ``out``/<camera>.npz (a job of ``run_all``): job = (profile, index,
+    seed, n, natural_frames, planar_frames, out). Returns its summary line and frame count."""
+    profile, index, seed_, n, natural_frames, planar_frames, out = job
+    ds = family_member(profile, index, seed_, n, natural_frames=natural_frames, planar_frames=planar_frames)
+    path = write_dataset(ds, Path(out) / f"{profile.name}.npz")
+    return f"{profile.name}: {camera_summary(profile)}: {frame_counts(ds)} -> {path}", ds.n_frames
+
+
 def run_family(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    frames = 0
-    extra = {"natural_frames": args.natural_frames, "planar_frames": args.planar_frames}
-    family = simulate_family(args.family, args.seed, **extra)
-    for profile, ds in family:
-        path = write_dataset(ds, out / f"{profile.name}.npz")
-        frames += ds.n_frames
-        print(f"{profile.name}: {camera_summary(profile)}: {frame_counts(ds)} -> {path}", flush=True)
+    profiles = family_profiles(args.family, args.seed)
+    jobs = [
+        (p, i, args.seed, args.family, args.natural_frames, args.planar_frames, str(out))
+        for i, p in enumerate(profiles)
+    ]
+    outcomes = run_all(write_member, jobs, address=args.address, cpus_per_job=args.cpus_per_job, desc="simulate")
+    for outcome, profile in zip(outcomes, profiles):
+        if outcome.error is not None:
+            raise CliError(f"{profile.name}: {outcome.error}")
+        print(outcome.value[0], flush=True)
+    frames = sum(o.value[1] for o in outcomes)
     print(f"family seed {args.seed}: {args.family} cameras, {frames} frames in all -> {out}")
     return 0
 
@@ -97,7 +112,8 @@ COMMAND = Command(
     summary="Simulate an OIS phone photographing the paper's 4-board rig (and, optionally, the LEGO scene); "
     "--family: many random cameras, one dataset each.",
     example="dimenet simulate --profile galaxy-s8 --seed 0 --natural-frames 34 --planar-frames 40 --out s8.npz\n"
-    "  dimenet simulate --family 100 --seed 0 --natural-frames 10 --out family",
+    "  dimenet simulate --family 100 --seed 0 --natural-frames 10 --out family\n"
+    "  dimenet simulate --family 100 --seed 0 --out family --address local:2   (the fleet extra: Ray jobs)",
     add_arguments=add_arguments,
     run=run,
 )

@@ -1,0 +1,101 @@
+"""Many jobs at once: one function over a list of items, here one after another, or as Ray tasks
+(the `fleet` extra) on a cluster.
+
+``--address`` names the engine: absent, the jobs run in this process in order (as every command
+always did); ``local`` or ``local:N`` starts a Ray cluster on this machine with N CPUs (default:
+all); ``auto`` or ``ray://host:port`` joins a running one. Ray is imported only then, so the
+runtime and the other extras never need it. A job's exception is its outcome, not the run's:
+the others finish and the caller reports it by name.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
+
+from dimenet.runtime.cli.progress import progress
+from dimenet.runtime.errors import DimenetError
+
+
+class EngineError(DimenetError):
+    """The engine cannot run the jobs: the fleet extra is missing or the address is unusable."""
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One job: its value, or the one-line error it ended with (value None); seconds of wall time."""
+
+    value: Any
+    error: Optional[str]
+    seconds: float
+
+
+def _run_one(function: Callable, item) -> Outcome:
+    start = time.monotonic()
+    try:
+        return Outcome(function(item), None, time.monotonic() - start)
+    except DimenetError as exc:  # a typed error names its own problem
+        return Outcome(None, str(exc), time.monotonic() - start)
+    except Exception as exc:  # anything else: its type and last frame, on one line
+        where = traceback.format_exc(limit=-1).strip().splitlines()[-1]
+        return Outcome(None, f"{type(exc).__name__}: {exc} ({where})", time.monotonic() - start)
+
+
+def run_all(
+    function: Callable, items: list, *, address: Optional[str] = None, cpus_per_job: int = 1, desc: str = ""
+) -> list:
+    """``function(item)`` for every item as an Outcome, in the items' order: in this process
+    without ``address``, else as Ray tasks of ``cpus_per_job`` CPUs each (``function`` and the
+    items must be importable or plain data, as Ray ships them to its workers)."""
+    if address is None:
+        return [_run_one(function, item) for item in progress(items, desc=desc)]
+    ray = _ray(address)
+    try:
+        task = ray.remote(num_cpus=cpus_per_job)(_run_one)
+        pending = [task.remote(function, item) for item in items]
+        return [ray.get(p) for p in progress(pending, desc=desc)]
+    finally:
+        ray.shutdown()
+
+
+def _ray(address: str):
+    """Ray, initialised for ``address`` (see the module docstring)."""
+    try:
+        import ray
+    except ImportError:
+        raise EngineError(
+            f"--address {address}: needs Ray, the fleet extra (pip install 'dimenet-runtime[fleet]')"
+        ) from None
+    kwargs: dict = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+    if address == "local" or address.startswith("local:"):
+        cpus = address.partition(":")[2]
+        if cpus and not (cpus.isdigit() and int(cpus) >= 1):
+            raise EngineError(f"--address {address}: local:N needs N >= 1 CPUs")
+        kwargs["num_cpus"] = int(cpus) if cpus else os.cpu_count()
+    else:
+        kwargs["address"] = address
+    try:
+        ray.init(**kwargs)
+    except Exception as exc:  # Ray's own errors (no cluster at the address, ...)
+        raise EngineError(
+            f"--address {address}: Ray could not start or join a cluster ({type(exc).__name__}: {exc})"
+        ) from None
+    return ray
+
+
+def add_address_argument(p, what: str) -> None:
+    """The ``--address`` and ``--cpus-per-job`` options of a command whose jobs are ``what``."""
+    from dimenet.runtime.cli.main import integer_in
+
+    p.add_argument(
+        "--address",
+        metavar="ADDR",
+        help=f"run the {what} as Ray jobs (the fleet extra): local or local:N (a cluster on this machine, N CPUs), "
+        "auto or ray://host:port (a running one); default: one after another here",
+    )
+    p.add_argument(
+        "--cpus-per-job", type=integer_in(1, 1024), default=1, metavar="N", help="CPUs per Ray job (default 1)"
+    )

@@ -1,0 +1,204 @@
+"""`dimenet fleet train MANIFEST --out DIR`: many models at once, each the same `dimenet train`.
+
+The manifest (JSON, models_spec/fleet.md):
+``{"jobs": [{"name": "s8", "dataset": "s8.npz", "init": "default", "seed": 0, "epochs": 600}, ...]}``
+with per job a unique ``name`` (its run dir ``DIR/<name>``), a ``dataset`` (a .npz file or a
+family folder, relative to the manifest) and any of `dimenet train`'s options: ``init``,
+``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``.
+
+Each job trains into ``DIR/.<name>.partial`` and is renamed to ``DIR/<name>`` when it is done
+(with ``fleet.json``: its rho and errors on the dataset's test split and its seconds), so a run
+dir is there whole or not at all, and a second run skips the jobs already done (resume). A
+failed job is reported by name; the others finish. The jobs run one after another, or as Ray
+jobs with ``--address`` (``runtime.cli.engine``).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Optional
+
+from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.formats.atomic import atomic_write_text
+from dimenet.runtime.formats.text import read_text
+from dimenet.runtime.json_text import JsonProblem, an_object, integer, parse_json, required, shown
+
+from .config import TrainConfig
+
+FLEET_FILE, SUMMARY_MD, SUMMARY_JSON = "fleet.json", "summary.md", "summary.json"
+MAX_MANIFEST_BYTES = 4 << 20
+MAX_JOBS = 10_000
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+# Manifest key -> TrainConfig field, for the options a job may set (as `dimenet train` names them).
+_OPTIONS = {"seed": "seed", "epochs": "epochs", "grid": "grid", "features": "variant", "focal_weight": "focal_weight"}
+
+
+class ManifestError(DimenetError):
+    """A fleet manifest does not conform (the message names the file, the job and the field)."""
+
+
+@dataclass(frozen=True)
+class FleetJob:
+    """One job: its name, dataset path, init (None: from scratch) and training settings."""
+
+    name: str
+    dataset: str
+    init: Optional[str]
+    config: TrainConfig
+
+
+def _job(d, base: Path, names: set) -> FleetJob:
+    d = an_object(d, "a job")
+    name = required(d, "name")
+    if not (isinstance(name, str) and _NAME.fullmatch(name)):
+        raise JsonProblem(f"name must be letters, digits, '.', '_' or '-' (a folder name), got {shown(name)}")
+    if name in names:
+        raise JsonProblem(f"name {name!r} is used twice (each job has its own run dir)")
+    unknown = sorted(set(d) - {"name", "dataset", "init", "train_frames", *_OPTIONS})
+    if unknown:
+        raise JsonProblem(
+            f"{unknown[0]!r} is not a job field (known: name, dataset, init, train_frames, {', '.join(_OPTIONS)})"
+        )
+    dataset = required(d, "dataset")
+    if not (isinstance(dataset, str) and dataset.strip()):
+        raise JsonProblem(f"dataset must be a path, got {shown(dataset)}")
+    init = d.get("init")
+    if init is not None and not (isinstance(init, str) and init.strip()):
+        raise JsonProblem(f"init must be 'default', a RUN_DIR or a MODEL.onnx, got {shown(init)}")
+    if init is not None and init != "default":
+        init = str(base / init)
+    config = TrainConfig()
+    for key, attr in _OPTIONS.items():
+        if key in d:
+            value = d[key]
+            default = getattr(config, attr)
+            if isinstance(default, str):
+                if not isinstance(value, str):
+                    raise JsonProblem(f"{key} must be a string, got {shown(value)}")
+            elif isinstance(default, int):
+                value = integer(value, key, 0 if key == "seed" else 1)
+            elif not (isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0):
+                raise JsonProblem(f"{key} must be a number >= 0, got {shown(value)}")
+            config = replace(config, **{attr: value})
+    if "train_frames" in d:
+        config = replace(config, train_frames=integer(d["train_frames"], "train_frames", 2))
+    return FleetJob(name=name, dataset=str(base / dataset), init=init, config=config)
+
+
+def read_manifest(path: str | Path) -> list:
+    """The jobs of a manifest file, every field checked (ManifestError names the job and field)."""
+    path = Path(path)
+    text = read_text(path, MAX_MANIFEST_BYTES, "fleet manifest", ManifestError)
+    try:
+        d = an_object(parse_json(text, max_chars=MAX_MANIFEST_BYTES), "the manifest")
+        jobs = required(d, "jobs")
+        if not isinstance(jobs, list) or not 1 <= len(jobs) <= MAX_JOBS:
+            raise JsonProblem(f"jobs must be a list of 1 to {MAX_JOBS} jobs, got {shown(jobs)}")
+    except JsonProblem as exc:
+        raise ManifestError(f"{path}: {exc}") from None
+    out, names = [], set()
+    for i, d in enumerate(jobs):
+        try:
+            job = _job(d, path.parent, names)
+        except (JsonProblem, ValueError) as exc:
+            label = f"job {i}" + (f" ({d['name']!r})" if isinstance(d, dict) and isinstance(d.get("name"), str) else "")
+            raise ManifestError(f"{path}: {label}: {exc}") from None
+        names.add(job.name)
+        out.append(job)
+    return out
+
+
+def run_job(item: tuple) -> dict:
+    """One job (a job of ``runtime.cli.engine.run_all``): item = (FleetJob, out dir). Trains into
+    ``.<name>.partial``, evaluates on the dataset's test split, writes fleet.json and renames
+    the folder to ``<name>``; a finished job (its fleet.json there) is read, not retrained."""
+    from .init_weights import initial_weights
+    from .trainer import read_training_data, train
+
+    job, out = item
+    final = Path(out) / job.name
+    if (final / FLEET_FILE).is_file():
+        return {**json.loads((final / FLEET_FILE).read_text(encoding="utf-8")), "resumed": True}
+    partial = Path(out) / f".{job.name}.partial"
+    shutil.rmtree(partial, ignore_errors=True)  # a job killed before: start it again
+    datasets, sha256 = read_training_data(job.dataset)
+    init = None if job.init is None else initial_weights(job.init)
+    result = train(
+        datasets, job.config, partial, dataset_sha256=sha256, command=f"dimenet fleet train ({job.name})", init=init
+    )
+    report = {
+        "name": job.name,
+        "seconds": result.seconds,
+        "best_epoch": result.best_epoch,
+        **_test_errors(partial, datasets),
+    }
+    atomic_write_text(partial / FLEET_FILE, json.dumps(report, indent=1))
+    shutil.rmtree(final, ignore_errors=True)
+    partial.rename(final)
+    return {**report, "resumed": False}
+
+
+def _test_errors(run_dir: Path, datasets: list) -> dict:
+    """Avg(e_c), Avg(e) px and rho over the test frames of the job's datasets (each with its
+    train split's camera); all None without test frames."""
+    import numpy as np
+
+    from dimenet.runtime.evaluation.calibration import dataset_camera
+    from dimenet.runtime.evaluation.methods import evaluate
+    from dimenet.runtime.evaluation.metrics import reduction_ratio
+    from dimenet.runtime.evaluation.predictor import load_predictor
+
+    predictor = load_predictor(run_dir)
+    e_c, e, e_star = [], [], []
+    for ds in datasets:
+        test = ds.frames_in("test")
+        if not test.any():
+            continue
+        p = predictor.for_camera(dataset_camera(ds)) if predictor.spec.generic is not None else predictor
+        ev = evaluate(ds.select(test), p.K_c, p)
+        e_c.append(ev.frames.e_c), e.append(ev.frames.e), e_star.append(ev.frames.e_star)
+    if not e_c:
+        return {"avg_e_c": None, "avg_e": None, "rho": None}
+    avg = [float(np.concatenate(a).mean()) for a in (e_c, e, e_star)]
+    return {"avg_e_c": avg[0], "avg_e": avg[1], "rho": reduction_ratio(*avg)}
+
+
+def fleet_train(manifest: str | Path, out: str | Path, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
+    """Every job of the manifest (``run_job``), then DIR/summary.md and DIR/summary.json: per job
+    its rho, errors and seconds, or the error it failed with."""
+    from dimenet.runtime.cli.engine import run_all
+
+    jobs = read_manifest(manifest)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    outcomes = run_all(
+        run_job, [(job, str(out)) for job in jobs], address=address, cpus_per_job=cpus_per_job, desc="fleet"
+    )
+    rows = []
+    for job, o in zip(jobs, outcomes):
+        rows.append({"name": job.name, "error": o.error, **(o.value or {})})
+    summary = {"jobs": rows, "failed": [r["name"] for r in rows if r["error"] is not None]}
+    atomic_write_text(out / SUMMARY_JSON, json.dumps(summary, indent=1))
+    atomic_write_text(out / SUMMARY_MD, summary_table(rows))
+    return summary
+
+
+def summary_table(rows: list) -> str:
+    """The fleet's markdown table: job, rho %, Avg(e_c) and Avg(e) px, seconds, or its error."""
+    fmt = lambda v, spec: "–" if v is None else format(v, spec)  # noqa: E731
+    lines = ["| job | ρ % | Avg(e_c) px | Avg(e) px | s | status |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["error"] is not None:
+            lines.append(f"| {r['name']} | – | – | – | – | failed: {r['error']} |")
+            continue
+        rho = None if r.get("rho") is None else 100 * r["rho"]
+        status = "done before (resumed)" if r.get("resumed") else "trained"
+        lines.append(
+            f"| {r['name']} | {fmt(rho, '.1f')} | {fmt(r.get('avg_e_c'), '.3f')} | {fmt(r.get('avg_e'), '.3f')} | "
+            f"{r['seconds']:.0f} | {status} |"
+        )
+    return "\n".join(lines) + "\n"
