@@ -14,8 +14,10 @@ from dimenet.runtime.evaluation.predictor import load_onnx_predictor
 from dimenet.runtime.rectify.rectifier import load_model
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.config import ReproduceConfig
+from dimenet.training.init_weights import initial_weights
 from dimenet.training.reproduce import generic
 from dimenet.training.reproduce.report import _generic_report
+from dimenet.training.trainer import train
 
 
 def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
@@ -25,7 +27,10 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     data = {"galaxy-s8": simulate("galaxy-s8", seed=2, natural_frames=4, planar_frames=4)}
     device = {"galaxy-s8": load_onnx_predictor(DEVICE_MODEL)}
     config = ReproduceConfig(out_dir=tmp_path, epochs=2)
-    results = generic.run_generic(data, device, tmp_path, config, load_model())
+    dataset, cfg, run_dir, init = generic.fine_tune_training(data, tmp_path, config)
+    tuned = train(dataset, cfg, run_dir, init=initial_weights(init))
+    side = {"fine_tune": (tuned.run_dir, tuned.seconds), "fresh_family": generic.fresh_family()}
+    results = generic.run_generic(data, device, config, load_model(), side)
     rows = results["zero_shot"]
     assert set(rows) == {"galaxy-s8 rig", "galaxy-s8 rig 64 pts", "galaxy-s8 natural", "galaxy-s8 planar"}
     assert rows["galaxy-s8 rig"]["generic"]["dimenet"] > 0.9 and rows["galaxy-s8 rig"]["device"]["dimenet"] > 0.9

@@ -4,8 +4,8 @@ and its invariance to the stream's resolution and the world unit."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -18,12 +18,10 @@ from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.model import OnnxModel
-from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.rectifier import Rectifier, load_model
 from dimenet.runtime.sim.family import hfov_deg, simulate_family
 
 from ..config import ReproduceConfig, TrainConfig
-from ..init_weights import initial_weights
-from ..trainer import train
 from .paper import DEVICES
 
 # The family the bundled model was trained on is seed 0 (models_spec/default-model.md); this
@@ -68,8 +66,12 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
     return rows
 
 
-def fresh_family(generic: Predictor) -> list:
-    """rho (rig, all points) of the generic model on each camera of a family it never saw."""
+def fresh_family(generic: Optional[Predictor] = None) -> list:
+    """rho (rig, all points) of the generic model (default: the bundled one) on each camera of a
+    family it never saw. A job of ``runtime.cli.engine.run_all`` too (it needs no other result)."""
+    if generic is None:
+        model = load_model()
+        generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
     rows = []
     family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
     for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
@@ -80,14 +82,18 @@ def fresh_family(generic: Predictor) -> list:
     return rows
 
 
-def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> dict:
-    """The default fine-tuned on the first FINE_TUNE_FRAMES galaxy-s8 train frames against the
-    device model trained on all: rho on rig at 64 points and on natural frames."""
-    t0 = time.monotonic()
-    s8 = data["galaxy-s8"]
+def fine_tune_training(data: dict, out: Path, config: ReproduceConfig) -> tuple:
+    """The fine-tuning of the default on the first FINE_TUNE_FRAMES galaxy-s8 train frames, as
+    (dataset, TrainConfig, run dir, init): reproduce trains it beside its other models."""
     cfg = TrainConfig(epochs=config.epochs, seed=config.seed, train_frames=FINE_TUNE_FRAMES)
-    run = train(s8, cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", init=initial_weights("default"))
-    tuned = load_predictor(run.run_dir).for_camera(dataset_camera(s8))
+    return data["galaxy-s8"], cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", "default"
+
+
+def fine_tune(data: dict, device: dict, run_dir: Path, seconds: float, config: ReproduceConfig) -> dict:
+    """The fine-tuned model (``fine_tune_training``'s, in ``run_dir``, trained in ``seconds``)
+    against the device model trained on all frames: rho on rig at 64 points and on natural frames."""
+    s8 = data["galaxy-s8"]
+    tuned = load_predictor(run_dir).for_camera(dataset_camera(s8))
     cases = {
         f"rig {SMALL_POINTS} pts": drop_inference_points(
             _test(s8, "rig"), SMALL_POINTS, np.random.default_rng(config.seed + 2)
@@ -99,7 +105,7 @@ def fine_tune(data: dict, device: dict, out: Path, config: ReproduceConfig) -> d
         mine = evaluate(frames, tuned.K_c, tuned, methods=("dimenet",))
         theirs = evaluate(frames, device["galaxy-s8"].K_c, device["galaxy-s8"], methods=("dimenet",))
         rows[case] = {"fine_tuned": _rho(mine), "device": _rho(theirs)}
-    return {"frames": FINE_TUNE_FRAMES, "seconds": time.monotonic() - t0, "rows": rows}
+    return {"frames": FINE_TUNE_FRAMES, "seconds": seconds, "rows": rows}
 
 
 def invariance(data: dict, model: OnnxModel) -> dict:
@@ -134,13 +140,15 @@ def _half_k(K: np.ndarray) -> np.ndarray:
     return k_matrix(np.r_[k[:2] / 2, (k[2:] + 0.5) / 2 - 0.5])
 
 
-def run_generic(data: dict, device: dict, out: Path, config: ReproduceConfig, model: OnnxModel) -> dict:
-    """Every row of the generic comparison of ``model`` (the bundled default; ``report`` writes them)."""
+def run_generic(data: dict, device: dict, config: ReproduceConfig, model: OnnxModel, jobs: dict) -> dict:
+    """Every row of the generic comparison of ``model`` (the bundled default; ``report`` writes
+    them); ``jobs``: what ran beside the trainings, the fine-tuning's run dir and seconds
+    (``fine_tune``) and the ``fresh_family`` rows."""
     generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
     return {
         "model": model.source,
         "zero_shot": zero_shot(data, generic, device, config),
-        "fresh_family": fresh_family(generic),
-        "fine_tune": fine_tune(data, device, out, config),
+        "fresh_family": jobs["fresh_family"],
+        "fine_tune": fine_tune(data, device, *jobs["fine_tune"], config),
         "invariance": invariance(data, model),
     }

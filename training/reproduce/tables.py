@@ -23,8 +23,9 @@ from dimenet.runtime.rectify.rectifier import load_model
 from dimenet.runtime.sim.simulator import simulate
 
 from ..config import ReproduceConfig, TrainConfig
+from ..init_weights import initial_weights
 from ..trainer import train
-from .generic import run_generic
+from .generic import fine_tune_training, fresh_family, run_generic
 from .paper import DEVICES, ETAS, GRIDS, NATURAL_FRAMES, NOISE_2D_PX, NOISE_3D_MM, PLANAR_FRAMES, POINTS, VARIANTS
 from .report import plot_eta, plot_methods, plot_points, report
 
@@ -38,11 +39,13 @@ def _rig_test(ds: Dataset) -> Dataset:
     return ds.select(ds.frames_in("test") & (ds.scene == "rig"))
 
 
-def _train_job(item: tuple) -> str:
-    """One of the trainings (a job of ``runtime.cli.engine.run_all``): item = (dataset, TrainConfig,
-    run dir); returns the run dir."""
-    dataset, cfg, run_dir = item
-    return str(train(dataset, cfg, run_dir).run_dir)
+def _job(item: tuple):
+    """One job of ``runtime.cli.engine.run_all``: ("train", dataset, TrainConfig, run dir, init or
+    None) -> the run dir; ("fresh_family",) -> the generic default's rows on a family it never saw."""
+    if item[0] == "fresh_family":
+        return fresh_family()
+    _, dataset, cfg, run_dir, init = item
+    return str(train(dataset, cfg, run_dir, init=None if init is None else initial_weights(init)).run_dir)
 
 
 def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
@@ -66,14 +69,26 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     jobs += [("galaxy-s8", g, "A", config.ablation_epochs) for g in GRIDS[:2]]
     names = [f"{device}-{grid}-{variant}" for device, grid, variant, _ in jobs]
     items = [
-        (data[device], TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed), runs / name)
+        (
+            "train",
+            data[device],
+            TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed),
+            runs / name,
+            None,
+        )
         for (device, grid, variant, epochs), name in zip(jobs, names)
     ]
-    outcomes = run_all(_train_job, items, address=address, cpus_per_job=cpus_per_job, desc="reproduce: training")
-    predictors, train_seconds = {}, {}
+    default = load_model()
+    generic = default.spec.generic is not None
+    if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
+        items += [("train", *fine_tune_training(data, out, config)), ("fresh_family",)]
+        names += ["fine-tune", "fresh family"]
+    outcomes = run_all(_job, items, address=address, cpus_per_job=cpus_per_job, desc="reproduce: jobs")
     for name, outcome in zip(names, outcomes):
         if outcome.error is not None:
-            raise DimenetError(f"reproduce: training {name} failed: {outcome.error}")
+            raise DimenetError(f"reproduce: {name} failed: {outcome.error}")
+    predictors, train_seconds = {}, {}
+    for name, outcome in zip(names[: len(jobs)], outcomes):
         predictors[name], train_seconds[name] = load_predictor(outcome.value), outcome.seconds
 
     def ev(frames, name):
@@ -105,9 +120,9 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
             t2[g].append({"eta": eta, "gamma": occupancy(frames, grid), **_row(ev(frames, f"galaxy-s8-{g}-A"))})
     results["table2"] = t2
     results["baselines"] = _baselines(data, predictors, config)
-    default = load_model()
-    if default.spec.generic is not None:
-        results["generic"] = run_generic(data, {d: predictors[f"{d}-8x6-A"] for d in DEVICES}, out, config, default)
+    if generic:
+        side = {"fine_tune": (Path(outcomes[-2].value), outcomes[-2].seconds), "fresh_family": outcomes[-1].value}
+        results["generic"] = run_generic(data, {d: predictors[f"{d}-8x6-A"] for d in DEVICES}, config, default, side)
     results["seconds"] = time.monotonic() - start
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
