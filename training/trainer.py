@@ -39,7 +39,7 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
 from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
-from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, project
+from dimenet.runtime.geometry import MIN_POINTS, k_params, project
 from dimenet.runtime.rectify.camera import Camera, generic_pixel_map
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
@@ -265,15 +265,14 @@ def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
 class Unit:
     """One camera's training frames, in the model's pixels (a generic model's canonical camera,
     ``rectify.camera``): fit and val the fitting and early-stopping frames, truth and
-    val_truth their calibration, K_c (3, 3) px its prior, camera the camera the predictor
-    serves (the model's pixels), train_K_star (T, 3, 3) px every train frame's K*."""
+    val_truth their calibration, camera the camera the predictor serves (K_c, its prior, and
+    the image size, in the model's pixels), train_K_star (T, 3, 3) px every train frame's K*."""
 
     name: str
     fit: Dataset
     val: Dataset
     truth: FrameTruth
     val_truth: FrameTruth
-    K_c: np.ndarray
     camera: Camera
     train_K_star: np.ndarray
 
@@ -294,7 +293,7 @@ def training_unit(dataset: Dataset, config: TrainConfig, focal_px: Optional[floa
     K_c, K_star, frames = cal.K_c, cal.K_star, dataset
     if focal_px is not None:
         pixels = generic_pixel_map(Camera(K_c, tuple(int(v) for v in dataset.image_size)), focal_px)
-        K_c, K_star = (k_matrix(pixels.k_to_model(k_params(K))) for K in (K_c, K_star))
+        K_c, K_star = pixels.K_to_model(K_c), pixels.K_to_model(K_star)
         frames = replace(
             dataset,
             points_2d=pixels.points_to_model(dataset.points_2d),
@@ -307,7 +306,6 @@ def training_unit(dataset: Dataset, config: TrainConfig, focal_px: Optional[floa
         val=frames.select(val_idx),
         truth=frame_truth(frames.select(fit_idx), K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx]),
         val_truth=frame_truth(frames.select(val_idx), K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx]),
-        K_c=K_c,
         camera=Camera(K_c, tuple(int(v) for v in frames.image_size)),
         train_K_star=K_star[frames.frames_in("train")],
     )
@@ -403,9 +401,9 @@ def _stack(parts: list) -> tuple:
 def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec) -> tuple:
     """(features, p2, p3, w, K_c per frame) tensors of one camera's frames (model px)."""
     feats = grid_features(
-        frames.points_2d, frames.points_3d, frames.infer_mask, unit.K_c, frames.image_size, spec_features
+        frames.points_2d, frames.points_3d, frames.infer_mask, unit.camera.K, frames.image_size, spec_features
     )
-    K_c = torch.from_numpy(np.broadcast_to(unit.K_c, (frames.n_frames, 3, 3)).copy())
+    K_c = torch.from_numpy(np.broadcast_to(unit.camera.K, (frames.n_frames, 3, 3)).copy())
     return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c)
 
 
@@ -449,7 +447,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     units = _units(datasets, config, focal_px)
     # Re-imaging keeps a frame's own focal length, so its K* f stays the target of every draw.
     delta_f_star = torch.from_numpy(
-        np.concatenate([k_params(u.truth.K_star)[:, :2] - k_params(u.K_c)[:2] for u in units])
+        np.concatenate([k_params(u.truth.K_star)[:, :2] - k_params(u.camera.K)[:2] for u in units])
     )
     val_inputs = []
     for reduced in (False, True):
@@ -511,13 +509,13 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     if init is not None:
         provenance["init"] = init.source
     if generic:
-        delta = np.concatenate([k_params(u.train_K_star) - k_params(u.K_c) for u in units])
+        delta = np.concatenate([k_params(u.train_K_star) - k_params(u.camera.K) for u in units])
         generic_camera = GenericCamera(focal_px, parameter_bounds(delta))
         camera = {"K_c": None, "image_size": None, "K_bounds": None, "generic": generic_camera}
         provenance["cameras"] = [u.name for u in units]
     else:
         u = units[0]
-        camera = {"K_c": u.K_c, "image_size": u.camera.image_size, "K_bounds": k_bounds(u.train_K_star)}
+        camera = {"K_c": u.camera.K, "image_size": u.camera.image_size, "K_bounds": k_bounds(u.train_K_star)}
     spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
     spec = replace(spec, **_uncertainty_fields(model, spec, units, config, init))
     run_dir = write_run(run_dir, model, spec, history)

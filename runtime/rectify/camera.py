@@ -150,9 +150,13 @@ class PixelMap:
         points_2d = np.ascontiguousarray(points_2d, dtype=np.float64)
         return cv2.transform(points_2d.reshape(-1, 1, 2), self._matrix[:2]).reshape(points_2d.shape)
 
+    def K_to_model(self, K: np.ndarray) -> np.ndarray:
+        """(..., 3, 3) user px -> model px."""
+        return np.matmul(self._matrix, K)
+
     def k_to_model(self, k: np.ndarray) -> np.ndarray:
         """(..., 4) (fx, fy, cx, cy) user px -> model px."""
-        return k_params(np.matmul(self._matrix, k_matrix(k)))
+        return k_params(self.K_to_model(k_matrix(k)))
 
     def K_to_user(self, K: np.ndarray) -> np.ndarray:
         """(..., 3, 3) model px -> user px (one 3 x 3 product: 1 µs; via (fx, fy, cx, cy) 8 µs)."""
@@ -165,10 +169,6 @@ class PixelMap:
     def bounds_to_user(self, bounds: np.ndarray) -> np.ndarray:
         """(4, 2) [low, high] model px -> user px (the map is increasing)."""
         return np.swapaxes(self.k_to_user(np.swapaxes(bounds, 0, 1)), 0, 1)
-
-    def lengths_to_user(self, px):
-        """Pixel lengths (errors, Delta K) model px -> user px."""
-        return np.asarray(px) / self.scale
 
     def covariance_to_user(self, cov: np.ndarray) -> np.ndarray:
         """(..., 4, 4) px^2 of (fx, fy, cx, cy) model -> user px^2."""

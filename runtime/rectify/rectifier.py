@@ -667,7 +667,7 @@ class Rectifier:
         K, delta_k, K_cov = cand.K, cand.delta_k, cand.K_cov
         if self._pixels is not None:
             pixels = self._pixels
-            K, delta_k, e, e_c = pixels.K_to_user(K), pixels.lengths_to_user(delta_k), *pixels.lengths_to_user([e, e_c])
+            K, delta_k, e, e_c = pixels.K_to_user(K), delta_k * self._user_px, e * self._user_px, e_c * self._user_px
             K_cov = None if K_cov is None else pixels.covariance_to_user(K_cov)
         K[fell_back], delta_k[fell_back] = self.K_c, 0.0
         if K_cov is not None:
