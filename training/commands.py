@@ -131,7 +131,7 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
     )
     from dimenet.runtime.cli.engine import add_address_argument
 
-    add_address_argument(p, "9 trainings")
+    add_address_argument(p, "trainings and evaluations")
 
 
 def _run_reproduce(args: argparse.Namespace) -> int:

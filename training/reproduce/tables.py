@@ -11,7 +11,6 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.cli.engine import run_all
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
 from dimenet.runtime.evaluation.methods import METHODS, evaluate
@@ -39,19 +38,94 @@ def _rig_test(ds: Dataset) -> Dataset:
     return ds.select(ds.frames_in("test") & (ds.scene == "rig"))
 
 
-def _job(item: tuple):
-    """One job of ``runtime.cli.engine.run_all``: ("train", dataset, TrainConfig, run dir, init or
-    None) -> the run dir; ("fresh_family",) -> the generic default's rows on a family it never saw."""
-    if item[0] == "fresh_family":
-        return fresh_family()
-    _, dataset, cfg, run_dir, init = item
+def _train(dataset: Dataset, cfg: TrainConfig, run_dir: Path, init: Optional[str]) -> str:
     return str(train(dataset, cfg, run_dir, init=None if init is None else initial_weights(init)).run_dir)
 
 
+def _tables(data: dict, run_dirs: dict, config: ReproduceConfig) -> dict:
+    """Tables 5, 4, 3 and 2 (dimenet rows) from the trained models in ``run_dirs`` (name -> dir)."""
+    predictors = {name: load_predictor(d) for name, d in run_dirs.items()}
+
+    def ev(frames, name):
+        p = predictors[name]
+        return evaluate(frames, p.K_c, p.predict_k)
+
+    rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
+    s8 = data["galaxy-s8"]
+    s8_rig = _rig_test(s8)
+    t5 = {d: _row(ev(_rig_test(data[d]), f"{d}-8x6-A")) for d in DEVICES}
+    natural = s8.select(s8.frames_in("test") & (s8.scene == "natural"))
+    if natural.n_frames:
+        t5["galaxy-s8 (N)"] = _row(ev(natural, "galaxy-s8-8x6-A"))
+    t4 = {"clean": {}, "noisy": {}}
+    noisy = add_noise(s8_rig, NOISE_2D_PX, NOISE_3D_MM, rng(1))
+    for n in POINTS:
+        t4["clean"][n] = _row(ev(drop_inference_points(s8_rig, n, rng(2)), "galaxy-s8-8x6-A"))
+        t4["noisy"][n] = _row(ev(drop_inference_points(noisy, n, rng(3)), "galaxy-s8-8x6-A"))
+    t3 = {v: _row(ev(s8_rig, f"galaxy-s8-8x6-{v}")) for v in VARIANTS}
+    t2 = {}
+    for g in GRIDS:
+        grid = Grid.parse(g)
+        t2[g] = []
+        for k, eta in enumerate(ETAS):
+            frames = empty_cells(s8_rig, eta, grid, rng(10 + k)) if eta else s8_rig
+            t2[g].append({"eta": eta, "gamma": occupancy(frames, grid), **_row(ev(frames, f"galaxy-s8-{g}-A"))})
+    return {"table5": t5, "table4": t4, "table3": t3, "table2": t2}
+
+
+def _baseline(frames: Dataset, run_dir: str) -> dict:
+    """One baseline case: {"n_frames", "methods": method -> {avg_e, rho, fallbacks}, "coverage"
+    and "coverage_true": method -> parameter -> share (against K* and against K_true)}."""
+    p = load_predictor(run_dir)
+    ev = evaluate(frames, p.K_c, p, methods=METHODS)
+    return {
+        "n_frames": frames.n_frames,
+        "methods": {
+            m: {"avg_e": rows["overall"].avg_e, "rho": rows["overall"].rho, "fallbacks": ev.fallbacks[m]}
+            for m, rows in ev.methods.items()
+        },
+        "coverage": ev.coverage,
+        "coverage_true": ev.coverage_true,
+    }
+
+
+def _generic_rows(data: dict, run_dirs: dict, fine_tune_job: tuple, fresh: list, config: ReproduceConfig) -> dict:
+    device = {d: load_predictor(run_dirs[f"{d}-8x6-A"]) for d in DEVICES}
+    return run_generic(data, device, config, load_model(), {"fine_tune": fine_tune_job, "fresh_family": fresh})
+
+
+# The jobs of ``runtime.cli.engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
+# loads what it needs from run dirs, so the same jobs run in this process or as Ray tasks.
+JOBS = {
+    "train": _train,
+    "fresh_family": fresh_family,
+    "tables": _tables,
+    "baseline": _baseline,
+    "generic": _generic_rows,
+}
+
+
+def _job(item: tuple):
+    return JOBS[item[0]](*item[1:])
+
+
+def _run_jobs(items: dict, address: Optional[str], cpus_per_job: int, desc: str) -> dict:
+    """name -> (kind, *arguments) run on the engine -> name -> Outcome; DimenetError naming the
+    first job that failed."""
+    outcomes = dict(
+        zip(items, run_all(_job, list(items.values()), address=address, cpus_per_job=cpus_per_job, desc=desc))
+    )
+    for name, outcome in outcomes.items():
+        if outcome.error is not None:
+            raise DimenetError(f"reproduce: {name} failed: {outcome.error}")
+    return outcomes
+
+
 def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
-    """Train, evaluate and write the report; returns the results dictionary. The trainings run
-    one after another, or as Ray jobs with ``address`` (``runtime.cli.engine``): the same
-    models either way, each trained on one thread from its seed."""
+    """Train, evaluate and write the report; returns the results dictionary. Two batches of jobs
+    (the trainings, then the evaluations of the trained models) run one after another, or as Ray
+    jobs with ``address`` (``runtime.cli.engine``): the same numbers either way, each model
+    trained on one thread from its seed."""
     start = time.monotonic()
     out = Path(config.out_dir)
     runs = out / "runs"
@@ -67,67 +141,39 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     jobs = [(d, "8x6", "A", config.epochs) for d in DEVICES]
     jobs += [("galaxy-s8", "8x6", v, config.ablation_epochs) for v in VARIANTS[1:]]
     jobs += [("galaxy-s8", g, "A", config.ablation_epochs) for g in GRIDS[:2]]
-    names = [f"{device}-{grid}-{variant}" for device, grid, variant, _ in jobs]
-    items = [
-        (
+    trainings = {
+        f"{device}-{grid}-{variant}": (
             "train",
             data[device],
             TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed),
-            runs / name,
+            runs / f"{device}-{grid}-{variant}",
             None,
         )
-        for (device, grid, variant, epochs), name in zip(jobs, names)
-    ]
-    default = load_model()
-    generic = default.spec.generic is not None
+        for device, grid, variant, epochs in jobs
+    }
+    generic = load_model().spec.generic is not None
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
-        items += [("train", *fine_tune_training(data, out, config)), ("fresh_family",)]
-        names += ["fine-tune", "fresh family"]
-    outcomes = run_all(_job, items, address=address, cpus_per_job=cpus_per_job, desc="reproduce: jobs")
-    for name, outcome in zip(names, outcomes):
-        if outcome.error is not None:
-            raise DimenetError(f"reproduce: {name} failed: {outcome.error}")
-    predictors, train_seconds = {}, {}
-    for name, outcome in zip(names[: len(jobs)], outcomes):
-        predictors[name], train_seconds[name] = load_predictor(outcome.value), outcome.seconds
-
-    def ev(frames, name):
-        p = predictors[name]
-        return evaluate(frames, p.K_c, p.predict_k)
-
-    rng = lambda k: np.random.default_rng(config.seed + k)  # noqa: E731
-    s8 = data["galaxy-s8"]
-    s8_rig = _rig_test(s8)
-    results: dict = {"train_seconds": train_seconds}
-    t5 = {d: _row(ev(_rig_test(data[d]), f"{d}-8x6-A")) for d in DEVICES}
-    natural = s8.select(s8.frames_in("test") & (s8.scene == "natural"))
-    if natural.n_frames:
-        t5["galaxy-s8 (N)"] = _row(ev(natural, "galaxy-s8-8x6-A"))
-    results["table5"] = t5
-    t4 = {"clean": {}, "noisy": {}}
-    noisy = add_noise(s8_rig, NOISE_2D_PX, NOISE_3D_MM, rng(1))
-    for n in POINTS:
-        t4["clean"][n] = _row(ev(drop_inference_points(s8_rig, n, rng(2)), "galaxy-s8-8x6-A"))
-        t4["noisy"][n] = _row(ev(drop_inference_points(noisy, n, rng(3)), "galaxy-s8-8x6-A"))
-    results["table4"] = t4
-    results["table3"] = {v: _row(ev(s8_rig, f"galaxy-s8-8x6-{v}")) for v in VARIANTS}
-    t2 = {}
-    for g in GRIDS:
-        grid = Grid.parse(g)
-        t2[g] = []
-        for k, eta in enumerate(ETAS):
-            frames = empty_cells(s8_rig, eta, grid, rng(10 + k)) if eta else s8_rig
-            t2[g].append({"eta": eta, "gamma": occupancy(frames, grid), **_row(ev(frames, f"galaxy-s8-{g}-A"))})
-    results["table2"] = t2
-    results["baselines"] = _baselines(data, predictors, config)
+        trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
+        trainings["fresh family"] = ("fresh_family",)
+    trained = _run_jobs(trainings, address, cpus_per_job, "reproduce: training")
+    run_dirs = {name: trained[name].value for name in trainings if name not in ("fine-tune", "fresh family")}
+    evaluations = {"tables": ("tables", data, run_dirs, config)}
+    cases = _baseline_cases(data, config)
+    evaluations.update({case: ("baseline", frames, run_dirs[name]) for case, (frames, name) in cases.items()})
     if generic:
-        side = {"fine_tune": (Path(outcomes[-2].value), outcomes[-2].seconds), "fresh_family": outcomes[-1].value}
-        results["generic"] = run_generic(data, {d: predictors[f"{d}-8x6-A"] for d in DEVICES}, config, default, side)
+        tune = (Path(trained["fine-tune"].value), trained["fine-tune"].seconds)
+        evaluations["generic"] = ("generic", data, run_dirs, tune, trained["fresh family"].value, config)
+    evaluated = _run_jobs(evaluations, address, cpus_per_job, "reproduce: evaluation")
+    results: dict = {"train_seconds": {name: trained[name].seconds for name in run_dirs}}
+    results.update(evaluated["tables"].value)
+    results["baselines"] = {case: evaluated[case].value for case in cases}
+    if generic:
+        results["generic"] = evaluated["generic"].value
     results["seconds"] = time.monotonic() - start
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
-    atomic_write(out / "rho_vs_points.png", lambda f: f.write(plot_points(t4)))
-    atomic_write(out / "e_vs_eta.png", lambda f: f.write(plot_eta(t2)))
+    atomic_write(out / "rho_vs_points.png", lambda f: f.write(plot_points(results["table4"])))
+    atomic_write(out / "e_vs_eta.png", lambda f: f.write(plot_eta(results["table2"])))
     atomic_write(out / "methods_vs_points.png", lambda f: f.write(plot_methods(results["baselines"])))
     atomic_write_text(out / "REPRODUCTION.md", report(results, config))
     return results
@@ -148,22 +194,3 @@ def _baseline_cases(data: dict, config: ReproduceConfig) -> dict:
         cases[f"galaxy-s8 clean {n} pts"] = (drop_inference_points(s8_rig, n, rng(2)), "galaxy-s8-8x6-A")
         cases[f"galaxy-s8 noisy {n} pts"] = (drop_inference_points(noisy, n, rng(3)), "galaxy-s8-8x6-A")
     return cases
-
-
-def _baselines(data: dict, predictors: dict, config: ReproduceConfig) -> dict:
-    """case -> {"methods": method -> {avg_e, rho, fallbacks}, "coverage" and "coverage_true":
-    method -> parameter -> share (against K* and against the simulator's K_true)}."""
-    out = {}
-    for case, (frames, name) in progress(_baseline_cases(data, config).items(), desc="reproduce: baselines"):
-        p = predictors[name]
-        ev = evaluate(frames, p.K_c, p, methods=METHODS)
-        out[case] = {
-            "n_frames": frames.n_frames,
-            "methods": {
-                m: {"avg_e": rows["overall"].avg_e, "rho": rows["overall"].rho, "fallbacks": ev.fallbacks[m]}
-                for m, rows in ev.methods.items()
-            },
-            "coverage": ev.coverage,
-            "coverage_true": ev.coverage_true,
-        }
-    return out
