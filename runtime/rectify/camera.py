@@ -42,13 +42,23 @@ ASPECT_TOLERANCE = 0.005
 WINDOW_TOLERANCE = 0.01
 
 
+# OpenCV's lens distortion models, by their number of coefficients: (k1, k2, p1, p2[, k3[, k4,
+# k5, k6[, s1, s2, s3, s4[, tau_x, tau_y]]]]).
+DIST_COEFF_COUNTS = (4, 5, 8, 12, 14)
+# A coefficient's magnitude beyond this is no lens (real ones are O(1); fisheye-like k's O(10)).
+MAX_DIST_COEFF = 1e3
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera without skew: K (3, 3) float64 px, OpenCV convention (centre of the
-    top-left pixel at (0, 0)), read-only; image_size (width, height) px."""
+    top-left pixel at (0, 0)), read-only; image_size (width, height) px; dist_coeffs: the
+    lens's distortion in OpenCV's model (one of DIST_COEFF_COUNTS float64 coefficients,
+    read-only), or None for a distortion-free (or already undistorted) image."""
 
     K: np.ndarray
     image_size: tuple
+    dist_coeffs: Optional[np.ndarray] = None
 
 
 def _fail(source: str, field: str, problem: str) -> CameraError:
@@ -116,15 +126,47 @@ def _array_size(image_size: Any, source: str) -> tuple[int, int]:
     return sides[0], sides[1]
 
 
-def checked_camera(K: Any, image_size: Any, source: str = "camera") -> Camera:
+def _checked_dist(dist_coeffs: Any, source: str) -> Optional[np.ndarray]:
+    """OpenCV distortion coefficients -> (n,) float64 read-only, or None when absent or all zero."""
+    if dist_coeffs is None:
+        return None
+    try:
+        array = np.asarray(dist_coeffs)
+    except (TypeError, ValueError) as exc:
+        raise _fail(source, "dist_coeffs", f"must be {_counts()} finite numbers ({exc})") from None
+    if array.dtype.kind not in "iuf" or array.size not in DIST_COEFF_COUNTS or array.ndim > 2:
+        raise _fail(source, "dist_coeffs", f"must be {_counts()} finite numbers, got {shown(array.tolist())}")
+    array = array.astype(np.float64).reshape(-1)
+    if not np.all(np.isfinite(array)) or np.any(np.abs(array) > MAX_DIST_COEFF):
+        raise _fail(
+            source,
+            "dist_coeffs",
+            f"must be finite numbers of magnitude <= {MAX_DIST_COEFF:g}, got {shown(array.tolist())}",
+        )
+    if not np.any(array):
+        return None
+    array.setflags(write=False)
+    return array
+
+
+def _counts() -> str:
+    return "/".join(str(n) for n in DIST_COEFF_COUNTS)
+
+
+def checked_camera(K: Any, image_size: Any, source: str = "camera", dist_coeffs: Any = None) -> Camera:
     """A Camera from values in memory: K (3, 3) real array-like px, a pinhole matrix without
     skew ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0, fy / fx in ASPECT_RANGE, the
     principal point within the image extended by its size on each side); image_size (width,
-    height) integers px in [1, MAX_IMAGE_SIDE_PX]. Raises CameraError naming ``source`` and the
-    field. (``formats.camera.read_camera`` reads a JSON camera file into this.)"""
+    height) integers px in [1, MAX_IMAGE_SIDE_PX]; dist_coeffs None or OpenCV's 4/5/8/12/14
+    coefficients (all zero: None). Raises CameraError naming ``source`` and the field.
+    (``formats.camera.read_camera`` reads a camera file into this.)"""
     array = _array_k(K, source)
     width, height = _array_size(image_size, source)
-    return Camera(K=_checked_k(array, width, height, source), image_size=(width, height))
+    return Camera(
+        K=_checked_k(array, width, height, source),
+        image_size=(width, height),
+        dist_coeffs=_checked_dist(dist_coeffs, source),
+    )
 
 
 @dataclass(frozen=True)

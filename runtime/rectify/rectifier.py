@@ -21,7 +21,10 @@ stages, each timed into ``timings_us`` under its name:
 ``rectify_batch`` runs the same stages over B frames at once (the model once for all).
 
 The camera: a device model serves its own camera, or a rescale or crop of it; a generic model
-any camera, given to ``load``. The stages run in the model's pixel frame (``rectify.camera``):
+any camera, given to ``load``. A camera with lens distortion (``dist_coeffs``) has its points
+undistorted to the pinhole camera of K_c after validation (``geometry.distortion``); K and the
+poses are that pinhole camera's, and e and e_c are measured in the distorted image the points
+came from. The stages run in the model's pixel frame (``rectify.camera``):
 the points are mapped onto it after validation and K, Delta K, K_cov and the errors back
 (nothing is mapped when the camera is the model's own).
 """
@@ -30,7 +33,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property, partial
 from pathlib import Path
 from typing import Callable, Optional
@@ -48,6 +51,7 @@ from dimenet.runtime.geometry import (
     min_depths,
     solve_pnp_start,
 )
+from dimenet.runtime.geometry.distortion import mean_distorted_error, undistort_points
 from dimenet.runtime.rectify.camera import Camera, PixelMap, checked_camera
 from dimenet.runtime.rectify.checks import (
     BEHIND_REASON,
@@ -188,6 +192,7 @@ class _Frames:
     mask: Optional[np.ndarray]
     frames: list
     invariants_3d: tuple
+    points_2d_image: np.ndarray  # the points as given (distorted): points_2d is their pinhole image
 
 
 def _refine(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray]:
@@ -271,6 +276,7 @@ class Rectifier:
         self._K_bounds_list = spec.K_bounds.tolist()
         self._image = ImageBounds(self.image_size)
         self._user_px = 1.0 if self._pixels is None else 1.0 / self._pixels.scale  # user px per model px
+        self.dist_coeffs = None if camera is None else camera.dist_coeffs
         self.K_c.setflags(write=False)
 
     @classmethod
@@ -280,6 +286,7 @@ class Rectifier:
         *,
         K_c=None,
         image_size=None,
+        dist_coeffs=None,
         threads: int = 1,
         providers: Optional[Sequence[str]] = None,
         mode: str = "dimenet",
@@ -288,11 +295,18 @@ class Rectifier:
         ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera (OpenCV's pixel
         convention, the centre of the top-left pixel at (0, 0)); a generic model needs both, a
         device model keeps its own camera without them and accepts a rescale or crop of it
-        (``image_size`` alone: a rescale). ``mode``: "dimenet" (the paper's method) or "map" (the
+        (``image_size`` alone: a rescale). ``dist_coeffs``: the lens's distortion about K_c,
+        OpenCV's 4/5/8/12/14 coefficients (the points are then as the distorted image holds
+        them; needs K_c). ``mode``: "dimenet" (the paper's method) or "map" (the
         network's K as a prior, fused with the frame's own points). CameraError for a camera the
         model cannot serve."""
         model = load_model(path, threads=threads, providers=providers)
-        return cls(model, mode, _camera(model, K_c, image_size))
+        camera = _camera(model, K_c, image_size)
+        if dist_coeffs is not None:
+            if camera is None:
+                raise CameraError("dist_coeffs: the distortion is stated about K_c: give K_c (and image_size) with it")
+            camera = checked_camera(camera.K, camera.image_size, "camera", dist_coeffs)
+        return cls(model, mode, camera)
 
     @property
     def spec(self) -> ModelSpec:
@@ -369,6 +383,9 @@ class Rectifier:
         """
         lap = _Lap()
         p2, p3, invariants_3d = self._validated(points_2d, points_3d)
+        p2_image = p2
+        if self.dist_coeffs is not None:
+            p2 = undistort_points(p2, self.K_c, self.dist_coeffs)
         if self._pixels is not None:
             p2 = self._pixels.points_to_model(p2)
         lap("validate")
@@ -433,18 +450,49 @@ class Rectifier:
             )
         lap("check")
         if self._pixels is not None:
-            return self._user_result(cand, e_c, lap.timings, reason is not None)
-        return Rectification(
-            K=cand.K,
-            rvec=cand.rvec,
-            tvec=cand.tvec,
-            reprojection_error_px=cand.e,
-            reprojection_error_kc_px=e_c,
-            delta_k=cand.delta_k,
-            fallback=cand.note,
-            timings_us=lap.timings,
-            K_c=self.K_c,
-            covariance=cand.covariance,
+            result = self._user_result(cand, e_c, lap.timings, reason is not None)
+        else:
+            result = Rectification(
+                K=cand.K,
+                rvec=cand.rvec,
+                tvec=cand.tvec,
+                reprojection_error_px=cand.e,
+                reprojection_error_kc_px=e_c,
+                delta_k=cand.delta_k,
+                fallback=cand.note,
+                timings_us=lap.timings,
+                K_c=self.K_c,
+                covariance=cand.covariance,
+            )
+        if self.dist_coeffs is None:
+            return result
+        e, e_c = self._image_errors(
+            p2_image[None],
+            p3[None],
+            None,
+            np.stack([result.K, self.K_c]),
+            (result.rvec, rvec_c0),
+            (result.tvec, tvec_c0),
+        )
+        return replace(result, reprojection_error_px=float(e[0]), reprojection_error_kc_px=float(e_c[0]))
+
+    def _image_errors(self, p2_image, p3, valid, K, rvecs, tvecs) -> np.ndarray:
+        """Mean errors (px) in the distorted image of (B, N) points for each of the candidate
+        (K, pose) pairs: K (M, 3, 3) px, rvecs and tvecs M arrays (B, 3) or (3,) -> (M, B)."""
+        return np.stack(
+            [
+                mean_distorted_error(
+                    p2_image,
+                    p3,
+                    valid,
+                    K[m],
+                    np.reshape(rvecs[m], (-1, 3)),
+                    np.reshape(tvecs[m], (-1, 3)),
+                    self.K_c,
+                    self.dist_coeffs,
+                )
+                for m in range(len(K))
+            ]
         )
 
     def _user_result(self, cand: _Candidate, e_c: float, timings: dict, fell_back: bool) -> Rectification:
@@ -495,6 +543,9 @@ class Rectifier:
         if not inside:
             for b in np.flatnonzero(np.any(valid & ~self._image.inside(p2, p3), 1)):
                 self._image.raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
+        p2_image = p2
+        if self.dist_coeffs is not None:
+            p2 = undistort_points(p2, self.K_c, self.dist_coeffs)
         if self._pixels is not None:
             p2 = self._pixels.points_to_model(p2)
         frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
@@ -509,7 +560,7 @@ class Rectifier:
                     f"frame {b}: {distinct} distinct valid points of {len(x)}: "
                     f"rectification needs at least {MIN_POINTS}"
                 )
-        return _Frames(p2, p3, valid, infer, mask, frames, invariants_3d)
+        return _Frames(p2, p3, valid, infer, mask, frames, invariants_3d, p2_image)
 
     def _c0_poses(self, fr: _Frames) -> tuple[np.ndarray, np.ndarray]:
         """Stage pnp_kc of B frames: SQPnP poses {W}->{C0} under K_c on each frame's valid points."""
@@ -672,6 +723,12 @@ class Rectifier:
         K[fell_back], delta_k[fell_back] = self.K_c, 0.0
         if K_cov is not None:
             K_cov[fell_back] = np.nan
+        if self.dist_coeffs is not None:
+            p3 = np.where(fr.valid[..., None], fr.points_3d, 0.0)
+            K_cs = np.broadcast_to(self.K_c, K.shape)
+            e, e_c = self._image_errors(
+                fr.points_2d_image, p3, fr.mask, np.stack([K, K_cs]), (cand.rvec, rvec_c0), (cand.tvec, tvec_c0)
+            )
         return BatchRectification(
             K=K,
             rvec=cand.rvec,

@@ -1,0 +1,86 @@
+"""The rectifier on a camera with lens distortion: the points are undistorted to the pinhole
+camera of K_c, so K and the poses are those of the distortion-free frames, while e and e_c are
+measured in the distorted image the points came from (checked against cv2.projectPoints)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+from helpers import constant_uncertainty, model_spec
+from test_rectifier_camera import linear_model, rig_frames
+
+from dimenet.runtime.errors import CameraError
+from dimenet.runtime.geometry.distortion import distort_points, undistort_points
+from dimenet.runtime.rectify.camera import Camera, checked_camera
+from dimenet.runtime.rectify.rectifier import Rectifier
+
+# A phone main camera's barrel distortion (k1, k2, p1, p2, k3): ~90 px at a 12 MP corner.
+DIST = np.array([-0.12, 0.05, 0.0004, -0.0003, -0.01])
+
+
+@pytest.fixture(scope="module")
+def setup(frames):
+    spec = replace(model_spec(frames), uncertainty=constant_uncertainty(3.0))
+    model = linear_model(spec)
+    camera = Camera(spec.K_c, tuple(spec.image_size))
+    p2, p3, valid = rig_frames(frames)
+    distorted = np.where(valid[..., None], distort_points(p2, spec.K_c, DIST), np.nan)
+    return model, camera, distorted, p2, p3, valid
+
+
+def test_distort_and_undistort_are_inverse_to_a_nanometre_at_the_corners():
+    K = np.array([[3000.0, 0, 2015.5], [0, 3000.0, 1511.5], [0, 0, 1]])
+    corners = np.array([[0.0, 0.0], [4031, 0], [0, 3023], [4031, 3023], [2015.5, 1511.5], [np.nan, 1.0]])
+    for dist in (DIST[:4], DIST, np.r_[DIST, 0.01, 0.0, 0.002], np.r_[DIST, 0, 0, 0, 1e-3, 0, 5e-4, 0]):
+        there = distort_points(corners, K, dist)
+        back = undistort_points(there, K, dist)
+        np.testing.assert_allclose(back[:5], corners[:5], atol=1e-6)
+        assert np.isnan(back[5]).all() and np.isnan(there[5]).all()
+    reference = cv2.projectPoints(
+        np.c_[(corners[:5] - K[:2, 2]) / 3000.0, np.ones(5)], np.zeros(3), np.zeros(3), K, DIST
+    )[0].reshape(-1, 2)
+    np.testing.assert_allclose(distort_points(corners[:5], K, DIST), reference, atol=1e-9)
+
+
+@pytest.mark.parametrize("mode", ["dimenet", "map"])
+def test_k_and_pose_are_the_pinhole_frames_and_errors_the_distorted_images(setup, mode):
+    model, camera, distorted, p2, p3, valid = setup
+    plain = Rectifier(model, mode, camera)
+    lens = Rectifier(model, mode, Camera(camera.K, camera.image_size, DIST))
+    for b in range(4):
+        m = valid[b]
+        want, got = plain.rectify(p2[b][m], p3[b][m]), lens.rectify(distorted[b][m], p3[b][m])
+        np.testing.assert_allclose(got.K, want.K, atol=1e-6)
+        np.testing.assert_allclose(got.tvec, want.tvec, atol=1e-6)
+        assert got.fallback == want.fallback
+        # e_c against OpenCV's own distorted projection under K_c and the C0 pose.
+        _, rvec_c0, tvec_c0 = cv2.solvePnP(p3[b][m], p2[b][m], camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
+        image = cv2.projectPoints(p3[b][m], rvec_c0, tvec_c0, camera.K, DIST)[0].reshape(-1, 2)
+        e_c = np.linalg.norm(image - distorted[b][m], axis=1).mean()
+        assert got.reprojection_error_kc_px == pytest.approx(e_c, rel=1e-4)
+        assert got.reprojection_error_kc_px != pytest.approx(want.reprojection_error_kc_px, rel=1e-3)
+    batch = lens.rectify_batch(distorted, p3, valid)
+    single = [lens.rectify(distorted[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
+    np.testing.assert_allclose(batch.K, [s.K for s in single], atol=1e-9)
+    np.testing.assert_allclose(batch.reprojection_error_px, [s.reprojection_error_px for s in single], rtol=1e-6)
+    np.testing.assert_allclose(batch.reprojection_error_kc_px, [s.reprojection_error_kc_px for s in single], rtol=1e-6)
+
+
+def test_distorted_points_without_their_distortion_are_worse(setup):
+    model, camera, distorted, _, p3, valid = setup
+    ignored = Rectifier(model, "dimenet", camera).rectify_batch(distorted, p3, valid)
+    known = Rectifier(model, "dimenet", Camera(camera.K, camera.image_size, DIST)).rectify_batch(distorted, p3, valid)
+    assert known.reprojection_error_kc_px.mean() < 0.5 * ignored.reprojection_error_kc_px.mean()
+
+
+def test_bad_distortion_is_a_camera_error():
+    K = np.array([[1000.0, 0, 500], [0, 1000.0, 400], [0, 0, 1]])
+    for bad in ([0.1, 0.2, 0.0], [np.nan, 0, 0, 0], ["a", 0, 0, 0], [1e9, 0, 0, 0]):
+        with pytest.raises(CameraError, match="dist_coeffs"):
+            checked_camera(K, (1000, 800), "cam.yaml", bad)
+    assert checked_camera(K, (1000, 800), "cam.yaml", [0, 0, 0, 0, 0]).dist_coeffs is None
+    with pytest.raises(CameraError, match="give K_c"):
+        Rectifier.load(dist_coeffs=DIST)
