@@ -44,21 +44,41 @@ def _run_one(function: Callable, item) -> Outcome:
         return Outcome(None, f"{type(exc).__name__}: {exc} ({where})", time.monotonic() - start)
 
 
+class Engine:
+    """The engine of ``address`` (see the module docstring) for one or more batches of jobs: a
+    context manager holding one Ray session (started on entry, shut down on exit) across its
+    ``run_all`` calls, so a command with dependent batches pays Ray's start-up once."""
+
+    def __init__(self, address: Optional[str] = None) -> None:
+        self.address, self._ray = address, None
+
+    def __enter__(self) -> Engine:
+        if self.address is not None:
+            self._ray = _ray(self.address)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._ray is not None:
+            self._ray.shutdown()
+            self._ray = None
+
+    def run_all(self, function: Callable, items: list, *, cpus_per_job: int = 1, desc: str = "") -> list:
+        """``function(item)`` for every item as an Outcome, in the items' order: in this process
+        without an address, else as Ray tasks of ``cpus_per_job`` CPUs each (``function`` and the
+        items must be importable or plain data, as Ray ships them to its workers)."""
+        if self._ray is None:
+            return [_run_one(function, item) for item in progress(items, desc=desc)]
+        task = self._ray.remote(num_cpus=cpus_per_job)(_run_one)
+        pending = [task.remote(function, item) for item in items]
+        return [self._ray.get(p) for p in progress(pending, desc=desc)]
+
+
 def run_all(
     function: Callable, items: list, *, address: Optional[str] = None, cpus_per_job: int = 1, desc: str = ""
 ) -> list:
-    """``function(item)`` for every item as an Outcome, in the items' order: in this process
-    without ``address``, else as Ray tasks of ``cpus_per_job`` CPUs each (``function`` and the
-    items must be importable or plain data, as Ray ships them to its workers)."""
-    if address is None:
-        return [_run_one(function, item) for item in progress(items, desc=desc)]
-    ray = _ray(address)
-    try:
-        task = ray.remote(num_cpus=cpus_per_job)(_run_one)
-        pending = [task.remote(function, item) for item in items]
-        return [ray.get(p) for p in progress(pending, desc=desc)]
-    finally:
-        ray.shutdown()
+    """One batch on the engine of ``address``: ``Engine(address).run_all`` in its own session."""
+    with Engine(address) as engine:
+        return engine.run_all(function, items, cpus_per_job=cpus_per_job, desc=desc)
 
 
 def _ray(address: str):

@@ -4,6 +4,7 @@ same `dimenet train`, run here or as Ray jobs; resume, a failing job, and the sa
 from __future__ import annotations
 
 import json
+import math
 import re
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import pytest
 
 pytest.importorskip("torch")
 
-from dimenet.runtime.cli.engine import EngineError, run_all
+from dimenet.runtime.cli.engine import Engine, EngineError, run_all
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.sim.family import simulate_family
@@ -88,6 +89,16 @@ def test_the_engine_keeps_order_and_turns_a_failure_into_its_outcome():
     with pytest.raises(EngineError, match="local:N needs N >= 1"):
         pytest.importorskip("ray")
         run_all(_double, [1], address="local:0")
+
+
+def test_one_engine_session_serves_dependent_batches():
+    ray = pytest.importorskip("ray")
+    with Engine("local:2") as engine:  # the jobs: a function Ray's workers can import
+        first = engine.run_all(math.sqrt, [16.0, 81.0])
+        assert ray.is_initialized()
+        second = engine.run_all(math.sqrt, [o.value for o in first] + [-1.0])
+    assert not ray.is_initialized()
+    assert [o.value for o in second] == [2.0, 3.0, None] and "ValueError: math domain error" in second[2].error
 
 
 def test_ray_jobs_give_the_same_models_and_the_same_family(manifest, tmp_path):

@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.cli.engine import run_all
+from dimenet.runtime.cli.engine import Engine
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
 from dimenet.runtime.evaluation.methods import METHODS, evaluate
@@ -94,7 +94,7 @@ def _generic_rows(data: dict, run_dirs: dict, fine_tune_job: tuple, fresh: list,
     return run_generic(data, device, config, load_model(), {"fine_tune": fine_tune_job, "fresh_family": fresh})
 
 
-# The jobs of ``runtime.cli.engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
+# The jobs of ``runtime.cli.engine.Engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
 # loads what it needs from run dirs, so the same jobs run in this process or as Ray tasks.
 JOBS = {
     "train": _train,
@@ -109,12 +109,10 @@ def _job(item: tuple):
     return JOBS[item[0]](*item[1:])
 
 
-def _run_jobs(items: dict, address: Optional[str], cpus_per_job: int, desc: str) -> dict:
+def _run_jobs(engine: Engine, items: dict, cpus_per_job: int, desc: str) -> dict:
     """name -> (kind, *arguments) run on the engine -> name -> Outcome; DimenetError naming the
     first job that failed."""
-    outcomes = dict(
-        zip(items, run_all(_job, list(items.values()), address=address, cpus_per_job=cpus_per_job, desc=desc))
-    )
+    outcomes = dict(zip(items, engine.run_all(_job, list(items.values()), cpus_per_job=cpus_per_job, desc=desc)))
     for name, outcome in outcomes.items():
         if outcome.error is not None:
             raise DimenetError(f"reproduce: {name} failed: {outcome.error}")
@@ -155,15 +153,16 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
         trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
         trainings["fresh family"] = ("fresh_family",)
-    trained = _run_jobs(trainings, address, cpus_per_job, "reproduce: training")
-    run_dirs = {name: trained[name].value for name in trainings if name not in ("fine-tune", "fresh family")}
-    evaluations = {"tables": ("tables", data, run_dirs, config)}
     cases = _baseline_cases(data, config)
-    evaluations.update({case: ("baseline", frames, run_dirs[name]) for case, (frames, name) in cases.items()})
-    if generic:
-        tune = (Path(trained["fine-tune"].value), trained["fine-tune"].seconds)
-        evaluations["generic"] = ("generic", data, run_dirs, tune, trained["fresh family"].value, config)
-    evaluated = _run_jobs(evaluations, address, cpus_per_job, "reproduce: evaluation")
+    with Engine(address) as engine:  # one Ray session for both batches
+        trained = _run_jobs(engine, trainings, cpus_per_job, "reproduce: training")
+        run_dirs = {name: trained[name].value for name in trainings if name not in ("fine-tune", "fresh family")}
+        evaluations = {"tables": ("tables", data, run_dirs, config)}
+        evaluations.update({case: ("baseline", frames, run_dirs[name]) for case, (frames, name) in cases.items()})
+        if generic:
+            tune = (Path(trained["fine-tune"].value), trained["fine-tune"].seconds)
+            evaluations["generic"] = ("generic", data, run_dirs, tune, trained["fresh family"].value, config)
+        evaluated = _run_jobs(engine, evaluations, cpus_per_job, "reproduce: evaluation")
     results: dict = {"train_seconds": {name: trained[name].seconds for name in run_dirs}}
     results.update(evaluated["tables"].value)
     results["baselines"] = {case: evaluated[case].value for case in cases}
