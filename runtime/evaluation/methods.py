@@ -4,10 +4,15 @@ Protocol (paper Sec. V-C, Tables 4 and 5): every error is measured on all the fr
 valid points; a method's K is inferred from the ``infer_mask`` points only. K_c is the
 prior (from the train frames' calibration, or the model's own K_c).
 
-Methods compared side by side (``METHODS``): ``kc`` K_c itself; ``self`` per-frame joint
-K + pose on the inference points (``evaluation.self_calibration``); ``dimenet`` the network;
-``map`` the network's prior fused with the frame's points (``rectify.map_fit``); ``oracle``
-K*. For methods with a covariance (dimenet: the network's; map: the posterior), the 1-sigma
+Methods compared side by side (``ALL_METHODS``; ``METHODS``: those every dataset supports):
+``kc`` K_c itself; ``platform`` the K the phone's SDK reported per frame (dataset key
+``K_platform``); ``self`` per-frame joint K + pose on the inference points
+(``evaluation.self_calibration``); ``dimenet`` the network; ``map`` the network's prior fused
+with the frame's points (``rectify.map_fit``); ``map+platform`` the same from the product of the
+network's Gaussian and the platform's (K_platform with its stated 1 sigma, meta
+``platform_k.sigma_px``); ``oracle`` K*. A dataset with lens distortion is evaluated on its
+undistorted points (``Dataset.undistorted``, as ``dimenet evaluate`` does). For methods with a
+covariance (dimenet: the network's; map: the posterior; platform: its stated sigma), the 1-sigma
 coverage is the share of frames with |K - K*| <= sigma, per parameter; on datasets that carry
 the true K (``K_true``, simulated ones), also with |K - K_true| <= sigma. The two differ where
 K* shares the frame's noise with the estimate: with every valid point inferring K (rig
@@ -18,7 +23,7 @@ that the posterior describes.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Optional, Union
 
 import numpy as np
@@ -35,8 +40,10 @@ from dimenet.runtime.rectify.map_fit import map_rectify
 
 # A K predictor: a dataset (the evaluated frames) -> K (F, 3, 3) px, one per frame.
 KPredictor = Callable[[Dataset], np.ndarray]
-METHODS = ("kc", "self", "dimenet", "map", "oracle")
-MODEL_METHODS = ("dimenet", "map")
+METHODS = ("kc", "self", "dimenet", "map", "oracle")  # the methods of every dataset (reproduce's tables)
+PLATFORM_METHODS = ("platform", "map+platform")  # those that need the dataset's K_platform
+ALL_METHODS = ("kc", "platform", "self", "dimenet", "map", "map+platform", "oracle")
+MODEL_METHODS = ("dimenet", "map", "map+platform")
 
 
 @dataclass(frozen=True)
@@ -116,11 +123,63 @@ def frame_errors(frames: Dataset, K_c: np.ndarray, K_pred: Optional[np.ndarray] 
     return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e, K_star=K_star)
 
 
-def map_estimate(frames: Dataset, predictor: Predictor, prediction: KPrediction) -> MethodEstimate:
+def require_platform(frames: Dataset, methods: Sequence[str]) -> None:
+    """DatasetError (one line) when a method of ``methods`` needs K_platform and ``frames`` have
+    none, or (map+platform) K_platform's stated 1 sigma and the dataset states none."""
+    wanting = [m for m in methods if m in PLATFORM_METHODS]
+    if wanting and frames.K_platform is None:
+        raise DatasetError(
+            f"methods: {wanting[0]!r} needs K_platform (the phone SDK's K per frame) and this dataset has none "
+            "(`dimenet simulate --platform-k` simulates one)"
+        )
+    if "map+platform" in methods and platform_sigma_px(frames) is None:
+        raise DatasetError("methods: 'map+platform' needs K_platform's stated 1 sigma (meta platform_k.sigma_px)")
+
+
+def platform_sigma_px(frames: Dataset) -> Optional[np.ndarray]:
+    """(4,) px the stated 1 sigma of K_platform's (fx, fy, cx, cy) (meta ``platform_k.sigma_px``),
+    None when the dataset states none; DatasetError when it is not 4 positive finite numbers."""
+    stated = frames.meta.get("platform_k")
+    if not isinstance(stated, dict) or "sigma_px" not in stated:
+        return None
+    try:
+        sigma = np.asarray(stated["sigma_px"], dtype=np.float64)
+    except (TypeError, ValueError):
+        sigma = np.full(0, np.nan)
+    if sigma.shape != (4,) or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise DatasetError(f"meta: platform_k.sigma_px must be 4 positive px (fx, fy, cx, cy): {stated['sigma_px']!r}")
+    return sigma
+
+
+def fused_prior(k_a: np.ndarray, cov_a: np.ndarray, k_b: np.ndarray, cov_b: np.ndarray) -> tuple:
+    """The product of two Gaussians over k (4,) px, covariances (4, 4) px^2 -> (k, cov)."""
+    info_a, info_b = np.linalg.inv(cov_a), np.linalg.inv(cov_b)
+    cov = np.linalg.inv(info_a + info_b)
+    return cov @ (info_a @ k_a + info_b @ k_b), cov
+
+
+def platform_prior(frames: Dataset, prediction: KPrediction) -> KPrediction:
+    """The network's prediction fused with the platform's (K_platform, its stated sigma) per
+    frame; frames the network does not predict get the platform's alone (all count as predicted).
+    The frames have passed ``require_platform``."""
+    cov_p = np.diag(platform_sigma_px(frames) ** 2)
+    K, K_cov = frames.K_platform.copy(), np.broadcast_to(cov_p, (frames.n_frames, 4, 4)).copy()
+    for f in np.flatnonzero(prediction.predicted):
+        k, K_cov[f] = fused_prior(k_params(prediction.K[f]), prediction.K_cov[f], k_params(K[f]), cov_p)
+        K[f] = k_matrix(k)
+    return replace(prediction, K=K, K_cov=K_cov, predicted=np.ones(frames.n_frames, bool))
+
+
+def map_estimate(
+    frames: Dataset, predictor: Predictor, prediction: KPrediction, *, with_platform: bool = False
+) -> MethodEstimate:
     """The map method: per frame, ``map_rectify`` on its inference points from the network's
-    K and covariance (``prediction``, the predictor's on these frames); frames the network
-    does not predict keep K_c, failed fits its K."""
+    K and covariance (``prediction``, the predictor's on these frames), or with
+    ``with_platform`` from their product with the platform's (``platform_prior``); frames
+    without a prior keep K_c, failed fits the prior's K."""
     uncertainty = predictor.spec.map_uncertainty(predictor.source)
+    if with_platform:
+        prediction = platform_prior(frames, prediction)
     K, K_cov = prediction.K.copy(), prediction.K_cov.copy()
     fallbacks = int((~prediction.predicted).sum())
     for f in np.flatnonzero(prediction.predicted):
@@ -149,14 +208,19 @@ def method_estimate(
     predictor: Optional[Predictor],
     prediction: Optional[KPrediction],
 ) -> MethodEstimate:
-    """K per frame of one of METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``;
+    """K per frame of one of ALL_METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``;
     ``prediction`` the predictor's on these frames)."""
-    if method not in METHODS:
-        raise DatasetError(f"methods: unknown method {method!r} (known: {', '.join(METHODS)})")
+    if method not in ALL_METHODS:
+        raise DatasetError(f"methods: unknown method {method!r} (known: {', '.join(ALL_METHODS)})")
     if method in MODEL_METHODS and predictor is None:
         raise ModelError(f"methods: {method!r} needs a model (--model)")
+    require_platform(frames, (method,))
     if method == "kc":
         return MethodEstimate(K=np.broadcast_to(K_c, K_star.shape).copy(), K_cov=None, fallbacks=0)
+    if method == "platform":
+        sigma = platform_sigma_px(frames)
+        K_cov = None if sigma is None else np.broadcast_to(np.diag(sigma**2), (frames.n_frames, 4, 4)).copy()
+        return MethodEstimate(K=frames.K_platform, K_cov=K_cov, fallbacks=0)
     if method == "oracle":
         return MethodEstimate(K=K_star, K_cov=None, fallbacks=0)
     if method == "self":
@@ -164,6 +228,8 @@ def method_estimate(
         return MethodEstimate(K=sc.K, K_cov=None, fallbacks=sum(r is not None for r in sc.fallback))
     if method == "dimenet":
         return MethodEstimate(K=prediction.K, K_cov=prediction.K_cov, fallbacks=int((~prediction.predicted).sum()))
+    if method == "map+platform":
+        return map_estimate(frames, predictor, prediction, with_platform=True)
     return map_estimate(frames, predictor, prediction)
 
 
@@ -179,6 +245,7 @@ def evaluate(
     the predictor's K, and one row per method of ``methods`` (dimenet and map need a Predictor)."""
     if frames.n_frames == 0:
         raise DatasetError(f"split: no {split!r} frames to evaluate")
+    require_platform(frames, methods)
     model = predictor if isinstance(predictor, Predictor) else None
     prediction = None if model is None else model.predict(frames)
     if prediction is not None:

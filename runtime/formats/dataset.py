@@ -4,7 +4,10 @@ The format is specified in ``models_spec/dataset-v1.md``. A dataset is one ``.np
 file, read by ``formats.npz.read_npz`` (never unpickles; refuses a corrupt archive or one
 declaring more than ``MAX_NPZ_BYTES`` before decoding it). Frames are F images, each with up to P
 correspondences (NaN-padded); 2D points are pixels (x right, y down), 3D points are
-millimetres in that frame's world frame {W}.
+millimetres in that frame's world frame {W}. A dataset may state its lens distortion
+(``dist_coeffs`` about ``dist_K``; its points are then as the distorted image holds them, and
+``Dataset.undistorted`` gives the pinhole points) and what the phone's SDK reported as each
+frame's K (``K_platform``).
 """
 
 from __future__ import annotations
@@ -21,12 +24,14 @@ from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import MAX_COORDINATE, MIN_POINTS
+from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.json_text import JsonProblem, parse_json
+from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
 
 FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")
 REQUIRED_KEYS = ("format", "image_size", "points_2d", "points_3d", "valid", "infer_mask", "split", "scene", "meta")
-OPTIONAL_KEYS = ("K_true", "frame_id")
+OPTIONAL_KEYS = ("K_true", "frame_id", "K_platform", "dist_coeffs", "dist_K")
 MAX_IMAGE_SIDE_PX = 1_000_000  # image_size: no camera image is wider (it also keeps int64 maths exact)
 MAX_META_CHARS = 4 << 20  # meta: 4 Mi characters of JSON (the simulator's is ~5 k, ingest's grows with OBJECT.csv)
 
@@ -45,6 +50,9 @@ class Dataset:
     meta: dict = field(default_factory=dict)
     K_true: Optional[np.ndarray] = None  # (F, 3, 3) float64 px
     frame_id: Optional[np.ndarray] = None  # (F,) str
+    K_platform: Optional[np.ndarray] = None  # (F, 3, 3) float64 px: the K the phone's SDK reported per frame
+    dist_coeffs: Optional[np.ndarray] = None  # (n,) float64: OpenCV's lens distortion (n in DIST_COEFF_COUNTS) ...
+    dist_K: Optional[np.ndarray] = None  # (3, 3) float64 px: ... stated about this fixed pinhole K
 
     def __post_init__(self) -> None:
         validate_arrays(self.to_arrays())
@@ -73,7 +81,22 @@ class Dataset:
             scene=self.scene[idx],
             K_true=take(self.K_true),
             frame_id=take(self.frame_id),
+            K_platform=take(self.K_platform),
         )
+
+    def undistorted(self) -> Dataset:
+        """The dataset with its points_2d undistorted to the pinhole camera of ``dist_K`` (px, in
+        that camera's frame: a frame whose K differs from dist_K, as under OIS, keeps its own K)
+        and without the distortion keys; itself when it states no distortion. DatasetError
+        when an undistorted valid point lies far outside the image (a lens model that does not
+        fit the points)."""
+        if self.dist_coeffs is None:
+            return self
+        points = undistort_points(self.points_2d, self.dist_K, self.dist_coeffs)
+        try:
+            return replace(self, points_2d=points, dist_coeffs=None, dist_K=None)
+        except DatasetError as exc:
+            raise DatasetError(f"undistorted: {exc}") from None
 
     def frames_in(self, split: str) -> np.ndarray:
         """Boolean mask of the frames in ``split``."""
@@ -95,6 +118,9 @@ class Dataset:
             arrays["K_true"] = self.K_true
         if self.frame_id is not None:
             arrays["frame_id"] = np.asarray(self.frame_id)
+        for key in ("K_platform", "dist_coeffs", "dist_K"):
+            if getattr(self, key) is not None:
+                arrays[key] = getattr(self, key)
         return arrays
 
 
@@ -115,6 +141,46 @@ def _float_array(arrays: Mapping[str, Any], key: str, shape: tuple) -> np.ndarra
     _require(a.dtype.kind == "f", key, f"must be a float array, got dtype {a.dtype}")
     _require(a.shape == shape, key, f"must have shape {shape}, got {a.shape}")
     return a.astype(np.float64, copy=False)
+
+
+def _pinhole_matrices(arrays: Mapping[str, Any], key: str, shape: tuple) -> np.ndarray:
+    """``arrays[key]`` as float64 (..., 3, 3) pinhole matrices [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] px:
+    finite, fx, fy > 0, zero skew."""
+    K = _float_array(arrays, key, shape)
+    _require(bool(np.all(np.isfinite(K))), key, "has non-finite entries")
+    zeros = K[..., [0, 1, 2, 2], [1, 0, 0, 1]]
+    _require(
+        bool(np.all(K[..., 0, 0] > 0) and np.all(K[..., 1, 1] > 0))
+        and np.allclose(zeros, 0.0)
+        and np.allclose(K[..., 2, 2], 1.0),
+        key,
+        "must be pinhole matrices [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] px (positive focal lengths, no skew)",
+    )
+    return K
+
+
+def _distortion(arrays: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """The lens distortion keys, both or neither: ``dist_coeffs`` (n,) OpenCV coefficients of
+    magnitude <= MAX_DIST_COEFF, ``dist_K`` (3, 3) px the pinhole K they are stated about."""
+    present = [k for k in ("dist_coeffs", "dist_K") if k in arrays]
+    if not present:
+        return {}
+    other = "dist_K" if present == ["dist_coeffs"] else "dist_coeffs"
+    _require(len(present) == 2, present[0], f"needs {other} with it (the distortion is stated about dist_K)")
+    counts = "/".join(str(n) for n in DIST_COEFF_COUNTS)
+    raw = np.asarray(arrays["dist_coeffs"])
+    _require(
+        raw.ndim == 1 and raw.shape[0] in DIST_COEFF_COUNTS,
+        "dist_coeffs",
+        f"must have shape (n,), n one of {counts} (OpenCV's models), got {raw.shape}",
+    )
+    coeffs = _float_array(arrays, "dist_coeffs", raw.shape)
+    _require(
+        bool(np.all(np.isfinite(coeffs)) and np.all(np.abs(coeffs) <= MAX_DIST_COEFF)),
+        "dist_coeffs",
+        f"must be finite with magnitude <= {MAX_DIST_COEFF:g}, got {coeffs.tolist()}",
+    )
+    return {"dist_coeffs": coeffs, "dist_K": _pinhole_matrices(arrays, "dist_K", (3, 3))}
 
 
 def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
@@ -215,6 +281,9 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
         out["K_true"] = K
     if "frame_id" in arrays:
         out["frame_id"] = _string_array(arrays, "frame_id", (F,))
+    if "K_platform" in arrays:
+        out["K_platform"] = _pinhole_matrices(arrays, "K_platform", (F, 3, 3))
+    out.update(_distortion(arrays))
     return out
 
 

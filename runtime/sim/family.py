@@ -12,7 +12,7 @@ re-drawn (``near_paper_profile``), so those stay zero-shot tests of a family-tra
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import Optional
 
@@ -186,20 +186,50 @@ def simulate_family(
     natural_frames: int = 0,
     planar_frames: int = 0,
     frames: tuple[int, int] = FAMILY_FRAMES,
+    dist_coeffs: Optional[Sequence[float]] = None,
+    platform_k: bool = False,
 ) -> Iterator[tuple[DeviceProfile, Dataset]]:
     """(camera, dataset) for each camera of ``family_profiles(n, seed, frames)``, lazily: the dataset
-    is ``simulate(camera, seed=camera_seed(seed, i), natural_frames=..., planar_frames=...)`` with
-    ``family`` = {"seed", "index", "cameras"} added to its meta."""
+    is ``simulate(camera, seed=camera_seed(seed, i), natural_frames=..., planar_frames=...,
+    dist_coeffs=..., platform_k=...)`` with ``family`` = {"seed", "index", "cameras"} added to its meta."""
     for i, profile in enumerate(family_profiles(n, seed, frames)):
-        yield profile, family_member(profile, i, seed, n, natural_frames=natural_frames, planar_frames=planar_frames)
+        yield (
+            profile,
+            family_member(
+                profile,
+                i,
+                seed,
+                n,
+                natural_frames=natural_frames,
+                planar_frames=planar_frames,
+                dist_coeffs=dist_coeffs,
+                platform_k=platform_k,
+            ),
+        )
 
 
 def family_member(
-    profile: DeviceProfile, index: int, seed: int, n: int, *, natural_frames: int = 0, planar_frames: int = 0
+    profile: DeviceProfile,
+    index: int,
+    seed: int,
+    n: int,
+    *,
+    natural_frames: int = 0,
+    planar_frames: int = 0,
+    dist_coeffs: Optional[Sequence[float]] = None,
+    platform_k: bool = False,
 ) -> Dataset:
     """The dataset of camera ``index`` (``profile``) of the family of ``seed`` and ``n`` cameras:
     ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed",
     "index", "cameras"} added to its meta. It depends on nothing else, so cameras can be
-    simulated apart (``dimenet simulate --family N --address``)."""
-    ds = simulate(profile, seed=camera_seed(seed, index), natural_frames=natural_frames, planar_frames=planar_frames)
+    simulated apart (``dimenet simulate --family N --address``). ``dist_coeffs`` (scale-free)
+    apply to each camera about its own nominal K."""
+    ds = simulate(
+        profile,
+        seed=camera_seed(seed, index),
+        natural_frames=natural_frames,
+        planar_frames=planar_frames,
+        dist_coeffs=dist_coeffs,
+        platform_k=platform_k,
+    )
     return replace(ds, meta={**ds.meta, "family": {"seed": int(seed), "index": index, "cameras": int(n)}})

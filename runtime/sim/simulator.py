@@ -9,7 +9,10 @@ Physics (see models_spec/simulator.md for every parameter, value and source):
   stroke. The OIS state is drawn independently of the camera pose, so K is not predictable
   from the pose; only focus breathing depends (legitimately) on the distance;
 - 2D observations are the projection under the true K plus Gaussian corner noise; a board with
-  any corner outside the image (less a few px margin) is lost entirely.
+  any corner outside the image (less a few px margin) is lost entirely;
+- optionally, lens distortion (OpenCV's model, fixed, about the profile's nominal K): the pinhole
+  observations are distorted, and the in-image test applies to the distorted pixels;
+- optionally, the phone SDK's per-frame K (``sim.platform``), from its own random stream.
 
 ``simulate`` returns a ``dimenet-dataset/1`` Dataset: the rig frames in the train/test splits
 of the paper's Table 1 and, optionally, natural-scene frames (paper's LEGO test) in test.
@@ -17,6 +20,7 @@ of the paper's Table 1 and, optionally, natural-scene frames (paper's LEGO test)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from typing import Callable, Optional, Union
 
@@ -27,11 +31,17 @@ from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.rig import Board, Rig, paper_rig, rig_to_dict
 from dimenet.runtime.geometry import camera_centre, facing, matrix_to_rvec, project, spans_3d, to_camera
+from dimenet.runtime.geometry.distortion import distort_points, undistort_points
 from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO
+from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
+from dimenet.runtime.sim.platform import platform_matrices, platform_meta, platform_rng
 
 GENERATOR = "dimenet.simulator"
 # Give up when this many poses in a row fail the visibility rule (the scene cannot fit the view).
 MAX_POSE_ATTEMPTS = 1000
+# A distorted pixel is the lens's image of a pinhole pixel when undistorting it gives that pixel
+# back to this (px): beyond the radius where a distortion polynomial folds back, it does not.
+ROUND_TRIP_PX = 1e-3
 
 
 @dataclass(frozen=True)
@@ -68,6 +78,12 @@ class DeviceProfile:
         """(2,) optical centre (px) with the OIS at rest: sensor centre plus the fixed offset."""
         w, h = self.image_size_px
         return np.array([(w - 1) / 2.0, (h - 1) / 2.0]) + np.asarray(self.centre_offset_px)
+
+    @property
+    def nominal_K(self) -> np.ndarray:
+        """(3, 3) px the nominal K: infinity focus, OIS at rest (what lens distortion is stated about)."""
+        (cx, cy), f = self.centre_px, self.focal_px
+        return np.array([[f, 0.0, cx], [0.0, f * self.pixel_aspect, cy], [0.0, 0.0, 1.0]])
 
 
 # The three profiles of the paper's Table 1, one a row (fields as DeviceProfile names them).
@@ -269,14 +285,39 @@ def natural_scene(board: Board) -> Scene:
     )
 
 
-def visible(scene: Scene, profile: DeviceProfile, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray):
-    """Pixels (N, 2) of the scene points and which are seen: in front of the camera, facing it, not
-    hidden behind a surface, inside the image; a board with any corner unseen is lost entirely."""
+def lens_image(pinhole_px: np.ndarray, profile: DeviceProfile, dist_coeffs: np.ndarray) -> tuple:
+    """The distorted pixels (N, 2) of pinhole pixels (N, 2) px through the lens (``dist_coeffs``
+    about the profile's nominal K), and (N,) whether the lens images them there: undistorting
+    gives them back within ROUND_TRIP_PX (not so beyond the radius where the model folds back)."""
+    K_lens = profile.nominal_K
+    image_px = distort_points(pinhole_px, K_lens, dist_coeffs)
+    back = undistort_points(image_px, K_lens, dist_coeffs)
+    with np.errstate(invalid="ignore"):
+        faithful = np.linalg.norm(back - pinhole_px, axis=-1) <= ROUND_TRIP_PX
+    return image_px, faithful
+
+
+def visible(
+    scene: Scene,
+    profile: DeviceProfile,
+    K: np.ndarray,
+    rvec: np.ndarray,
+    tvec: np.ndarray,
+    dist_coeffs: Optional[np.ndarray] = None,
+):
+    """Pinhole pixels (N, 2) of the scene points and which are seen: in front of the camera,
+    facing it, not hidden behind a surface, inside the image (through the lens's distortion,
+    ``dist_coeffs`` about the nominal K, when given); a board with any corner unseen is lost entirely."""
     camera = camera_centre(rvec, tvec)
     px = project(scene.points, K, rvec, tvec)
+    if dist_coeffs is None:
+        inside = in_image(px, profile)
+    else:
+        image_px, faithful = lens_image(px, profile, dist_coeffs)
+        inside = in_image(image_px, profile) & faithful
     seen = (
         (to_camera(scene.points, rvec, tvec)[:, 2] > 0)
-        & in_image(px, profile)
+        & inside
         & facing(scene.points, scene.normals, camera)
         & ~occluded(scene.points, camera, scene.surfaces)
     )
@@ -302,10 +343,13 @@ def shoot(
     rng: np.random.Generator,
     usable: Callable[[Scene, np.ndarray], bool],
     pose: Callable = sample_pose,
+    dist_coeffs: Optional[np.ndarray] = None,
 ):
-    """One hand-held photo: OIS and AF state, then poses ``pose(profile, centre, rng)`` until ``usable``.
+    """One hand-held photo: OIS and AF state, then poses ``pose(profile, centre, rng)`` until ``usable``
+    (seen through the lens distortion ``dist_coeffs`` about the nominal K, when given).
 
-    Returns K_true (px), the pose {W}->{C} (rvec, tvec mm), the scene's pixels (N, 2) and which are seen (N,).
+    Returns K_true (px), the pose {W}->{C} (rvec, tvec mm), the scene's pinhole pixels (N, 2) and
+    which are seen (N,).
     """
     theta_deg = rng.normal(0.0, profile.shake_sigma_deg, 2)
     af_error = rng.normal(0.0, profile.af_error_rel)
@@ -313,13 +357,30 @@ def shoot(
         rvec, tvec = pose(profile, scene.centre, rng)
         focus_mm = to_camera(scene.centre[None], rvec, tvec)[0, 2] * (1.0 + af_error)
         K = intrinsics(profile, focus_mm, theta_deg)
-        px, seen = visible(scene, profile, K, rvec, tvec)
+        px, seen = visible(scene, profile, K, rvec, tvec, dist_coeffs)
         if usable(scene, seen):
             return K, rvec, tvec, px, seen
     raise RigError(
         f"no hand-held pose out of {MAX_POSE_ATTEMPTS} gives a usable view of the scene "
         f"with profile {profile.name!r}: does the rig fit the camera's view?"
     )
+
+
+def checked_dist_coeffs(dist_coeffs: Optional[Sequence[float]]) -> Optional[np.ndarray]:
+    """OpenCV distortion coefficients -> (n,) float64, n in DIST_COEFF_COUNTS, finite, of magnitude
+    <= MAX_DIST_COEFF; None stays None. InputError otherwise."""
+    if dist_coeffs is None:
+        return None
+    counts = "/".join(str(n) for n in DIST_COEFF_COUNTS)
+    try:
+        coeffs = np.asarray(dist_coeffs, dtype=np.float64)
+    except (TypeError, ValueError):
+        coeffs = np.full(0, np.nan)
+    if coeffs.ndim != 1 or coeffs.size not in DIST_COEFF_COUNTS:
+        raise InputError(f"dist_coeffs must be {counts} numbers (OpenCV's k1, k2, p1, p2, ...), got {dist_coeffs!r}")
+    if not (np.all(np.isfinite(coeffs)) and np.all(np.abs(coeffs) <= MAX_DIST_COEFF)):
+        raise InputError(f"dist_coeffs must be finite, of magnitude <= {MAX_DIST_COEFF:g}, got {coeffs.tolist()}")
+    return coeffs
 
 
 def simulate(
@@ -329,6 +390,8 @@ def simulate(
     natural_frames: int = 0,
     planar_frames: int = 0,
     rig: Optional[Rig] = None,
+    dist_coeffs: Optional[Sequence[float]] = None,
+    platform_k: bool = False,
 ) -> Dataset:
     """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
     test frames, then ``planar_frames`` planar test frames.
@@ -338,11 +401,18 @@ def simulate(
     one planar view K is not fully observable. Deterministic per seed; rig frames depend on
     neither count, natural frames not on ``planar_frames``. 2D points in px, 3D points in mm
     in the frame's {W} (the rig frame, or the natural scene's frame).
+
+    ``dist_coeffs`` (OpenCV's 4/5/8/12/14 coefficients about the profile's nominal K): the noisy
+    pinhole observations are distorted (``distort_points(x, nominal K, dist_coeffs)``) and a point
+    is in the image when its distorted pixel is; the dataset carries ``dist_coeffs`` and ``dist_K``.
+    ``platform_k``: add the SDK's K per frame (``sim.platform``, its own random stream; meta
+    ``platform_k`` states the model). Without either, the dataset is as before, array for array.
     """
     profile = get_profile(profile) if isinstance(profile, str) else profile
     for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
             raise InputError(f"{name} must be an integer >= 0, got {value!r}")
+    dist = checked_dist_coeffs(dist_coeffs)
     rig = paper_rig() if rig is None else rig
     rng = np.random.default_rng(seed)
     rig_set = rig_scene(rig)
@@ -354,7 +424,7 @@ def simulate(
     valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
     K_true = np.zeros((F, 3, 3))
     for k in range(n_rig):
-        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok)
+        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
         n = len(px)
         p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
         p3[k, :n][seen] = rig_set.points[seen]
@@ -363,13 +433,13 @@ def simulate(
     model_points = nature.points + building[:, None] * rng.normal(0.0, profile.model_sigma_mm, nature.points.shape)
     noise_px = np.where(building, profile.label_sigma_px, profile.corner_sigma_px)[:, None]
     for k in range(n_rig, n_shot):
-        K_true[k], _, _, px, seen = shoot(nature, profile, rng, natural_view_ok)
+        K_true[k], _, _, px, seen = shoot(nature, profile, rng, natural_view_ok, dist_coeffs=dist)
         n = len(px)
         p2[k, :n][seen] = (px + rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
         p3[k, :n][seen] = model_points[seen]
         valid[k, :n], infer[k, :n] = seen, seen & building
     for k in range(n_shot, F):
-        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok)
+        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
         n = len(px)
         p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
         p3[k, :n][seen] = rig_set.points[seen]
@@ -387,6 +457,10 @@ def simulate(
         "rig": rig_to_dict(rig),
         "natural_board": rig.boards[0].name,
     }
+    if dist is not None:
+        p2 = distort_points(p2, profile.nominal_K, dist)
+    if platform_k:
+        meta["platform_k"] = platform_meta(profile)
     return Dataset(
         image_size=np.array(profile.image_size_px, np.int64),
         points_2d=p2,
@@ -398,4 +472,7 @@ def simulate(
         meta=meta,
         K_true=K_true,
         frame_id=np.array([f"{profile.name}-{k:04d}" for k in range(F)]),
+        K_platform=platform_matrices(K_true, profile, platform_rng(seed)) if platform_k else None,
+        dist_coeffs=dist,
+        dist_K=None if dist is None else profile.nominal_K,
     )

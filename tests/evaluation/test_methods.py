@@ -1,17 +1,23 @@
-"""`evaluate`: the reduction ratio rho, and coverage against K_true when the dataset has it."""
+"""`evaluate`: the reduction ratio rho, coverage against K_true when the dataset has it, the platform's
+K (K_platform) as a method and a prior, and datasets with lens distortion."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from dimenet.runtime.evaluation.methods import evaluate
-from dimenet.runtime.evaluation.metrics import reduction_ratio
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.evaluation.methods import evaluate, format_table, fused_prior
+from dimenet.runtime.evaluation.metrics import reduction_ratio, reprojection_error_under_k
 from dimenet.runtime.evaluation.predictor import load_onnx_predictor
 from dimenet.runtime.evaluation.uncertainty_fit import coverage
+from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
+from dimenet.runtime.sim.simulator import get_profile, simulate
 
 
 def test_coverage_against_k_true_when_the_dataset_has_it(map_model):
@@ -37,3 +43,60 @@ def test_rho_hand_computed_and_k_c_as_the_prediction_gives_zero(s8_dataset, s8_c
     assert ev.overall.rho == pytest.approx(0.0, abs=1e-12)
     oracle = evaluate(test, K_c, lambda frames: frames.K_true)
     assert oracle.overall.rho > 0.9  # the true K nearly closes the gap to per-frame calibration
+
+
+def test_platform_row_is_the_error_under_k_platform_with_its_stated_sigma(map_model):
+    frames, path = map_model
+    with_platform = simulate("galaxy-s8", seed=7, natural_frames=2, planar_frames=2, platform_k=True)
+    test = with_platform.select(with_platform.frames_in("test"))
+    predictor = load_onnx_predictor(path)
+    K_c = predictor.spec.K_c
+    ev = evaluate(test, K_c, predictor, methods=("platform", "kc", "map", "map+platform"))
+    e = reprojection_error_under_k(test.points_2d, test.points_3d, test.valid, test.K_platform)
+    row = ev.methods["platform"]["overall"]
+    assert row.avg_e == pytest.approx(e.mean()) and row.n_frames == test.n_frames
+    assert row.rho > 0.9 and ev.methods["kc"]["overall"].rho == pytest.approx(0.0, abs=1e-12)
+    sigma = np.asarray(test.meta["platform_k"]["sigma_px"])
+    expected = coverage(
+        k_params(test.K_platform), k_params(test.K_true), np.broadcast_to(np.diag(sigma**2), (test.n_frames, 4, 4))
+    )
+    assert ev.coverage_true["platform"] == expected
+    assert ev.fallbacks["platform"] == 0 and "map+platform" in ev.coverage
+    table = format_table(ev)
+    assert any(line.startswith("platform ") for line in table.splitlines())
+    assert any(line.startswith("map+platform ") for line in table.splitlines())
+
+
+def test_platform_methods_without_k_platform_fail_in_one_line(map_model, tmp_path, capsys):
+    frames, path = map_model
+    test = frames.select(frames.frames_in("test"))
+    with pytest.raises(DatasetError, match="'platform' needs K_platform"):
+        evaluate(test, load_onnx_predictor(path).spec.K_c, methods=("kc", "platform"))
+    data = write_dataset(frames, tmp_path / "plain.npz")
+    assert main(["evaluate", str(data), "--methods", "kc,platform"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "'platform' needs K_platform" in err
+    unstated = replace(test, K_platform=test.K_true, meta={})
+    with pytest.raises(DatasetError, match="stated 1 sigma"):
+        evaluate(unstated, test.K_true[0], load_onnx_predictor(path), methods=("map+platform",))
+
+
+def test_fused_prior_is_the_product_of_the_gaussians():
+    k, cov = fused_prior(
+        np.array([1.0, 2, 3, 4]), np.diag([1.0, 1, 4, 4]), np.array([3.0, 2, 0, 4]), np.diag([1.0, 3, 2, 4])
+    )
+    np.testing.assert_allclose(k, [2.0, 2.0, 1.0, 4.0])
+    np.testing.assert_allclose(cov, np.diag([0.5, 0.75, 4 / 3, 2.0]))
+
+
+def test_evaluate_works_on_the_undistorted_points(tmp_path, capsys):
+    profile = replace(get_profile("galaxy-s8"), n_train=12, n_test=6)
+    ds = simulate(profile, seed=3, dist_coeffs=(0.08, -0.15, 0.0, 0.0))
+    results = []
+    for name, data in (("distorted", ds), ("undistorted", ds.undistorted())):
+        assert (
+            main(["evaluate", str(write_dataset(data, tmp_path / f"{name}.npz")), "--methods", "kc,self", "--json"])
+            == 0
+        )
+        results.append(json.loads(capsys.readouterr().out))
+    assert results[0] == results[1]

@@ -1,5 +1,7 @@
 """`dimenet evaluate`: e_c, e* (and e, rho with a model) per scene on one split; with
-``--methods``, one row per method (kc, self, dimenet, map, oracle) and scene."""
+``--methods``, one row per method (kc, platform, self, dimenet, map, map+platform, oracle) and scene.
+A dataset with lens distortion (``dist_coeffs``) is evaluated on its undistorted points
+(``Dataset.undistorted``): K, e and rho are those of its pinhole camera."""
 
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from dimenet.runtime.cli.main import (
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
-from dimenet.runtime.evaluation.methods import METHODS, MODEL_METHODS, evaluate, format_table
+from dimenet.runtime.evaluation.methods import ALL_METHODS, MODEL_METHODS, evaluate, format_table, require_platform
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
@@ -33,7 +35,10 @@ MAX_DROP = 10**6  # points kept per frame; more than a frame has keeps them all
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", help="dataset file (dimenet-dataset/1 .npz)")
+    p.add_argument(
+        "data",
+        help="dataset file (dimenet-dataset/1 .npz); one with lens distortion is evaluated on its undistorted points",
+    )
     p.add_argument(
         "--model",
         type=nonempty_path,
@@ -63,18 +68,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=_methods,
         default=(),
         metavar="M1,M2",
-        help=f"compare methods, comma-separated from {','.join(METHODS)} (dimenet and map need --model): "
-        "rho per method and scene, and the 1-sigma coverage of K's uncertainty",
+        help=f"compare methods, comma-separated from {','.join(ALL_METHODS)} (dimenet and map need --model, "
+        "platform needs the dataset's K_platform): rho per method and scene, and the 1-sigma coverage of K's "
+        "uncertainty",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
 def _methods(text: str) -> tuple:
     names = tuple(m.strip() for m in text.split(",") if m.strip())
-    unknown = [m for m in names if m not in METHODS]
+    unknown = [m for m in names if m not in ALL_METHODS]
     if unknown or not names:
         raise argparse.ArgumentTypeError(
-            f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(METHODS)})"
+            f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(ALL_METHODS)})"
         )
     return names
 
@@ -83,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     needs_model = [m for m in args.methods if m in MODEL_METHODS]
     if needs_model and not args.model:
         raise CliError(f"--methods {needs_model[0]} needs --model")
-    ds = read_dataset(args.data)
+    ds = read_dataset(args.data).undistorted()
+    require_platform(ds, args.methods)
     predictor = load_predictor(args.model) if args.model else None
     if predictor is not None:
         predictor = predictor.for_camera(served_camera(predictor.spec, ds, args.camera, predictor.source))

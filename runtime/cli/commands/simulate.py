@@ -1,5 +1,6 @@
-"""`dimenet simulate`: write a simulated OIS dataset (rig frames, optionally natural-scene and planar frames),
-for one paper profile or, with ``--family N``, one dataset per camera of a random camera family."""
+"""`dimenet simulate`: write a simulated OIS dataset (rig frames, optionally natural-scene and planar frames,
+lens distortion and the phone SDK's per-frame K), for one paper profile or, with ``--family N``, one dataset
+per camera of a random camera family."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ import numpy as np
 
 from dimenet.runtime.cli.engine import add_address_argument, run_all
 from dimenet.runtime.cli.main import CliError, Command, integer_in, nonempty_path, seed
+from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.sim.family import MAX_FAMILY, family_member, family_profiles, hfov_deg
-from dimenet.runtime.sim.simulator import PROFILES, DeviceProfile, simulate
+from dimenet.runtime.sim.simulator import PROFILES, DeviceProfile, checked_dist_coeffs, simulate
 
 MAX_EXTRA_FRAMES = 10_000  # natural or planar frames: ~13 KB and ~4 ms each (2**40: MemoryError)
 
@@ -41,12 +43,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="planar test frames to add: rig photos whose K is inferred from one board only (default 0), per camera",
     )
     p.add_argument(
+        "--dist-coeffs",
+        type=dist_coeffs,
+        metavar="K1,K2,P1,P2[,K3...]",
+        help="lens distortion, OpenCV's 4/5/8/12/14 coefficients about the camera's nominal K (default: none): "
+        "the points are as the distorted image holds them, per camera (a negative first one: --dist-coeffs=-0.1,...)",
+    )
+    p.add_argument(
+        "--platform-k",
+        action="store_true",
+        help="add K_platform, the phone SDK's K per frame (simulated Hall-sensor readout of the lens; "
+        "models_spec/simulator.md), per camera",
+    )
+    p.add_argument(
         "--out",
         required=True,
         type=nonempty_path,
         help="dataset file to write (dimenet-dataset/1 .npz); with --family a directory, one <camera>.npz each",
     )
     add_address_argument(p, "cameras of --family")
+
+
+def dist_coeffs(text: str) -> tuple:
+    """argparse type: comma-separated OpenCV distortion coefficients (4, 5, 8, 12 or 14 numbers)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+        return tuple(checked_dist_coeffs(values).tolist())
+    except (ValueError, InputError) as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
 
 
 def frame_counts(ds: Dataset) -> str:
@@ -56,6 +80,12 @@ def frame_counts(ds: Dataset) -> str:
         f"{int(np.sum(rig & ds.frames_in('train')))} train + {int(np.sum(rig & test))} test rig frames, "
         f"{int(np.sum(ds.scene == 'natural'))} natural and {int(np.sum(ds.scene == 'planar'))} planar test frames"
     )
+
+
+def extras(ds: Dataset) -> str:
+    """', lens distortion k1,k2,...' and ', K_platform' when the dataset has them, else ''."""
+    lens = "" if ds.dist_coeffs is None else ", lens distortion " + ",".join(f"{v:g}" for v in ds.dist_coeffs)
+    return lens + ("" if ds.K_platform is None else ", K_platform")
 
 
 def camera_summary(profile: DeviceProfile) -> str:
@@ -70,11 +100,21 @@ def camera_summary(profile: DeviceProfile) -> str:
 
 def write_member(job: tuple) -> tuple[str, int]:
     """One camera of a family to ``out``/<camera>.npz (a job of ``run_all``): job = (profile, index,
-    seed, n, natural_frames, planar_frames, out). Returns its summary line and frame count."""
-    profile, index, seed_, n, natural_frames, planar_frames, out = job
-    ds = family_member(profile, index, seed_, n, natural_frames=natural_frames, planar_frames=planar_frames)
+    seed, n, natural_frames, planar_frames, dist_coeffs, platform_k, out). Returns its summary line
+    and frame count."""
+    profile, index, seed_, n, natural_frames, planar_frames, dist, platform_k, out = job
+    ds = family_member(
+        profile,
+        index,
+        seed_,
+        n,
+        natural_frames=natural_frames,
+        planar_frames=planar_frames,
+        dist_coeffs=dist,
+        platform_k=platform_k,
+    )
     path = write_dataset(ds, Path(out) / f"{profile.name}.npz")
-    return f"{profile.name}: {camera_summary(profile)}: {frame_counts(ds)} -> {path}", ds.n_frames
+    return f"{profile.name}: {camera_summary(profile)}: {frame_counts(ds)}{extras(ds)} -> {path}", ds.n_frames
 
 
 def run_family(args: argparse.Namespace) -> int:
@@ -82,7 +122,17 @@ def run_family(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     profiles = family_profiles(args.family, args.seed)
     jobs = [
-        (p, i, args.seed, args.family, args.natural_frames, args.planar_frames, str(out))
+        (
+            p,
+            i,
+            args.seed,
+            args.family,
+            args.natural_frames,
+            args.planar_frames,
+            args.dist_coeffs,
+            args.platform_k,
+            str(out),
+        )
         for i, p in enumerate(profiles)
     ]
     outcomes = run_all(write_member, jobs, address=args.address, cpus_per_job=args.cpus_per_job, desc="simulate")
@@ -98,11 +148,18 @@ def run_family(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.family is not None:
         return run_family(args)
-    ds = simulate(args.profile, seed=args.seed, natural_frames=args.natural_frames, planar_frames=args.planar_frames)
+    ds = simulate(
+        args.profile,
+        seed=args.seed,
+        natural_frames=args.natural_frames,
+        planar_frames=args.planar_frames,
+        dist_coeffs=args.dist_coeffs,
+        platform_k=args.platform_k,
+    )
     path = write_dataset(ds, args.out)
     print(
         f"{args.profile} seed {args.seed}: {frame_counts(ds)}, "
-        f"{ds.n_points} points per frame ({int(ds.valid.sum())} valid in all) -> {path}"
+        f"{ds.n_points} points per frame ({int(ds.valid.sum())} valid in all){extras(ds)} -> {path}"
     )
     return 0
 
@@ -112,6 +169,7 @@ COMMAND = Command(
     summary="Simulate an OIS phone photographing the paper's 4-board rig (and, optionally, the LEGO scene); "
     "--family: many random cameras, one dataset each.",
     example="dimenet simulate --profile galaxy-s8 --seed 0 --natural-frames 34 --planar-frames 40 --out s8.npz\n"
+    "  dimenet simulate --profile galaxy-s8 --platform-k --dist-coeffs 0.08,-0.15,0,0 --out s8-sdk.npz\n"
     "  dimenet simulate --family 100 --seed 0 --natural-frames 10 --out family\n"
     "  dimenet simulate --family 100 --seed 0 --out family --address local:2   (the fleet extra: Ray jobs)",
     add_arguments=add_arguments,
