@@ -54,11 +54,19 @@ class Camera:
     """A pinhole camera without skew: K (3, 3) float64 px, OpenCV convention (centre of the
     top-left pixel at (0, 0)), read-only; image_size (width, height) px; dist_coeffs: the
     lens's distortion in OpenCV's model (one of DIST_COEFF_COUNTS float64 coefficients,
-    read-only), or None for a distortion-free (or already undistorted) image."""
+    read-only), or None for a distortion-free (or already undistorted) image; dist_K (3, 3) px
+    the pinhole K the coefficients are stated about, None for K itself (as a calibration writes
+    them; a dataset's lens may be stated about another, ``formats.dataset``'s ``dist_K``)."""
 
     K: np.ndarray
     image_size: tuple
     dist_coeffs: Optional[np.ndarray] = None
+    dist_K: Optional[np.ndarray] = None
+
+    @property
+    def lens_K(self) -> np.ndarray:
+        """(3, 3) px the K the distortion is stated about: dist_K, or K."""
+        return self.K if self.dist_K is None else self.dist_K
 
 
 def _fail(source: str, field: str, problem: str) -> CameraError:
@@ -126,7 +134,7 @@ def _array_size(image_size: Any, source: str) -> tuple[int, int]:
     return sides[0], sides[1]
 
 
-def _checked_dist(dist_coeffs: Any, source: str) -> Optional[np.ndarray]:
+def checked_dist_coeffs(dist_coeffs: Any, source: str) -> Optional[np.ndarray]:
     """OpenCV distortion coefficients -> (n,) float64 read-only, or None when absent or all zero."""
     if dist_coeffs is None:
         return None
@@ -153,19 +161,24 @@ def _counts() -> str:
     return "/".join(str(n) for n in DIST_COEFF_COUNTS)
 
 
-def checked_camera(K: Any, image_size: Any, source: str = "camera", dist_coeffs: Any = None) -> Camera:
+def checked_camera(
+    K: Any, image_size: Any, source: str = "camera", dist_coeffs: Any = None, dist_K: Any = None
+) -> Camera:
     """A Camera from values in memory: K (3, 3) real array-like px, a pinhole matrix without
     skew ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0, fy / fx in ASPECT_RANGE, the
     principal point within the image extended by its size on each side); image_size (width,
     height) integers px in [1, MAX_IMAGE_SIDE_PX]; dist_coeffs None or OpenCV's 4/5/8/12/14
-    coefficients (all zero: None). Raises CameraError naming ``source`` and the field.
+    coefficients (all zero: None), dist_K None or a K as K is (the distortion's own K). Raises
+    CameraError naming ``source`` and the field.
     (``formats.camera.read_camera`` reads a camera file into this.)"""
     array = _array_k(K, source)
     width, height = _array_size(image_size, source)
+    dist = checked_dist_coeffs(dist_coeffs, source)
+    lens_K = None
+    if dist is not None and dist_K is not None:
+        lens_K = _checked_k(_array_k(dist_K, f"{source} dist_K"), width, height, f"{source} dist_K")
     return Camera(
-        K=_checked_k(array, width, height, source),
-        image_size=(width, height),
-        dist_coeffs=_checked_dist(dist_coeffs, source),
+        K=_checked_k(array, width, height, source), image_size=(width, height), dist_coeffs=dist, dist_K=lens_K
     )
 
 

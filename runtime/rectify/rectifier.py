@@ -277,6 +277,7 @@ class Rectifier:
         self._image = ImageBounds(self.image_size)
         self._user_px = 1.0 if self._pixels is None else 1.0 / self._pixels.scale  # user px per model px
         self.dist_coeffs = None if camera is None else camera.dist_coeffs
+        self._lens_K = None if camera is None else camera.lens_K
         self.K_c.setflags(write=False)
 
     @classmethod
@@ -385,7 +386,7 @@ class Rectifier:
         p2, p3, invariants_3d = self._validated(points_2d, points_3d)
         p2_image = p2
         if self.dist_coeffs is not None:
-            p2 = undistort_points(p2, self.K_c, self.dist_coeffs)
+            p2 = undistort_points(p2, self._lens_K, self.dist_coeffs)
         if self._pixels is not None:
             p2 = self._pixels.points_to_model(p2)
         lap("validate")
@@ -488,7 +489,7 @@ class Rectifier:
                     K[m],
                     np.reshape(rvecs[m], (-1, 3)),
                     np.reshape(tvecs[m], (-1, 3)),
-                    self.K_c,
+                    self._lens_K,
                     self.dist_coeffs,
                 )
                 for m in range(len(K))
@@ -545,7 +546,7 @@ class Rectifier:
                 self._image.raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
         p2_image = p2
         if self.dist_coeffs is not None:
-            p2 = undistort_points(p2, self.K_c, self.dist_coeffs)
+            p2 = undistort_points(p2, self._lens_K, self.dist_coeffs)
         if self._pixels is not None:
             p2 = self._pixels.points_to_model(p2)
         frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
