@@ -288,8 +288,14 @@ def first_train_frames(dataset: Dataset, n: int) -> Dataset:
 def training_unit(dataset: Dataset, config: TrainConfig, focal_px: Optional[float], name: str) -> Unit:
     """A dataset as a Unit: its train split calibrated as ``calibrate`` does, then (for a generic
     model, ``focal_px`` its canonical fx) every 2D point and K mapped onto the canonical camera;
-    the image size rounds to whole canonical pixels (<= 0.5 px of a ~4000 px image)."""
+    the image size rounds to whole canonical pixels (<= 0.5 px of a ~4000 px image). A dataset
+    with a lens trains on its undistorted points; every train frame must give K* (the target)."""
+    dataset = dataset.undistorted()
     cal = calibrate_dataset(dataset)
+    for b in np.flatnonzero(dataset.frames_in("train")):
+        if cal.reasons[b] is not None:
+            name = dataset.frame_id[b] if dataset.frame_id is not None else f"frame {b}"
+            raise DatasetError(f"{name}: a train frame must give K* (the training target): {cal.reasons[b]}")
     K_c, K_star, frames = cal.K_c, cal.K_star, dataset
     if focal_px is not None:
         pixels = generic_pixel_map(Camera(K_c, tuple(int(v) for v in dataset.image_size)), focal_px)

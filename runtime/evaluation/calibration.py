@@ -1,32 +1,45 @@
 """Per-frame oracle calibration K* and the prior K_c a user gets from ordinary calibration.
 
 K*: for each frame, the joint maximum-likelihood (K, pose) over all its valid points
-(DLT start, then LM; see least_squares.calibrate). The rig is non-planar, so one frame
-suffices. e* is that fit's mean Euclidean reprojection error (px).
+(DLT start, then LM; see least_squares.calibrate). A rig view is non-planar, so one frame
+suffices. e* is that fit's mean Euclidean reprojection error (px). A frame whose points lie in
+one plane (a single board) does not give K: its K*, pose and e* are NaN and
+``Calibration.reasons`` says why.
 
 K_c: the mean of K* over the ``train`` frames, parameter by parameter (fx, fy, cx, cy).
 This is the paper's "averaging a large number of K's under different OIS states"
 (Sec. III-B); it is what a phone SDK hands an app. A train frame whose K* or e* lies far from
 the others (``outliers``: a wrong point, a poisoned frame) stays out of the mean, so one bad
-frame cannot move K_c; ``Calibration.outliers`` says which.
+frame cannot move K_c; ``Calibration.outliers`` says which. When no train frame gives K (a set
+of single-board views), K_c is their joint multi-view fit (``evaluation.multiview``).
+
+Lens distortion: with a ``distortion`` model, the lens is fitted jointly over the train frames
+(K_c with one distortion, ``multiview.joint_fit``) and every frame is undistorted with it before
+its K*; a dataset that carries its lens (``dist_coeffs`` about ``dist_K``) is undistorted with
+that. K* and K_c are then the pinhole camera's, and ``Calibration`` carries the lens.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.errors import CalibrationError, DatasetError
+from dimenet.runtime.errors import CalibrationError, CameraError, DatasetError
+from dimenet.runtime.evaluation.multiview import joint_fit
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
-from dimenet.runtime.geometry.least_squares import calibrate
-from dimenet.runtime.rectify.camera import Camera, checked_camera
+from dimenet.runtime.geometry.distortion import undistort_points
+from dimenet.runtime.geometry.least_squares import dlt_starts, fit
+from dimenet.runtime.rectify.camera import Camera, checked_camera, checked_dist_coeffs
 
 CALIBRATION_KEYS = ("K_c", "K_star", "rvec", "tvec", "e_star")
+# Optional keys: the lens (both or neither) and why a frame has no K* ('' where it has one).
+LENS_KEYS = ("dist_coeffs", "dist_K")
 # A train frame is left out of K_c when a K* parameter or its e* lies this many robust standard
 # deviations from the train frames' median (METHOD.md, "Runtime safety": no clean simulated
 # frame comes near it; one wrong point moves a frame's K* by tens of px).
@@ -35,7 +48,10 @@ OUTLIER_SIGMAS = 8.0
 
 @dataclass(frozen=True)
 class Calibration:
-    """K_c (3, 3) px; per frame K_star (F, 3, 3) px, pose rvec/tvec (F, 3) {W}->{C}, e_star (F,) px."""
+    """K_c (3, 3) px; per frame K_star (F, 3, 3) px, pose rvec/tvec (F, 3) {W}->{C}, e_star (F,)
+    px, NaN where ``reasons`` (F,) says why the frame gives no K (else None); outliers: the
+    train frames left out of K_c; K_c_from: "mean K*" or "joint fit" (no train frame gave K*);
+    the lens the K are under: dist_coeffs (n,) about dist_K (3, 3) px, or None."""
 
     K_c: np.ndarray
     K_star: np.ndarray
@@ -43,13 +59,31 @@ class Calibration:
     tvec: np.ndarray
     e_star: np.ndarray
     outliers: tuple = ()
+    reasons: tuple = ()
+    K_c_from: str = "mean K*"
+    dist_coeffs: Optional[np.ndarray] = None
+    dist_K: Optional[np.ndarray] = None
 
 
-def oracle_fit(points_2d, points_3d, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """K*, rvec, tvec and e* (px) of each frame from all its valid points."""
-    res = calibrate(points_2d, points_3d, valid)
-    e_star = mean_reprojection_error(points_2d, points_3d, valid, res.K, res.rvec, res.tvec)
-    return res.K, res.rvec, res.tvec, e_star
+def oracle_fit(points_2d, points_3d, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple]:
+    """K*, rvec, tvec and e* (px) of each frame from all its valid points, NaN for the frames
+    that give no K, and per frame the reason (None where it gives K)."""
+    starts = dlt_starts(points_2d, points_3d, valid)
+    reasons = tuple(str(s) if isinstance(s, CalibrationError) else None for s in starts)
+    F = len(points_2d)
+    K, rvec, tvec, e_star = (
+        np.full((F, 3, 3), np.nan),
+        np.full((F, 3), np.nan),
+        np.full((F, 3), np.nan),
+        np.full(F, np.nan),
+    )
+    ok = np.array([r is None for r in reasons], bool)
+    if ok.any():
+        K0, r0, t0 = (np.array(a) for a in zip(*(s for s in starts if not isinstance(s, CalibrationError))))
+        res = fit(points_2d[ok], points_3d[ok], valid[ok], K0, r0, t0, fit_k=True)
+        K[ok], rvec[ok], tvec[ok] = res.K, res.rvec, res.tvec
+        e_star[ok] = mean_reprojection_error(points_2d[ok], points_3d[ok], valid[ok], res.K, res.rvec, res.tvec)
+    return K, rvec, tvec, e_star, reasons
 
 
 def prior_k(K_star: np.ndarray) -> np.ndarray:
@@ -76,13 +110,51 @@ def outliers(K_star: np.ndarray, e_star: np.ndarray) -> np.ndarray:
         return ~finite | np.any(np.abs(z) > OUTLIER_SIGMAS, axis=1)
 
 
-def calibrate_dataset(dataset: Dataset) -> Calibration:
-    """K* and e* for every frame, K_c from the train frames. Raises when there are none."""
+def _views(dataset: Dataset, frames: np.ndarray) -> list:
+    return [
+        (dataset.points_2d[b][dataset.valid[b]], dataset.points_3d[b][dataset.valid[b]]) for b in np.flatnonzero(frames)
+    ]
+
+
+def _pinhole(
+    dataset: Dataset, distortion: str
+) -> tuple[Dataset, Optional[np.ndarray], Optional[np.ndarray], Optional[np.ndarray]]:
+    """The dataset's points in the pinhole camera, the lens (dist_coeffs, dist_K) they were
+    undistorted with, and the joint fit's K (with a ``distortion`` model), else None. The joint
+    fit holds one K for all train frames: under OIS it takes part of the frames' K spread into
+    the lens (METHOD.md, "Lens distortion"), so it is for captures without OIS motion."""
+    if distortion == "none":
+        if dataset.dist_coeffs is None:
+            return dataset, None, None, None
+        return dataset.undistorted(), dataset.dist_coeffs, dataset.dist_K, None
+    train = dataset.select(dataset.frames_in("train"))
+    K_star = oracle_fit(train.points_2d, train.points_3d, train.valid)[0]
+    finite = np.all(np.isfinite(k_params(K_star)), axis=1)
+    views = _views(train, np.ones(train.n_frames, bool))
+    lens = joint_fit(views, dataset.image_size, distortion, prior_k(K_star[finite]) if finite.any() else None)
+    return _undistorted(dataset, lens.K, lens.dist_coeffs), lens.dist_coeffs, lens.K, lens.K
+
+
+def _undistorted(dataset: Dataset, K_lens: np.ndarray, dist: np.ndarray) -> Dataset:
+    points = np.where(dataset.valid[..., None], undistort_points(dataset.points_2d, K_lens, dist), np.nan)
+    return replace(dataset, points_2d=points)
+
+
+def calibrate_dataset(dataset: Dataset, distortion: str = "none") -> Calibration:
+    """K* and e* for every frame (NaN with a reason where a frame gives none), K_c from the train
+    frames (their joint fit where none gives K*). ``distortion``: a ``multiview`` model fitted
+    jointly over the train frames ("none": the dataset's own lens, if it has one). Raises when
+    there are no train frames, or nothing gives K_c."""
     train = dataset.frames_in("train")
     if not train.any():
         raise DatasetError("split: K_c comes from the train frames and this dataset has none")
-    K_star, rvec, tvec, e_star = oracle_fit(dataset.points_2d, dataset.points_3d, dataset.valid)
-    rows = np.flatnonzero(train)
+    pinhole, dist_coeffs, dist_K, joint_K = _pinhole(dataset, distortion)
+    K_star, rvec, tvec, e_star, reasons = oracle_fit(pinhole.points_2d, pinhole.points_3d, pinhole.valid)
+    lens = {"dist_coeffs": dist_coeffs, "dist_K": dist_K, "reasons": reasons}
+    rows = np.flatnonzero(train & np.array([r is None for r in reasons], bool))
+    if len(rows) == 0:
+        K_c = joint_K if joint_K is not None else joint_fit(_views(pinhole, train), dataset.image_size).K
+        return Calibration(K_c, K_star, rvec, tvec, e_star, (), K_c_from="joint fit", **lens)
     out = outliers(K_star[rows], e_star[rows])
     if out.all():
         raise CalibrationError("every train frame's K* is an outlier or not finite: no K_c")
@@ -93,22 +165,29 @@ def calibrate_dataset(dataset: Dataset) -> Calibration:
         tvec=tvec,
         e_star=e_star,
         outliers=tuple(int(b) for b in rows[out]),
+        **lens,
     )
 
 
 def dataset_camera(dataset: Dataset) -> Camera:
-    """The dataset's camera as ``dimenet calibrate`` finds it: K_c from its train split, and its
-    image size."""
+    """The dataset's camera as ``dimenet calibrate`` finds it: K_c from its train split, its
+    image size, and its lens if it carries one."""
     size = tuple(int(v) for v in dataset.image_size)
     train = dataset.frames_in("train")
     if not train.any():
         raise DatasetError("split: K_c comes from the train frames and this dataset has none")
-    K_c = calibrate_dataset(dataset.select(train)).K_c  # the other frames' K* are not needed
-    return checked_camera(K_c, size, "K_c calibrated on the dataset's train split")
+    cal = calibrate_dataset(dataset.select(train))  # the other frames' K* are not needed
+    return checked_camera(cal.K_c, size, "K_c calibrated on the dataset's train split", cal.dist_coeffs, cal.dist_K)
 
 
 def write_calibration(cal: Calibration, path: str | Path) -> Path:
+    """The calibration file: CALIBRATION_KEYS, the lens (LENS_KEYS) when there is one, and
+    ``unobservable`` (F,) str, '' or why a frame gives no K*, when one does not."""
     arrays = {k: getattr(cal, k) for k in CALIBRATION_KEYS}
+    if cal.dist_coeffs is not None:
+        arrays.update(dist_coeffs=cal.dist_coeffs, dist_K=cal.dist_K)
+    if any(r is not None for r in cal.reasons):
+        arrays["unobservable"] = np.array([r or "" for r in cal.reasons])
     return atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
@@ -132,12 +211,23 @@ def read_calibration(path: str | Path) -> Calibration:
         K_c = _calibration_array(arrays, "K_c", (3, 3), "(3, 3)")
         if not np.all(np.isfinite(K_c)):
             raise DatasetError("K_c: has non-finite entries")
+        lens = {}
+        if any(k in arrays for k in LENS_KEYS):
+            if not all(k in arrays for k in LENS_KEYS):
+                raise DatasetError(f"{LENS_KEYS[0]} and {LENS_KEYS[1]}: give both or neither")
+            dist_K = _calibration_array(arrays, "dist_K", (3, 3), "(3, 3)")
+            try:
+                dist = checked_dist_coeffs(arrays["dist_coeffs"], "dist_coeffs")
+            except CameraError as exc:
+                raise DatasetError(str(exc)) from None
+            lens = {"dist_coeffs": dist, "dist_K": dist_K} if dist is not None else {}
         return Calibration(
             K_c=K_c,
             K_star=_calibration_array(arrays, "K_star", (F, 3, 3), "(F, 3, 3)"),
             rvec=_calibration_array(arrays, "rvec", (F, 3), "(F, 3)"),
             tvec=_calibration_array(arrays, "tvec", (F, 3), "(F, 3)"),
             e_star=_calibration_array(arrays, "e_star", (F,), "(F,)"),
+            **lens,
         )
     except DatasetError as exc:
         raise DatasetError(f"{path}: {exc}") from None

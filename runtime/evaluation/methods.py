@@ -90,6 +90,9 @@ class Evaluation:
     coverage: dict = field(default_factory=dict)  # method -> parameter -> share of frames within 1 sigma of K*
     coverage_true: dict = field(default_factory=dict)  # the same against K_true, when the dataset has it
     fallbacks: dict = field(default_factory=dict)  # method -> frames it could not estimate
+    # Frames left out because they give no K* (a planar view): reason -> count, and their Avg(e_c) px.
+    skipped: dict = field(default_factory=dict)
+    skipped_avg_e_c: Optional[float] = None
 
     def to_json(self) -> dict:
         d = {
@@ -98,6 +101,8 @@ class Evaluation:
             "scenes": {name: asdict(s) for name, s in self.scenes.items()},
             "overall": asdict(self.overall),
         }
+        if self.skipped:
+            d["skipped"] = {"reasons": self.skipped, "avg_e_c": self.skipped_avg_e_c}
         if self.methods:
             d["methods"] = {m: {name: asdict(s) for name, s in scenes.items()} for m, scenes in self.methods.items()}
             d["coverage"] = self.coverage
@@ -115,10 +120,16 @@ def _summary(mask: np.ndarray, errors: FrameErrors) -> SceneSummary:
     return SceneSummary(int(mask.sum()), avg_e_c, avg_e_star, avg_e, rho)
 
 
-def frame_errors(frames: Dataset, K_c: np.ndarray, K_pred: Optional[np.ndarray] = None) -> FrameErrors:
-    """e_c, e*, K* and (with K_pred (F, 3, 3)) e of every frame, on all valid points."""
+def frame_errors(
+    frames: Dataset, K_c: np.ndarray, K_pred: Optional[np.ndarray] = None, oracle: Optional[tuple] = None
+) -> FrameErrors:
+    """e_c, e*, K* and (with K_pred (F, 3, 3)) e of every frame, on all valid points; ``oracle``:
+    the frames' (K*, e*) when already fitted."""
     e_c = reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, K_c)
-    K_star, _, _, e_star = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
+    if oracle is None:
+        K_star, _, _, e_star, _ = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
+    else:
+        K_star, e_star = oracle
     e = None if K_pred is None else reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, K_pred)
     return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e, K_star=K_star)
 
@@ -242,17 +253,33 @@ def evaluate(
     methods: Sequence[str] = (),
 ) -> Evaluation:
     """Evaluate the given frames (already restricted to a split and any test condition): e with
-    the predictor's K, and one row per method of ``methods`` (dimenet and map need a Predictor)."""
+    the predictor's K, and one row per method of ``methods`` (dimenet and map need a Predictor).
+    Frames that give no K* (all points in one plane: rho has no reference there) are left out,
+    counted by reason in ``skipped`` with their Avg(e_c)."""
     if frames.n_frames == 0:
         raise DatasetError(f"split: no {split!r} frames to evaluate")
     require_platform(frames, methods)
+    K_star, _, _, e_star, reasons = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
+    unobservable = np.array([r is not None for r in reasons], bool)
+    skipped, skipped_e_c = {}, None
+    if unobservable.any():
+        for r in np.asarray(reasons, dtype=object)[unobservable]:
+            skipped[r] = skipped.get(r, 0) + 1
+        gone = frames.select(unobservable)
+        skipped_e_c = float(reprojection_error_under_k(gone.points_2d, gone.points_3d, gone.valid, K_c).mean())
+        if unobservable.all():
+            raise DatasetError(
+                f"split: none of the {frames.n_frames} {split!r} frames gives K* ({next(iter(skipped))}), so rho "
+                f"has no reference; their Avg(e_c) is {skipped_e_c:.3f} px"
+            )
+        frames, K_star, e_star = frames.select(~unobservable), K_star[~unobservable], e_star[~unobservable]
     model = predictor if isinstance(predictor, Predictor) else None
     prediction = None if model is None else model.predict(frames)
     if prediction is not None:
         K_pred = prediction.K
     else:
         K_pred = None if predictor is None else np.asarray(predictor(frames), dtype=np.float64)
-    errors = frame_errors(frames, K_c, K_pred)
+    errors = frame_errors(frames, K_c, K_pred, (K_star, e_star))
     names = sorted(set(frames.scene.tolist()))
     scenes = {name: _summary(frames.scene == name, errors) for name in names}
     overall = _summary(np.ones(frames.n_frames, bool), errors)
@@ -283,6 +310,8 @@ def evaluate(
         coverage=covered,
         coverage_true=covered_true,
         fallbacks=fallbacks,
+        skipped=skipped,
+        skipped_avg_e_c=skipped_e_c,
     )
 
 
@@ -300,6 +329,8 @@ def format_table(ev: Evaluation) -> str:
         f"cy={ev.K_c[1, 2]:.2f}",
         _aligned(rows),
     ]
+    for reason, n in ev.skipped.items():
+        text.append(f"left out: {n} frame(s) without K* ({reason}); their Avg(e_c) {ev.skipped_avg_e_c:.3f} px")
     if ev.methods:
         header = ("method", "scene", "frames", "Avg(e)", "rho", "fallbacks", "1-sigma coverage fx/fy/cx/cy vs K*")
         rows = [header + (("vs K_true",) if ev.coverage_true else ())]

@@ -54,7 +54,7 @@ def test_calibrate_names_the_left_out_frame_and_refuses_when_all_are_outliers(
     out = capsys.readouterr().out
     assert "left out of K_c: " in out and f"K_c from {len(train) - 1} train frames" in out
     F = s8_dataset.n_frames
-    nan_fit = (np.full((F, 3, 3), np.nan), np.zeros((F, 3)), np.zeros((F, 3)), np.full(F, np.nan))
+    nan_fit = (np.full((F, 3, 3), np.nan), np.zeros((F, 3)), np.zeros((F, 3)), np.full(F, np.nan), (None,) * F)
     monkeypatch.setattr("dimenet.runtime.evaluation.calibration.oracle_fit", lambda *a: nan_fit)
     with pytest.raises(CalibrationError, match="every train frame"):
         calibrate_dataset(s8_dataset)
