@@ -13,7 +13,7 @@ import numpy as np
 from dimenet.runtime.cli.engine import Engine
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
-from dimenet.runtime.evaluation.methods import METHODS, evaluate
+from dimenet.runtime.evaluation.methods import ALL_METHODS, METHODS, evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
@@ -77,7 +77,7 @@ def _baseline(frames: Dataset, run_dir: str) -> dict:
     """One baseline case: {"n_frames", "methods": method -> {avg_e, rho, fallbacks}, "coverage"
     and "coverage_true": method -> parameter -> share (against K* and against K_true)}."""
     p = load_predictor(run_dir)
-    ev = evaluate(frames, p.K_c, p, methods=METHODS)
+    ev = evaluate(frames, p.K_c, p, methods=METHODS if frames.K_platform is None else ALL_METHODS)
     return {
         "n_frames": frames.n_frames,
         "methods": {
@@ -133,6 +133,7 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
             seed=config.seed,
             natural_frames=NATURAL_FRAMES if d == "galaxy-s8" else 0,
             planar_frames=PLANAR_FRAMES if d == "galaxy-s8" else 0,
+            platform_k=True,  # the SDK's K per frame, simulated: its own draws, the frames unchanged
         )
         for d in DEVICES
     }
