@@ -45,3 +45,7 @@ class LabelsError(DimenetError):
 
 class IngestError(DimenetError):
     """Photos cannot become a dataset (duplicate names, no usable photo, ...)."""
+
+
+class PointsError(DimenetError):
+    """A points file (CSV or JSON Lines) does not conform; the message names the file and line."""

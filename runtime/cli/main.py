@@ -2,7 +2,8 @@
 
 Each subcommand is a :class:`Command` registered under the ``dimenet.commands`` entry-point
 group (see pyproject.toml), so training and export plug in without the runtime importing
-them. Bad input exits 2 with one line and no traceback.
+them. Bad input exits 2 with one line and no traceback. Output to a pipe whose reader has gone
+(``dimenet rectify --points big.csv | head -1``) ends the command quietly with exit 0.
 """
 
 from __future__ import annotations
@@ -90,6 +91,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             parser.print_help()
             return 2
         return int(args._run(args) or 0)
+    except BrokenPipeError:
+        # stdout's reader is gone. As Python's docs advise (signal module, "Note on SIGPIPE"), point
+        # stdout at devnull so that the interpreter's flush at exit does not fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (DimenetError, OSError) as exc:
         print(f"dimenet: error: {exc}", file=sys.stderr)
         return 2

@@ -3,7 +3,9 @@
 photos against the renderer's truth (runtime/ingest/bench.py); with ``--bpnp``, forward +
 backward of the BPnP layer against a BPnP_fast-style baseline (training/bench_bpnp.py: needs
 the train extra, imported only then, so the runtime never imports torch); with ``--fuzz N``,
-hostile input through the rectifier and the readers (runtime/evaluation/fuzz.py)."""
+hostile input through the rectifier and the readers (runtime/evaluation/fuzz.py); with
+``--stream N``, `dimenet rectify --points` on an N-frame points CSV of the bundled example's
+frames: frames/s and peak memory (runtime/evaluation/streaming.py)."""
 
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ LATENCY = {
 INGEST = {"n": 30, "seed": 1, "profile": "galaxy-s8", "workers": 2}
 BPNP = {"frames": 32, "points": 320, "repeats": 200, "baseline_repeats": 10}
 FUZZ = {"seed": 0}
+STREAM: dict = {}  # --stream N alone
 # Caps: --frames x --points correspondences are held in memory (50000 x 320: 0.6 GB); the BPnP
 # baseline's Jacobian is 2N x 3N floats per frame (N = 2000: 96 MB), its layer B x N x 20.
 MAX_FRAMES = 50_000
@@ -40,11 +43,13 @@ MAX_BPNP_CORRESPONDENCES = 10**6  # --frames x --points with --bpnp
 MAX_REPEATS = 100_000
 MAX_BUDGET_MS = 60_000.0  # a minute per frame: past it a budget is a typo
 MAX_FUZZ_CASES = 100_000
+MAX_STREAM_FRAMES = 200_000  # the temp CSV takes ~16 KB per frame: 3.2 GB at the cap
 BENCHES = {
-    "the latency bench (without --ingest, --bpnp or --fuzz)": LATENCY,
+    "the latency bench (without --ingest, --bpnp, --fuzz or --stream)": LATENCY,
     "--ingest": INGEST,
     "--bpnp": BPNP,
     "--fuzz": FUZZ,
+    "--stream": STREAM,
 }
 
 
@@ -111,6 +116,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"timed runs of the baseline (default {BPNP['baseline_repeats']})",
     )
     _add_fuzz(p)
+    stream = p.add_argument_group(
+        "stream (--stream N)",
+        "`dimenet rectify --points` on a temp CSV of N frames tiled from the bundled example (its camera, the "
+        "bundled model; ~16 KB of disk per frame): frames/s, and the peak RSS after 10 % and 100 % of the stream",
+    )
+    stream.add_argument("--stream", type=integer_in(1, MAX_STREAM_FRAMES), metavar="N", help="frames to stream")
 
 
 def _add_fuzz(p: argparse.ArgumentParser) -> None:
@@ -135,7 +146,9 @@ def _options(args: argparse.Namespace, bench: dict) -> dict:
 def run(args: argparse.Namespace) -> int:
     chosen = [
         flag
-        for flag, on in zip(("--ingest", "--bpnp", "--fuzz"), (args.ingest is not None, args.bpnp, args.fuzz))
+        for flag, on in zip(
+            ("--ingest", "--bpnp", "--fuzz", "--stream"), (args.ingest is not None, args.bpnp, args.fuzz, args.stream)
+        )
         if on
     ]
     if len(chosen) > 1:
@@ -146,7 +159,28 @@ def run(args: argparse.Namespace) -> int:
         return _run_bpnp(args)
     if args.fuzz:
         return _run_fuzz(args)
+    if args.stream:
+        return _run_stream(args)
     return _run_latency(args)
+
+
+def _run_stream(args: argparse.Namespace) -> int:
+    import tempfile
+    from importlib import resources
+
+    from dimenet.runtime.assets import asset
+    from dimenet.runtime.cli.commands.rectify import EXAMPLE_CAMERA, EXAMPLE_DATA
+    from dimenet.runtime.evaluation.streaming import format_stream_report, run_stream_bench
+    from dimenet.runtime.formats.camera import read_camera
+    from dimenet.runtime.formats.dataset import read_dataset
+
+    _options(args, STREAM)
+    with resources.as_file(asset(EXAMPLE_DATA)) as data, resources.as_file(asset(EXAMPLE_CAMERA)) as camera:
+        frames, camera = read_dataset(data), read_camera(camera)
+    with tempfile.TemporaryDirectory() as folder:
+        figures = run_stream_bench(folder, args.stream, frames, camera)
+    print(json.dumps(figures) if args.json else format_stream_report(figures))
+    return 0
 
 
 def _run_fuzz(args: argparse.Namespace) -> int:
@@ -228,11 +262,13 @@ def _run_bpnp(args: argparse.Namespace) -> int:
 COMMAND = Command(
     name="bench",
     summary="Time rectification per stage and end to end (p50/p90/p99/max, µs) against cv2.solvePnP ITERATIVE; "
-    "--ingest: photo ingest against the renderer's truth; --bpnp: the BPnP layer; --fuzz: hostile input.",
+    "--ingest: photo ingest against the renderer's truth; --bpnp: the BPnP layer; --fuzz: hostile input; "
+    "--stream: rectify --points throughput and memory.",
     example="dimenet bench --points 320 --frames 2000 --threads 1 --batch 64 --budget-ms 0.5 --json\n"
     "  dimenet bench --ingest shots --n 30 --seed 1 --profile galaxy-s8 --workers 2\n"
     "  dimenet bench --bpnp --frames 32 --points 320 --repeats 200\n"
-    "  dimenet bench --fuzz 2000 --seed 1",
+    "  dimenet bench --fuzz 2000 --seed 1\n"
+    "  dimenet bench --stream 100000",
     add_arguments=add_arguments,
     run=run,
 )

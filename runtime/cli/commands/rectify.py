@@ -1,13 +1,20 @@
-"""`dimenet rectify`: per-frame K and pose of every frame of a dataset (or of the bundled example).
+"""`dimenet rectify`: per-frame K and pose of every frame of a dataset (or of the bundled example),
+or of an app's recording of correspondences streamed frame by frame (``--points FILE``).
 
-Each frame's K is inferred from its ``infer_mask`` points (what the model may see, as in
-evaluation); its pose and errors use all its valid points under K and under K_c.
+Dataset: each frame's K is inferred from its ``infer_mask`` points (what the model may see, as
+in evaluation); its pose and errors use all its valid points under K and under K_c. Points file
+(``formats.points``, models_spec/points-csv.md): read one frame at a time, each frame through
+``Rectifier.rectify`` (all its points), one JSON line per frame to stdout or ``--out FILE.jsonl``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
+from collections import Counter
+from collections.abc import Iterable, Iterator
 from importlib import resources
 
 import numpy as np
@@ -15,19 +22,37 @@ import numpy as np
 from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.camera import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command, nonempty_path
+from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
+from dimenet.runtime.formats.points import (
+    PointsFrame,
+    counted,
+    json_lines,
+    read_points,
+    rectified_records,
+    run_record,
+)
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.rectifier import MODES, BatchRectification, Rectifier, load_model
 
 EXAMPLE_DATA = "example_frames.npz"
 EXAMPLE_CAMERA = "example_camera.json"  # the example's camera (galaxy-s8 K_c calibrated on its train split)
+PROGRESS_BLOCK = 1 << 20  # the points bar counts MiB of the file read
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", nargs="?", help="dataset file (dimenet-dataset/1 .npz)")
+    p.add_argument(
+        "--points",
+        type=nonempty_path,
+        metavar="FILE",
+        help="instead of a dataset: a CSV or JSON Lines file of 2D-3D points, frame by frame "
+        "(models_spec/points-csv.md), streamed; one JSON line per frame to stdout (or --out FILE.jsonl); the camera "
+        "from --camera FILE (a generic model, as the bundled one, needs it; a device model defaults to its own)",
+    )
     p.add_argument(
         "--example",
         action="store_true",
@@ -46,15 +71,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out",
         type=nonempty_path,
         metavar="RESULT.npz",
-        help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov per frame",
+        help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov per frame, "
+        "and K_c, image_size, model_sha256; with --points: FILE.jsonl, the JSON lines",
     )
     p.add_argument("--refine", action="store_true", help="polish poses with cv2.solvePnPRefineLM (e as in evaluate)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
-def result_arrays(frames: Dataset, res: BatchRectification) -> dict:
+def result_arrays(frames: Dataset, res: BatchRectification, rectifier: Rectifier) -> dict:
     """The RESULT.npz arrays (plain dtypes, no pickle): fallback '' where K is the model's; K_cov
-    (F, 4, 4) px^2, NaN where K is K_c's, only when the model has an uncertainty model."""
+    (F, 4, 4) px^2, NaN where K is K_c's, only when the model has an uncertainty model; which
+    camera and model produced them: K_c (3, 3) px, image_size (2,) px (width, height),
+    model_sha256 (a str array of shape ())."""
     frame_id = frames.frame_id if frames.frame_id is not None else np.arange(frames.n_frames).astype(str)
     arrays = {
         "frame_id": np.asarray(frame_id),
@@ -65,6 +93,9 @@ def result_arrays(frames: Dataset, res: BatchRectification) -> dict:
         "e_c": res.reprojection_error_kc_px,
         "delta_k": res.delta_k,
         "fallback": np.array([r or "" for r in res.fallback]),
+        "K_c": rectifier.K_c,
+        "image_size": np.array(rectifier.image_size, dtype=np.int64),
+        "model_sha256": np.array(rectifier.model.sha256),
     }
     if res.K_cov is not None:
         arrays["K_cov"] = res.K_cov
@@ -145,13 +176,65 @@ def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
     return rectifier
 
 
+def _points_rectifier(args: argparse.Namespace) -> Rectifier:
+    """The model serving the camera file (None: a device model's own camera; a generic model
+    without one is a CameraError saying so)."""
+    camera = None if args.camera is None else read_camera(args.camera)
+    return Rectifier(load_model(args.model), args.mode, camera)
+
+
+def _blocks(frames: Iterable[PointsFrame]) -> Iterator[list[PointsFrame]]:
+    """The frames in lists, one list per PROGRESS_BLOCK bytes of the file read (the rest with the
+    last): a frame is held until its block is complete, so the bar counts bytes."""
+    held, done = [], 0
+    for frame in frames:
+        held.append(frame)
+        while done < frame.bytes_read // PROGRESS_BLOCK:
+            yield held
+            held, done = [], done + 1
+    yield held
+
+
+def _with_progress(frames: Iterable[PointsFrame], path: str) -> Iterator[PointsFrame]:
+    """The frames, with a bar of MiB read against the file's size on a terminal's stderr."""
+    try:
+        size = os.stat(path).st_size
+    except OSError:  # read_points names the problem
+        size = 0
+    total = size // PROGRESS_BLOCK + 1 if size else None  # a pipe or FIFO has no size
+    for block in progress(_blocks(frames), total=total, desc="rectify, MiB read"):
+        yield from block
+
+
+def _run_points(args: argparse.Namespace) -> int:
+    if args.example or args.data:
+        raise CliError("dimenet rectify: give a dataset file, --example or --points FILE (one of them)")
+    if args.json:
+        raise CliError("dimenet rectify: --json applies to a dataset; --points always writes JSON lines")
+    rectifier = _points_rectifier(args)
+    header = run_record(rectifier, refine=args.refine, points=args.points, camera=args.camera)
+    frames = _with_progress(read_points(args.points), args.points)
+    tally: Counter = Counter()
+    lines = json_lines(header, counted(rectified_records(rectifier, frames, refine=args.refine), tally))
+    if args.out:
+        atomic_write(args.out, lambda f: f.writelines(line.encode("utf-8") for line in lines))
+        print(f"{tally['frames']} frames ({tally['refused']} refused, {tally['fallbacks']} fallbacks) -> {args.out}")
+        return 0
+    for line in lines:  # flushed line by line: a reader of the pipe gets each frame as it is done
+        sys.stdout.write(line)
+        sys.stdout.flush()
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.points:
+        return _run_points(args)
     frames = _frames(args)
     rectifier = _rectifier(args, frames)
     res = rectifier.rectify_batch(
         frames.points_2d, frames.points_3d, frames.valid, infer_mask=frames.infer_mask, refine=args.refine
     )
-    arrays = result_arrays(frames, res)
+    arrays = result_arrays(frames, res, rectifier)
     if args.out:
         atomic_write(args.out, lambda f: np.savez(f, **arrays))
     if args.json:
@@ -195,6 +278,7 @@ COMMAND = Command(
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
     example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz\n"
     "  dimenet rectify frames.npz --camera cam.json --json   (the bundled generic model, your camera)\n"
+    "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   (an app's recording, streamed)\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,
