@@ -13,9 +13,12 @@ from helpers import constant_uncertainty, model_spec
 from test_rectifier_camera import linear_model, rig_frames
 
 from dimenet.runtime.errors import CameraError
-from dimenet.runtime.geometry.distortion import distort_points, undistort_points
+from dimenet.runtime.evaluation.calibration import calibrate_dataset, dataset_camera
+from dimenet.runtime.evaluation.metrics import reduction_ratio
+from dimenet.runtime.geometry.distortion import distort_points, mean_distorted_error, undistort_points
 from dimenet.runtime.rectify.camera import Camera, checked_camera
-from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.rectifier import Rectifier, load_model
+from dimenet.runtime.sim.simulator import simulate
 
 # A phone main camera's barrel distortion (k1, k2, p1, p2, k3): ~90 px at a 12 MP corner.
 DIST = np.array([-0.12, 0.05, 0.0004, -0.0003, -0.01])
@@ -84,3 +87,32 @@ def test_bad_distortion_is_a_camera_error():
     assert checked_camera(K, (1000, 800), "cam.yaml", [0, 0, 0, 0, 0]).dist_coeffs is None
     with pytest.raises(CameraError, match="give K_c"):
         Rectifier.load(dist_coeffs=DIST)
+
+
+@pytest.mark.parametrize("lens", [[-0.12, 0.05, 0.0004, -0.0003, -0.01], [0.08, -0.03, 0.0, 0.0]])
+def test_rho_on_distorted_frames_is_that_of_their_undistorted_twins(lens):
+    """The bundled model on simulated galaxy-s8 test frames through a lens, against the same
+    frames undistorted under a pinhole camera (e* in each one's own image): within 1 point."""
+    ds = simulate("galaxy-s8", seed=0, dist_coeffs=lens, natural_frames=34)
+    camera = dataset_camera(ds)
+    pinhole = ds.undistorted()
+    cal = calibrate_dataset(pinhole)
+    p3 = np.where(ds.valid[..., None], ds.points_3d, 0.0)
+    e_star_image = mean_distorted_error(ds.points_2d, p3, ds.valid, cal.K_star, cal.rvec, cal.tvec, ds.dist_K, lens)
+    x = np.where(pinhole.valid[..., None], pinhole.points_2d, 0.0)
+    inside = np.all((x >= -0.5) & (x <= np.array(camera.image_size) - 0.5), axis=(1, 2))  # the pinhole camera's image
+    model = load_model()
+    for scene in ("rig", "natural"):
+        t = ds.frames_in("test") & (ds.scene == scene) & inside
+        rho = []
+        for frames, cam, e_star in (
+            (ds, camera, e_star_image),
+            (pinhole, Camera(camera.K, camera.image_size), cal.e_star),
+        ):
+            r = Rectifier(model, "dimenet", cam).rectify_batch(
+                frames.points_2d[t], frames.points_3d[t], frames.valid[t], infer_mask=frames.infer_mask[t]
+            )
+            rho.append(
+                reduction_ratio(r.reprojection_error_kc_px.mean(), r.reprojection_error_px.mean(), e_star[t].mean())
+            )
+        assert t.sum() >= 25 and abs(rho[0] - rho[1]) < 0.01, (scene, rho)
