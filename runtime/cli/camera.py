@@ -9,7 +9,7 @@ from dimenet.runtime.cli.main import CliError, nonempty_path
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.camera import Camera, checked_camera
 from dimenet.runtime.rectify.spec import ModelSpec
 
 
@@ -18,7 +18,8 @@ def add_camera_argument(p: argparse.ArgumentParser) -> None:
         "--camera",
         type=nonempty_path,
         metavar="FILE",
-        help='the camera, a JSON file {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "image_size": [w, h]} in px '
+        help="the camera file: K_c, image size and distortion as OpenCV YAML/XML, ROS camera_info, COLMAP "
+        "cameras.txt, Kalibr camchain, mrcal .cameramodel or camera.json; FILE#NAME picks one of several cameras "
         "(default: a device model's own camera when the dataset's image size is its, else K_c calibrated on the "
         "dataset's train split as `dimenet calibrate` does)",
     )
@@ -26,13 +27,16 @@ def add_camera_argument(p: argparse.ArgumentParser) -> None:
 
 def served_camera(spec: ModelSpec, frames: Dataset, camera_file: Optional[str], source: str) -> Optional[Camera]:
     """The camera for ``frames``: the file's; None (the model's own) for a device model whose image
-    size the dataset has; else K_c from the dataset's train split. CliError when that is needed
+    size the dataset has (with the dataset's lens, if it carries one); else K_c from the
+    dataset's train split (and its lens). CliError when that is needed
     and the dataset has no train split."""
     if camera_file is not None:
         return read_camera(camera_file)
     size = tuple(int(v) for v in frames.image_size)
-    if spec.generic is None and size == tuple(spec.image_size):
-        return None
+    if spec.generic is None and size == tuple(spec.image_size):  # the model's own camera, through the dataset's lens
+        if frames.dist_coeffs is None:
+            return None
+        return checked_camera(spec.K_c, size, "the dataset's lens", frames.dist_coeffs, frames.dist_K)
     if not frames.frames_in("train").any():
         kind = "a generic model" if spec.generic is not None else f"a {size[0]}x{size[1]} px dataset"
         raise CliError(f"{source}: {kind} needs the camera's K_c: give --camera FILE (the dataset has no train split)")

@@ -1,5 +1,6 @@
 """`--camera FILE` and the dataset's own camera for `dimenet rectify` and `dimenet evaluate`:
-the generic default serves any camera given, reports the K_c it used, and says what it needs."""
+the generic default serves any camera given, reports the K_c it used, and says what it needs;
+`dimenet calibrate --camera-out` writes a camera file in any format that `--camera` reads back."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from helpers import DEVICE_MODEL, example_camera
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.main import main
+from dimenet.runtime.evaluation.calibration import read_calibration
+from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL
@@ -71,3 +74,58 @@ def test_a_device_model_serves_a_rescale_of_its_camera_and_refuses_another(frame
     write_dataset(frames, tmp_path / "full.npz")
     assert main(["rectify", str(tmp_path / "full.npz"), "--model", str(DEVICE_MODEL), "--camera", str(cam)]) == 2
     assert "no rescale or crop of the model's" in capsys.readouterr().err
+
+
+def test_calibrate_writes_a_camera_file_that_rectify_serves(frames, tmp_path, capsys):
+    write_dataset(frames, tmp_path / "frames.npz")
+    write_dataset(frames.select(frames.frames_in("test")), tmp_path / "test.npz")
+    argv = ["calibrate", str(tmp_path / "frames.npz"), "--out", str(tmp_path / "cal.npz")]
+    assert main([*argv, "--camera-out", str(tmp_path / "cam.yaml"), "--camera-format", "ros"]) == 0
+    assert f"-> {tmp_path / 'cam.yaml'} (ros)" in capsys.readouterr().out
+    K_c = read_calibration(tmp_path / "cal.npz").K_c
+    camera = read_camera(tmp_path / "cam.yaml")
+    np.testing.assert_array_equal(camera.K, K_c)
+    assert camera.image_size == tuple(int(v) for v in frames.image_size) and camera.dist_coeffs is None
+    assert main(["rectify", str(tmp_path / "test.npz"), "--camera", str(tmp_path / "cam.yaml"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["K_c"] == k_params(K_c).tolist()
+    # The format from the suffix (a folder made for it): .cameramodel is mrcal's.
+    assert main([*argv, "--camera-out", str(tmp_path / "models" / "cam.cameramodel")]) == 0
+    assert "(mrcal)" in capsys.readouterr().out
+    np.testing.assert_array_equal(read_camera(tmp_path / "models" / "cam.cameramodel").K, K_c)
+
+
+def test_calibrate_refuses_a_camera_format_it_cannot_tell_before_calibrating(tmp_path, capsys):
+    argv = ["calibrate", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "cal.npz")]
+    assert main([*argv, "--camera-out", str(tmp_path / "cam.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cam.yaml: its suffix names no format, give --camera-format (opencv-yaml" in err
+    assert main([*argv, "--camera-format", "colmap"]) == 2
+    assert "--camera-format needs --camera-out FILE" in capsys.readouterr().err
+    assert main([*argv, "--camera-out", str(tmp_path / "c.yaml"), "--camera-format", "yaml"]) == 2
+    assert "invalid choice: 'yaml'" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_rectify_picks_one_camera_of_a_file_and_refuses_a_bad_file_in_one_line(frames, tmp_path, capsys):
+    camera = example_camera()
+    test = tmp_path / "test.npz"
+    write_dataset(frames.select(frames.frames_in("test")), test)
+    fx, fy, cx, cy = (float(v) for v in k_params(camera.K))
+    colmap = tmp_path / "cameras.txt"
+    colmap.write_text(
+        "# Camera list with one line of data per camera:\n"
+        "1 SIMPLE_RADIAL 3072 2304 2559.68 1536 1152 -0.0204997\n"
+        f"2 PINHOLE 4032 3024 {fx!r} {fy!r} {cx + 0.5!r} {cy + 0.5!r}\n"
+    )
+    assert main(["rectify", str(test), "--camera", f"{colmap}#2", "--json"]) == 0
+    np.testing.assert_allclose(json.loads(capsys.readouterr().out)["K_c"], k_params(camera.K), rtol=0, atol=1e-9)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("cam0:\n  camera_model: omni\n  intrinsics: [1, 2, 3, 4, 5]\n")
+    for argv_camera, message in [
+        (str(colmap), f"{colmap}: holds 2 cameras (1, 2): choose one as {colmap}#NAME"),
+        (f"{colmap}#3", f"{colmap}: no camera '3' (it holds 1, 2)"),
+        (str(bad), f"{bad}: cam0.camera_model 'omni' is not supported"),
+    ]:
+        assert main(["rectify", str(test), "--camera", argv_camera]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and message in err, err

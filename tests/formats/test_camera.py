@@ -1,4 +1,4 @@
-"""Camera files (models_spec/camera-json.md): the good file, every refused field, hostile files."""
+"""camera.json files (models_spec/camera-files.md): the good file, every refused field, hostile files."""
 
 from __future__ import annotations
 
