@@ -129,3 +129,30 @@ def test_rectify_picks_one_camera_of_a_file_and_refuses_a_bad_file_in_one_line(f
         assert main(["rectify", str(test), "--camera", argv_camera]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and message in err, err
+
+
+def test_a_lens_goes_from_the_dataset_through_calibrate_to_a_camera_file_and_rectify(tmp_path, capsys):
+    """A distorted simulated dataset: calibrate reports its lens and writes it into the camera
+    file (about the file's K); rectify with that file gives the K of the dataset's own lens."""
+    from dimenet.runtime.sim.simulator import simulate
+
+    lens = [-0.1, 0.04, 0.0003, -0.0002]
+    ds = simulate("galaxy-s8", seed=5, dist_coeffs=lens)
+    write_dataset(ds, tmp_path / "lens.npz")
+    write_dataset(ds.select(ds.frames_in("test")), tmp_path / "t.npz")
+    argv = ["calibrate", str(tmp_path / "lens.npz"), "--out", str(tmp_path / "cal.npz")]
+    assert main([*argv, "--camera-out", str(tmp_path / "cam.xml")]) == 0
+    out = capsys.readouterr().out
+    assert "lens (the dataset's): dist_coeffs" in out
+    camera = read_camera(tmp_path / "cam.xml")
+    np.testing.assert_allclose(camera.dist_coeffs, lens, atol=1e-12)
+    np.testing.assert_allclose(camera.K, ds.dist_K, atol=1e-9)
+    assert main(["rectify", str(tmp_path / "t.npz"), "--camera", str(tmp_path / "cam.xml"), "--json"]) == 0
+    with_file = json.loads(capsys.readouterr().out)
+    assert main(["rectify", str(tmp_path / "lens.npz"), "--json"]) == 0  # the dataset's own lens and K_c
+    own = json.loads(capsys.readouterr().out)
+    assert with_file["summary"]["avg_e_px"] < 1.0 and own["summary"]["avg_e_px"] < 1.0  # the lens is undone
+    # Fitted jointly instead: the lens is the fit's, said so.
+    assert main([*argv, "--distortion", "opencv5", "--camera-out", str(tmp_path / "fit.json")]) == 0
+    assert "lens (fitted, opencv5)" in capsys.readouterr().out
+    assert len(read_camera(tmp_path / "fit.json").dist_coeffs) == 5
