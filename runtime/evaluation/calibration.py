@@ -188,6 +188,8 @@ def write_calibration(cal: Calibration, path: str | Path) -> Path:
         arrays.update(dist_coeffs=cal.dist_coeffs, dist_K=cal.dist_K)
     if any(r is not None for r in cal.reasons):
         arrays["unobservable"] = np.array([r or "" for r in cal.reasons])
+    if cal.K_c_from != "mean K*":
+        arrays["K_c_from"] = np.array(cal.K_c_from)
     return atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
@@ -227,7 +229,29 @@ def read_calibration(path: str | Path) -> Calibration:
             rvec=_calibration_array(arrays, "rvec", (F, 3), "(F, 3)"),
             tvec=_calibration_array(arrays, "tvec", (F, 3), "(F, 3)"),
             e_star=_calibration_array(arrays, "e_star", (F,), "(F,)"),
+            reasons=_reasons(arrays, F),
+            K_c_from=_k_c_from(arrays),
             **lens,
         )
     except DatasetError as exc:
         raise DatasetError(f"{path}: {exc}") from None
+
+
+def _reasons(arrays: dict, F: int) -> tuple:
+    """The file's ``unobservable`` (F,) str as per-frame reasons (None where a frame gives K*)."""
+    if "unobservable" not in arrays:
+        return (None,) * F
+    a = arrays["unobservable"]
+    if a.dtype.kind != "U" or a.shape != (F,):
+        raise DatasetError(f"unobservable: must be a str array of shape (F,), got {a.dtype} {a.shape}")
+    return tuple(str(r) or None for r in a)
+
+
+def _k_c_from(arrays: dict) -> str:
+    """The file's ``K_c_from`` ("mean K*" when absent): how K_c was found."""
+    if "K_c_from" not in arrays:
+        return "mean K*"
+    a = arrays["K_c_from"]
+    if a.dtype.kind != "U" or a.shape != () or str(a) not in ("mean K*", "joint fit"):
+        raise DatasetError(f"K_c_from: must be 'mean K*' or 'joint fit', got {a.dtype} {a.shape}")
+    return str(a)

@@ -54,10 +54,12 @@ def board_dataset(views: list, split: str = "train") -> Dataset:
     )
 
 
-def test_single_board_views_give_k_c_by_their_joint_fit_and_no_k_star():
+def test_single_board_views_give_k_c_by_their_joint_fit_and_no_k_star(tmp_path):
     views = board_views(15, seed=1)
     cal = calibrate_dataset(board_dataset(views))
     assert cal.K_c_from == "joint fit"
+    back = read_calibration(write_calibration(cal, tmp_path / "cal.npz"))
+    assert back.K_c_from == "joint fit" and back.reasons == cal.reasons
     assert np.isnan(cal.K_star).all() and np.isnan(cal.e_star).all()
     assert all("coplanar" in r for r in cal.reasons)
     error = np.abs(k_params(cal.K_c) - k_params(K_TRUE))
