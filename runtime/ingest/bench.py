@@ -1,10 +1,15 @@
-"""Measure `dimenet ingest` on rendered full-size photos of the paper's rig against the renderer's truth.
+"""Measure `dimenet ingest`: on rendered photos of the paper's rig against the renderer's truth, or on real photos.
 
     dimenet bench --ingest DIR [--n 30] [--seed 1] [--profile galaxy-s8] [--workers 2] [--json]
 
-Renders ``n`` photos into DIR first unless DIR already holds a ``truth.npz``; then ingests them
+Rendered: renders ``n`` photos into DIR first unless DIR already holds a ``truth.npz`` (then the photos
+it names, whatever their size, e.g. ``dimenet render --scale 2.52`` for 1600x1200); then ingests them
 (timed: photos/s) and reports the detection rate, identity errors, corner RMS against the true
 projections and the mean |K* - K_true| of the ingested frames (``render_truth.score``).
+
+Real: a DIR without ``truth.npz`` but with a rig file ``rig.json`` (``dimenet-rig/1``) beside its photos
+(every JPEG, PNG, TIFF, WebP, BMP or PNM in it, by name): ingests them with that rig (timed) and reports
+the frames, the boards identified per photo and each photo's K (no truth to score against).
 """
 
 from __future__ import annotations
@@ -13,16 +18,42 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from dimenet.runtime.formats.rig import paper_rig
+from dimenet.runtime.formats.rig import load_rig, paper_rig
+from dimenet.runtime.geometry import k_params
 from dimenet.runtime.ingest.pipeline import ingest
 from dimenet.runtime.sim.render import TRUTH_FILE, write_render
 from dimenet.runtime.sim.render_truth import read_truth, score
 from dimenet.runtime.sim.simulator import get_profile
 
+RIG_FILE = "rig.json"  # the rig of a folder of real photos
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".bmp", ".pbm", ".pgm", ".ppm")
+
+
+def run_real_bench(folder: Path, *, workers: int) -> dict:
+    """Ingest (timed) the photos of a folder of real photos with its ``rig.json``; the figures."""
+    rig = load_rig(folder / RIG_FILE)
+    photos = sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
+    start = time.monotonic()
+    result = ingest(photos, rig, workers=workers)
+    seconds = time.monotonic() - start
+    return {
+        "photos": len(photos),
+        "frames": 0 if result.dataset is None else result.dataset.n_frames,
+        "boards": {r.name: [rig.boards[b].name for b in r.boards] for r in result.results},
+        "boards_in_rig": len(rig.boards),
+        "K_px": {r.name: None if r.K is None else [round(float(v), 2) for v in k_params(r.K)] for r in result.results},
+        "workers": workers,
+        "seconds": seconds,
+        "photos_per_s": len(photos) / seconds,
+    }
+
 
 def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int) -> dict:
-    """Render (unless there already) and ingest the photos of ``folder``; the scored figures."""
+    """Rendered: render (unless there already) and ingest the photos of ``folder``; the scored figures.
+    Real (a folder with ``rig.json`` and no truth): ``run_real_bench``."""
     folder = Path(folder)
+    if not (folder / TRUTH_FILE).is_file() and (folder / RIG_FILE).is_file():
+        return run_real_bench(folder, workers=workers)
     rig = paper_rig()
     if not (folder / TRUTH_FILE).is_file():
         write_render(folder, rig, get_profile(profile), n, seed=seed)
@@ -43,6 +74,13 @@ def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int) -
 def format_ingest_report(figures: dict) -> str:
     """One line of the figures of ``run_ingest_bench``."""
     f = figures
+    if "boards_shown" not in f:
+        per_photo = sum(len(b) for b in f["boards"].values())
+        return (
+            f"{f['photos']} real photos, {f['frames']} frames: {per_photo} boards identified "
+            f"({per_photo / max(f['photos'], 1):.2f} per photo, the rig has {f['boards_in_rig']}), "
+            f"{f['photos_per_s']:.2f} photos/s with {f['workers']} workers"
+        )
     return (
         f"{f['photos']} photos, {f['frames']} frames: boards found {f['boards_found']}/{f['boards_shown']} "
         f"({100 * f['detection_rate']:.1f} %, + {f['extra_boards']} not counted as whole), identity errors "

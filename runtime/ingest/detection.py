@@ -1,27 +1,28 @@
-"""Finding the rig's boards in one photo: detect on reduced copies, refine at native resolution.
+"""Finding the rig's boards in one photo: detect on a reduced copy, refine at native resolution, report each outcome.
 
-Plain checkerboards: ``cv2.findChessboardCorners`` on a copy reduced to about 1344 px wide (1/3
-of a 12 MP photo), then on one about 1008 px wide (1/4), then ``cv2.findChessboardCornersSB`` on
-the latter (the first that succeeds; the two fallbacks only while fewer than 2 boards are found,
-unless ``thorough``: ``ingest`` asks for that when the rig says a board is in view but missing);
-the found board is masked out (its printed pattern filled with grey in every copy) and the search
-repeats until nothing more is found. The copies are
-padded with a white border so that a board whose outer squares the image edge cuts is still
-found. Each corner is then refined with ``cv2.cornerSubPix`` on the native grey image, with a
-window scaled to the square size. A corner left off the board's grid (farther than a tolerance
-from the homography of all corners) is started again where the other corners put it; a board
-with a corner still off the grid, or whose window leaves the image, is dropped (the white border
-can fake a row of corners along the image edge). Identical plain boards are told apart later
-(``board_identity``); here each detection only gets a canonical handedness (board x, y appear
-like image x, y: right-handed in a y-down image).
+Plain checkerboards, a cascade of detector STEPS on one copy reduced to about DETECT_WIDTH_PX wide,
+padded with a white border (so that a board whose outer squares the image edge cuts is still found):
+for every step in turn (the classic detector, then OpenCV's SB detector in its normalising and
+exhaustive modes, slow when they find nothing), each pattern is searched while boards of it are left
+to find (found, masked out with grey in the copy, searched again), until SEARCH_UNTIL boards are
+kept: enough to tell them apart and know the camera, which then says where the others are. Every
+board found is refined at native resolution and tested against its model, then its grid is grown
+where the pattern runs on past it (``refine``); a board that fails is dropped with the reason.
+Identical plain boards are told apart later (``identity``); here each detection only gets a
+canonical handedness (board x, y appear like image x, y).
+
+Once the photo's camera is known, ``search_predicted`` looks for every board that camera shows in
+view but that was not found: every step on a crop around where the board should be (the boards kept
+masked out), reduced so that its squares are about CROP_SPACING_PX.
 
 ChArUco boards (``Board.aruco`` set) are found by their markers (``cv2.aruco.CharucoDetector``
-on a copy about 2016 px wide, markers detected once per dictionary; its corners are refined at
+on a copy about CHARUCO_WIDTH_PX wide, markers detected once per dictionary; its corners are refined at
 native resolution with a window clear of the markers) and come out identified; a partly hidden
 one keeps the corners found (the others NaN).
 
 Pixels: x right, y down, origin at the centre of the top-left pixel; a point at x in a copy
 reduced by an integer factor f (``INTER_AREA``) lies at f·(x + 0.5) − 0.5 natively.
+Specified (with the measurements behind the steps) in models_spec/ingest.md.
 """
 
 from __future__ import annotations
@@ -33,31 +34,88 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.formats.rig import Board, Rig
+from dimenet.runtime.ingest.grid import canonical, corner_spacing, fit_model, grid_points, residuals
+from dimenet.runtime.ingest.refine import SUBPIX_WINDOW_FRACTION, grow, refine, refine_plain, tolerance_px
 
-DETECT_WIDTHS_PX = (1344, 1008)  # widths of the reduced copies searched for plain boards
+DETECT_WIDTH_PX = 1008  # width of the reduced copy searched for plain boards (1/4 of 12 MP, 1/2 of 2 MP)
 CHARUCO_WIDTH_PX = 2016  # width of the reduced copy searched for ChArUco markers
+CROP_SPACING_PX = 20  # a predicted board's crop is reduced so that its corner spacing is about this
+CROP_MARGIN_SQUARES = 2.0  # the crop reaches this far beyond the predicted inner corners
 PAD_PX = 20  # white border added around each reduced copy
-CASCADE = ((0, "classic"), (1, "classic"), (1, "sector"))  # (DETECT_WIDTHS_PX index, detector), tried in order
-FALLBACK_BELOW = 2  # the CASCADE's fallbacks are tried while fewer boards than this are found (unless thorough)
-CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
-MASK_MARGIN_SQUARES = 1.25  # the mask reaches this far beyond the inner corners (outer squares + paper)
+MASK_MARGIN_SQUARES = 1.0  # the mask reaches this far beyond a board's grid (its outer squares)
 MASK_GREY = 128
-SUBPIX_WINDOW_FRACTION = 0.3  # cornerSubPix half-window as a fraction of the smallest corner spacing
-SUBPIX_WINDOW_PX = (2, 12)  # clip of that half-window, native px
-GRID_TOLERANCE = 0.05  # a refined plain-board corner lies within this fraction of the corner spacing
-GRID_TOLERANCE_MIN_PX = 1.0  # (or this many px, if more) of the board's homography fitted to all its corners
-SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 0.001)
+SEARCH_UNTIL = 2  # the search over the whole photo stops when this many boards are kept (enough to identify them)
 MIN_CHARUCO_CORNERS = 4  # a ChArUco board counts as found with at least this many corners
+CHARUCO_TOLERANCE = 0.05  # a ChArUco corner off its board model by more than this fraction of the spacing is dropped
+CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+SB_FLAG_NAMES = {cv2.CALIB_CB_NORMALIZE_IMAGE: "NORMALIZE_IMAGE", cv2.CALIB_CB_EXHAUSTIVE: "EXHAUSTIVE"}
+
+
+@dataclass(frozen=True)
+class Step:
+    """One detector call: ``cv2.findChessboardCorners`` (``classic``, CLASSIC_FLAGS) or
+    ``cv2.findChessboardCornersSB`` (``sb``) with ``flags``."""
+
+    detector: str
+    flags: int = 0
+
+    def describe(self, factor: int) -> str:
+        """E.g. ``findChessboardCornersSB(NORMALIZE_IMAGE) at 1/2 size``."""
+        if self.detector == "classic":
+            call = "findChessboardCorners"
+        else:
+            names = [n for f, n in SB_FLAG_NAMES.items() if self.flags & f]
+            call = f"findChessboardCornersSB({'|'.join(names) or '0'})"
+        return call + ("" if factor == 1 else f" at 1/{factor} size")
+
+
+STEPS = (  # in order: cheapest and most finding first (models_spec/ingest.md, "Detector steps")
+    Step("classic", CLASSIC_FLAGS),
+    Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE),
+    Step("sb", 0),
+    Step("sb", cv2.CALIB_CB_EXHAUSTIVE),
+    Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
+)
 
 
 @dataclass(frozen=True)
 class Detection:
-    """One board found in a photo: (nx·ny, 2) native px corners, row by row (NaN: not found, ChArUco
-    only), and its rig board index when the markers tell it (ChArUco), else None."""
+    """One board kept: ``corners_px`` (mx·my, 2) native px row by row over its ``grid`` (mx, my), which is its
+    ``pattern`` (nx, ny) or larger where it was grown at a fold (NaN: not found, ChArUco only); ``board`` its
+    rig board index when its markers tell it (ChArUco), else None. ``found_by``: the detector step;
+    ``residual_px`` its largest corner residual under the board model, ``tolerance_px`` what it may be."""
 
-    pattern: tuple[int, int]  # (nx, ny) inner corners
+    pattern: tuple[int, int]
     corners_px: np.ndarray
     board: Optional[int] = None
+    grid: Optional[tuple[int, int]] = None  # None: the pattern
+    found_by: str = ""
+    residual_px: float = float("nan")
+    tolerance_px: float = float("nan")
+    k: float = 0.0  # the distortion coefficient of its board model (``grid.BoardModel``)
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        return self.pattern if self.grid is None else self.grid
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """A board a detector found and the refinement dropped: its ``pattern``, the step, and why."""
+
+    pattern: tuple[int, int]
+    found_by: str
+    reason: str
+    residual_px: float
+    tolerance_px: float
+
+
+@dataclass(frozen=True)
+class BoardSearch:
+    """The boards kept (ChArUco first, then plain ones in the order found) and those dropped."""
+
+    detections: tuple[Detection, ...]
+    dropped: tuple[Dropped, ...] = ()
 
 
 def charuco_board(board: Board) -> cv2.aruco.CharucoBoard:
@@ -93,192 +151,119 @@ def to_reduced(points: np.ndarray, factor: int) -> np.ndarray:
     return (np.asarray(points, np.float64) + 0.5) / factor - 0.5 + PAD_PX
 
 
-def grid_points(pattern: tuple[int, int]) -> np.ndarray:
-    """(nx·ny, 2) the inner corners in grid units (i, j), row by row (j outer, i inner)."""
-    nx, ny = pattern
-    j, i = np.mgrid[0:ny, 0:nx]
-    return np.stack([i.ravel(), j.ravel()], 1).astype(np.float64)
-
-
-def grid_homography(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
-    """(3, 3) homography from grid units (i, j) to px, fitted to the (nx·ny, 2) corners (NaN rows ignored)."""
-    grid = grid_points(pattern)
-    found = np.isfinite(corners_px).all(1)
-    return cv2.findHomography(grid[found], corners_px[found].astype(np.float64), 0)[0]
-
-
-def pattern_outline(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
-    """(4, 2) px the board's outline MASK_MARGIN_SQUARES beyond its outer inner corners (perspective-exact)."""
-    nx, ny = pattern
-    margin = MASK_MARGIN_SQUARES
-    box = np.array(
-        [
-            [[-margin, -margin]],
-            [[nx - 1 + margin, -margin]],
-            [[nx - 1 + margin, ny - 1 + margin]],
-            [[-margin, ny - 1 + margin]],
-        ]
-    )
-    return cv2.perspectiveTransform(box, grid_homography(corners_px, pattern)).reshape(4, 2)
-
-
-def mask_board(copies: dict[int, np.ndarray], corners_px: np.ndarray, pattern: tuple[int, int]) -> None:
-    """Fill the board's printed pattern (native corners) with grey in every reduced copy, in place."""
-    outline = pattern_outline(corners_px, pattern)
-    for factor, img in copies.items():
-        cv2.fillConvexPoly(img, np.round(to_reduced(outline, factor)).astype(np.int32), MASK_GREY)
-
-
-def cascade(shape: tuple[int, ...]) -> list[tuple[int, str]]:
-    """The CASCADE for an image of ``shape`` (h, w) as (reduction factor, detector), repeats dropped."""
-    return list(dict.fromkeys((reduction(shape, DETECT_WIDTHS_PX[k]), detector) for k, detector in CASCADE))
-
-
-def find_one(
-    copies: dict[int, np.ndarray], pattern: tuple[int, int], steps: list[tuple[int, str]]
-) -> Optional[np.ndarray]:
-    """Native px (nx·ny, 2) of one board found by the first of ``steps`` that succeeds, or None."""
-    for factor, detector in steps:
-        if detector == "classic":
-            ok, corners = cv2.findChessboardCorners(copies[factor], pattern, flags=CLASSIC_FLAGS)
-        else:
-            ok, corners = cv2.findChessboardCornersSB(copies[factor], pattern, flags=0)
-        if ok:
-            return to_native(corners, factor)
-    return None
-
-
-def find_plain(
-    copies: dict[int, np.ndarray],
-    pattern: tuple[int, int],
-    max_count: int,
-    steps: list[tuple[int, str]],
-    found_before: int,
-    thorough: bool,
-) -> list[np.ndarray]:
-    """Up to ``max_count`` boards of one pattern (native px, unrefined): find one, mask it, repeat.
-
-    The fallback ``steps`` (after the first) are tried only while fewer than FALLBACK_BELOW boards are
-    found in all (``found_before`` of other patterns), or always when ``thorough``: they seldom find a
-    board the first step missed, and they cost most when there is none left to find."""
-    found: list[np.ndarray] = []
-    while len(found) < max_count:
-        fallbacks = thorough or found_before + len(found) < FALLBACK_BELOW
-        corners = find_one(copies, pattern, steps if fallbacks else steps[:1])
-        if corners is None:
-            break
-        found.append(corners)
-        mask_board(copies, corners, pattern)
-    return found
-
-
-def corner_spacing(corners_px: np.ndarray, pattern: tuple[int, int]) -> float:
-    """Smallest distance (px) between neighbouring corners found, along rows, columns and diagonals
-    (inf when no two neighbours are found)."""
-    nx, ny = pattern
-    g = corners_px.reshape(ny, nx, 2)
-    steps = [g[:, 1:] - g[:, :-1], g[1:] - g[:-1], g[1:, 1:] - g[:-1, :-1], g[1:, :-1] - g[:-1, 1:]]
-    d = np.concatenate([np.linalg.norm(s, axis=-1).ravel() for s in steps])
-    d = d[np.isfinite(d)]
-    return float(d.min()) if d.size else float("inf")
-
-
-def window_inside(corners_px: np.ndarray, half_px: int, shape: tuple[int, ...]) -> np.ndarray:
-    """(n,) whether each corner's refinement window (``half_px`` each side, + 1 px) lies inside the image."""
-    h, w = shape[:2]
-    m = half_px + 1
-    x, y = corners_px[:, 0], corners_px[:, 1]
-    return (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
-
-
-def refine(
-    gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], window_fraction: float = SUBPIX_WINDOW_FRACTION
+def outline(
+    corners_px: np.ndarray, grid: tuple[int, int], margin: float, image_size: tuple[int, int], k: float = 0.0
 ) -> np.ndarray:
-    """Sub-pixel corners (nx·ny, 2) px on the native grey image (``cv2.cornerSubPix``).
-
-    The half-window is ``window_fraction`` of the smallest corner spacing (clipped to SUBPIX_WINDOW_PX).
-    NaN where a corner is missing or its window leaves the image.
-    """
-    lo, hi = SUBPIX_WINDOW_PX
-    half = int(np.clip(window_fraction * corner_spacing(corners_px, pattern), lo, hi))
-    inside = window_inside(corners_px, half, gray.shape)
-    out = np.full(corners_px.shape, np.nan)
-    if inside.any():
-        pts = corners_px[inside].astype(np.float32).reshape(-1, 1, 2)
-        out[inside] = cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), SUBPIX_CRITERIA).reshape(-1, 2)
-    out[~window_inside(out, half, gray.shape)] = np.nan
+    """(4, 2) px the grid's outline ``margin`` squares beyond its outer corners (board model of the corners,
+    distortion ``k``)."""
+    mx, my = grid
+    box = np.array([[-margin, -margin], [mx - 1 + margin, -margin], [mx - 1 + margin, my - 1 + margin]])
+    box = np.vstack([box, [-margin, my - 1 + margin]])
+    model = fit_model(corners_px, grid, image_size, k)
+    out = model.predict(box) if model is not None else np.full((4, 2), np.nan)
+    if not np.isfinite(out).all():  # the distortion has no inverse that far out: the homography alone
+        found = np.isfinite(corners_px).all(1)
+        H = cv2.findHomography(grid_points(grid)[found], corners_px[found], 0)[0]
+        out = cv2.perspectiveTransform(box.reshape(-1, 1, 2), H).reshape(4, 2)
     return out
 
 
-def grid_fit(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
-    """(nx·ny, 2) px every corner where the board's homography, fitted to the found (finite) corners, puts it;
-    NaN when they fix no homography (fewer than 4, or collinear)."""
-    grid = grid_points(pattern)
-    if np.isfinite(corners_px[:, 0]).sum() < 4:
-        return np.full_like(grid, np.nan)
-    H = grid_homography(corners_px, pattern)
-    return (
-        np.full_like(grid, np.nan) if H is None else cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H).reshape(-1, 2)
+def mask(
+    copy: np.ndarray,
+    factor: int,
+    corners_px: np.ndarray,
+    grid: tuple[int, int],
+    size: tuple[int, int],
+    origin: tuple[int, int] = (0, 0),
+    k: float = 0.0,
+) -> None:
+    """Fill the grid's printed pattern (native corners of a (width, height) image; board model distortion
+    ``k``) with grey in the padded copy, reduced by ``factor``, of the image region whose top-left pixel is
+    ``origin`` (x, y)."""
+    quad = to_reduced(outline(corners_px, grid, MASK_MARGIN_SQUARES, size, k) - origin, factor)
+    cv2.fillConvexPoly(copy, np.round(quad).astype(np.int32), MASK_GREY)
+
+
+def find_one(copy: np.ndarray, pattern: tuple[int, int], step: Step) -> Optional[np.ndarray]:
+    """The (nx·ny, 2) corners (the copy's px) of one board found by ``step``, or None."""
+    if step.detector == "classic":
+        ok, corners = cv2.findChessboardCorners(copy, pattern, flags=step.flags)
+    else:
+        ok, corners = cv2.findChessboardCornersSB(copy, pattern, flags=step.flags)
+    return corners.reshape(-1, 2) if ok else None
+
+
+def settle(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], found_by: str):
+    """A plain board found at ``corners_px`` (native, unrefined): a Detection (refined, canonical, grown) or a
+    Dropped with the reason."""
+    refined = refine_plain(gray, corners_px, pattern)
+    if refined.corners_px is None:
+        return Dropped(pattern, found_by, refined.reason, refined.residual_px, refined.tolerance_px)
+    corners, grid = grow(gray, canonical(refined.corners_px, pattern), pattern, refined.k)
+    return Detection(
+        pattern,
+        corners,
+        grid=None if grid == pattern else grid,
+        found_by=found_by,
+        residual_px=refined.residual_px,
+        tolerance_px=refined.tolerance_px,
+        k=refined.k,
     )
 
 
-def off_grid(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
-    """(nx·ny,) whether each corner lies farther than the grid tolerance from the homography fitted to all
-    (missing corners, and every corner when there is no homography, count as off)."""
-    tolerance = max(GRID_TOLERANCE_MIN_PX, GRID_TOLERANCE * corner_spacing(corners_px, pattern))
-    return ~(np.linalg.norm(grid_fit(corners_px, pattern) - corners_px, axis=1) <= tolerance)
+def plain_patterns(rig: Rig) -> dict[tuple[int, int], int]:
+    """Number of plain (no ArUco) boards of each (nx, ny) pattern in the rig."""
+    counts: dict[tuple[int, int], int] = {}
+    for b in rig.boards:
+        if b.aruco is None:
+            counts[b.inner_corners] = counts.get(b.inner_corners, 0) + 1
+    return counts
 
 
-def refine_plain(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int]) -> Optional[np.ndarray]:
-    """A plain board's refined corners (nx·ny, 2) px, or None when it is not found whole.
-
-    A corner left off the board's grid (the detector misplaced it, e.g. at the end of an oblique
-    row, and cornerSubPix found no corner there) is started again from where the other corners'
-    homography puts it. None when a corner's window leaves the image or a corner stays off the grid.
-    """
-    refined = refine(gray, corners_px, pattern)
-    if not np.isfinite(refined).all():
-        return None
-    off = off_grid(refined, pattern)
-    if off.any():
-        start = np.where(off[:, None], grid_fit(np.where(off[:, None], np.nan, refined), pattern), refined)
-        refined = refine(gray, start, pattern)
-        if not np.isfinite(refined).all() or off_grid(refined, pattern).any():
-            return None
-    return refined
+def of_pattern(items, pattern: tuple[int, int]) -> int:
+    """How many of the detections (or dropped boards) are of ``pattern``."""
+    return sum(d.pattern == pattern for d in items)
 
 
-def canonical(corners_px: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
-    """The corners reordered (rows reversed if needed) so that the grid is right-handed in the image.
-
-    A board seen from its printed side shows its x (along a row) and y (down the columns) like
-    the image's x and y: cross(x, y) > 0 in the y-down image.
-    """
-    nx, ny = pattern
-    g = corners_px.reshape(ny, nx, 2)
-    ex, ey = g[:, -1].mean(0) - g[:, 0].mean(0), g[-1].mean(0) - g[0].mean(0)
-    return corners_px if ex[0] * ey[1] - ex[1] * ey[0] > 0 else g[::-1].reshape(-1, 2)
-
-
-def grid_symmetries(pattern: tuple[int, int]) -> list[np.ndarray]:
-    """Index permutations (n,) of the in-plane rotations that map the (nx, ny) grid onto itself.
-
-    A right-handed detection of a plain board is known up to these: 0° and 180°, plus 90° and
-    270° for a square grid. ``corners[perm]`` is the detection under that rotation.
-    """
-    nx, ny = pattern
-    idx = np.arange(nx * ny).reshape(ny, nx)
-    return [np.rot90(idx, k).ravel() for k in range(4) if np.rot90(idx, k).shape == idx.shape]
+def search_plain(
+    gray: np.ndarray,
+    copy: np.ndarray,
+    factor: int,
+    wanted: dict[tuple[int, int], int],
+    steps: tuple[Step, ...],
+    until: int,
+) -> tuple[list[Detection], list[Dropped]]:
+    """Plain boards in the padded ``copy`` of ``gray`` reduced by ``factor`` (masked in place): at most
+    ``wanted`` boards of each pattern, by each of ``steps`` in turn, until ``until`` boards are kept."""
+    size = (gray.shape[1], gray.shape[0])
+    kept: list[Detection] = []
+    dropped: list[Dropped] = []
+    for step in steps:
+        for pattern, count in sorted(wanted.items()):
+            while len(kept) < until and of_pattern(kept, pattern) < count and of_pattern(dropped, pattern) < count:
+                raw = find_one(copy, pattern, step)
+                if raw is None:
+                    break
+                native = to_native(raw, factor)
+                mask(copy, factor, native, pattern, size)  # never found twice, kept or not
+                outcome = settle(gray, native, pattern, step.describe(factor))
+                if isinstance(outcome, Dropped):
+                    dropped.append(outcome)
+                    continue
+                kept.append(outcome)
+                mask(copy, factor, outcome.corners_px, outcome.grid_shape, size, k=outcome.k)
+    return kept, dropped
 
 
 def find_charuco(gray: np.ndarray, rig: Rig) -> dict[int, np.ndarray]:
-    """Refined native corners (nx·ny, 2), NaN where not found (or off the board's grid), of every ChArUco
+    """Refined native corners (nx·ny, 2), NaN where not found (or off the board's model), of every ChArUco
     board with at least MIN_CHARUCO_CORNERS corners found, by rig board index."""
     boards = {k: b for k, b in enumerate(rig.boards) if b.aruco is not None}
     if not boards:
         return {}
     factor = reduction(gray.shape, CHARUCO_WIDTH_PX)
     small = reduce(gray, factor)
+    size = (gray.shape[1], gray.shape[0])
     markers = {}
     for name in sorted({b.aruco.dictionary for b in boards.values()}):
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
@@ -298,37 +283,74 @@ def find_charuco(gray: np.ndarray, rig: Rig) -> dict[int, np.ndarray]:
         if factor > 1:  # found on a reduced copy: refine at native resolution, the window clear of the markers
             clear_of_markers = (board.square_mm - board.aruco.marker_mm) / (2.0 * board.square_mm)
             native = refine(gray, native, board.inner_corners, min(SUBPIX_WINDOW_FRACTION, clear_of_markers))
-        native[off_grid(native, board.inner_corners)] = np.nan
+        pattern = board.inner_corners
+        off = residuals(native, fit_model(native, pattern, size), pattern) > tolerance_px(
+            CHARUCO_TOLERANCE, native, pattern
+        )
+        native[off] = np.nan
         if np.isfinite(native[:, 0]).sum() >= MIN_CHARUCO_CORNERS:
             found[k] = native
     return found
 
 
-def plain_patterns(rig: Rig) -> dict[tuple[int, int], int]:
-    """Number of plain (no ArUco) boards of each (nx, ny) pattern in the rig."""
-    counts: dict[tuple[int, int], int] = {}
-    for b in rig.boards:
-        if b.aruco is None:
-            counts[b.inner_corners] = counts.get(b.inner_corners, 0) + 1
-    return counts
-
-
-def detect_boards(gray: np.ndarray, rig: Rig, thorough: bool = False) -> list[Detection]:
-    """Every board found in the native grey image: ChArUco ones identified (maybe partly), plain ones
-    whole and canonical (a plain board with a corner too near the image edge or off its grid is left out).
-
-    ``thorough``: try the CASCADE's fallbacks for every board, not only until FALLBACK_BELOW are found."""
+def detect_boards(gray: np.ndarray, rig: Rig) -> BoardSearch:
+    """Every board found in the native grey image (see the module doc): ChArUco ones identified (maybe
+    partly), plain ones whole, canonical and grown, until SEARCH_UNTIL boards are kept; the plain ones
+    dropped, with the reason."""
+    size = (gray.shape[1], gray.shape[0])
     detections = [Detection(rig.boards[k].inner_corners, c, k) for k, c in find_charuco(gray, rig).items()]
     patterns = plain_patterns(rig)
     if not patterns:
-        return detections
-    steps = cascade(gray.shape)
-    copies = {f: reduce(gray, f) for f, _ in steps}
+        return BoardSearch(tuple(detections))
+    factor = reduction(gray.shape, DETECT_WIDTH_PX)
+    copy = reduce(gray, factor)
     for d in detections:
-        mask_board(copies, d.corners_px, d.pattern)
-    for pattern, count in sorted(patterns.items()):
-        for corners in find_plain(copies, pattern, count, steps, len(detections), thorough):
-            refined = refine_plain(gray, corners, pattern)
-            if refined is not None:
-                detections.append(Detection(pattern, canonical(refined, pattern)))
-    return detections
+        mask(copy, factor, d.corners_px, d.pattern, size)
+    kept, dropped = search_plain(gray, copy, factor, patterns, STEPS, SEARCH_UNTIL - len(detections))
+    return BoardSearch(tuple(detections + kept), tuple(dropped))
+
+
+def crop_box(predicted_px: np.ndarray, pattern: tuple[int, int], size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) px, x1 and y1 exclusive: the image region CROP_MARGIN_SQUARES around a board's
+    predicted corners (nx·ny, 2) px, clipped to the (width, height) image."""
+    quad = outline(predicted_px, pattern, CROP_MARGIN_SQUARES, size)
+    lo = np.floor(np.nanmin(np.vstack([quad, predicted_px]), 0)).astype(int)
+    hi = np.ceil(np.nanmax(np.vstack([quad, predicted_px]), 0)).astype(int) + 1
+    w, h = size
+    return max(0, lo[0]), max(0, lo[1]), min(w, hi[0]), min(h, hi[1])
+
+
+def search_predicted(
+    gray: np.ndarray, rig: Rig, kept: tuple[Detection, ...], predicted: dict[int, np.ndarray]
+) -> BoardSearch:
+    """Plain boards looked for where the photo's camera puts them: ``predicted`` (nx·ny, 2) native px by rig
+    board index, of boards in view but not found. Every step, for every plain pattern of the rig (the
+    camera may come from a labelling that is still wrong: what lies there may be another board), on a crop
+    around each (``crop_box``) with the boards found masked out, reduced so that its corner spacing is about
+    CROP_SPACING_PX; at most one board per crop. Returns the boards found there (not yet identified;
+    ``found_by`` says where) and those dropped."""
+    size = (gray.shape[1], gray.shape[0])
+    patterns = sorted(plain_patterns(rig))
+    found: list[Detection] = []
+    dropped: list[Dropped] = []
+    for b, px in sorted(predicted.items()):
+        board = rig.boards[b]
+        x0, y0, x1, y1 = crop_box(px, board.inner_corners, size)
+        if board.aruco is not None or x1 - x0 < 2 * PAD_PX or y1 - y0 < 2 * PAD_PX:
+            continue
+        factor = max(1, int(corner_spacing(px, board.inner_corners) // CROP_SPACING_PX))
+        copy = reduce(np.ascontiguousarray(gray[y0:y1, x0:x1]), factor)
+        for d in (*kept, *found):
+            mask(copy, factor, d.corners_px, d.grid_shape, size, (x0, y0), d.k)
+        outcome = None
+        for step in STEPS:
+            for pattern in patterns:
+                raw = find_one(copy, pattern, step)
+                if raw is not None:
+                    where = f"{step.describe(factor)} in a crop around where {board.name!r} should be"
+                    outcome = settle(gray, to_native(raw, factor) + [x0, y0], pattern, where)
+                    break
+            if outcome is not None:
+                (dropped if isinstance(outcome, Dropped) else found).append(outcome)
+                break
+    return BoardSearch(tuple(found), tuple(dropped))

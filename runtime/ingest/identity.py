@@ -1,20 +1,26 @@
 """Telling a photo's boards apart: which rig board, turned which way, each detection is.
 
 ChArUco detections come identified by their markers. Plain boards of one pattern are
-identical, so a detection may be any of them, turned by any symmetry of its grid (0° or
-180°; 90° and 270° too for a square grid): a *labelling* gives every detection one
-(board, turn), each board at most once.
+identical, so a plain detection may be any of them, turned by any symmetry of its grid (0° or
+180°; 90° and 270° too for a square grid); and a detector asked for one pattern may return a
+window of a larger board, or of a grid grown at a fold (``refine.grow``), so the candidates are
+every plain board whose pattern fits in the detection's grid, at every quarter turn and offset
+where it fits (``candidates``). A *labelling* gives every detection one candidate, each board at
+most once.
 
-1. Seeds: every labelling of the first detections (identified ones first; two detections, or
-   one when labelled natural points are known too). A PnP (SQPnP) with a rough K on the seed's
-   corners fixes the camera (two boards lie on different planes); every other detection takes
-   the free (board, turn) whose projected corners lie closest (RMS px).
+1. Seeds: every labelling of the first detections (identified ones first, then those with the
+   fewest candidates; two detections, or one when labelled natural points are known too). A PnP
+   (SQPnP) with a rough K on the seed's corners fixes the camera (two boards lie on different
+   planes); every other detection takes the free candidate whose projected corners lie closest
+   (RMS px).
 2. Every distinct completed labelling is scored by the reprojection RMS (px) of a PnP with the
-   rough K on all the photo's points; the TOP_N best are refitted with a free K (the
+   rough K on all the photo's points; the TOP_N best (or fewer: ``refits``) are refitted with a free K (the
    single-frame calibration: LM over K and pose, ``least_squares.fit``, from the rough K and
    the PnP pose).
-3. The best refit wins when the next one leaves at least AMBIGUITY_RATIO times its RMS;
-   otherwise the photo is ambiguous (e.g. a rig that looks nearly the same turned round).
+3. The best refit wins (``label``); ``identify`` also asks that the next one leaves at least
+   AMBIGUITY_RATIO times its RMS, otherwise the photo is ambiguous (e.g. a rig that looks nearly
+   the same turned round, or two boards meeting at a fold whose one-square shift along it is a
+   translation of the rig).
 
 Pixels: x right, y down; 3D in mm in the rig frame {W}.
 """
@@ -30,7 +36,8 @@ from dimenet.runtime.errors import CalibrationError, IdentificationError, InputE
 from dimenet.runtime.formats.rig import Rig
 from dimenet.runtime.geometry import k_matrix, least_squares, project, reprojection_errors, solve_pnp_start
 from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
-from dimenet.runtime.ingest.detection import Detection, grid_symmetries
+from dimenet.runtime.ingest.detection import Detection
+from dimenet.runtime.ingest.grid import placements
 
 ROUGH_FOCAL = 0.75  # rough focal length / the image's longer side: a phone's main camera (≈ 26 mm equivalent)
 TOP_N = 4  # labellings refitted with a free K
@@ -58,43 +65,43 @@ def rough_k(image_size: tuple[int, int]) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class Options:
-    """The (board, turn) candidates of one detection: ``corners_px`` (C, n, 2) px its corners in each
-    candidate's board order, ``rig_index`` (C, n) the rig corner (row of ``Rig.points()``) of each."""
+class Candidate:
+    """One (board, turn, offset) a detection may be: ``corners_px`` (n, 2) px the detection's corners in the
+    board's corner order, ``rig_index`` (n,) the rig corner (row of ``Rig.points()``) of each."""
 
-    board: np.ndarray  # (C,) rig board index
+    board: int  # rig board index
     corners_px: np.ndarray
     rig_index: np.ndarray
 
 
-def options(detection: Detection, rig: Rig) -> Options:
-    """A detection's candidates: its own board when identified, else every plain board of its pattern
-    under every symmetry of its grid."""
+def candidates(detection: Detection, rig: Rig) -> list[Candidate]:
+    """A detection's candidates: its own board when identified, else every plain board placed in its grid
+    under every quarter turn and offset where it fits (``grid.placements``: 0° and 180° of its own pattern,
+    90° and 270° too for a square one, and more where the grid was grown at a fold)."""
     start = np.r_[0, np.cumsum([b.n_points for b in rig.boards])]
     if detection.board is not None:
-        pairs = [(detection.board, np.arange(len(detection.corners_px)))]
-    else:
-        pairs = [
-            (b, perm)
-            for b, board in enumerate(rig.boards)
-            if board.aruco is None and board.inner_corners == detection.pattern
-            for perm in grid_symmetries(detection.pattern)
-        ]
-    return Options(
-        board=np.array([b for b, _ in pairs]),
-        corners_px=np.stack([detection.corners_px[p] for _, p in pairs]),
-        rig_index=np.stack([start[b] + np.arange(len(p)) for b, p in pairs]),
-    )
+        n = len(detection.corners_px)
+        return [Candidate(detection.board, detection.corners_px, start[detection.board] + np.arange(n))]
+    return [
+        Candidate(b, detection.corners_px[perm], start[b] + np.arange(len(perm)))
+        for b, board in enumerate(rig.boards)
+        if board.aruco is None
+        for perm in placements(detection.grid_shape, board.inner_corners)
+    ]
 
 
 def correspondences(
-    opts: list[Options], labelling: tuple[int, ...], rig_points: np.ndarray, fixed_2d: np.ndarray, fixed_3d: np.ndarray
+    opts: list[list[Candidate]],
+    labelling: tuple[int, ...],
+    rig_points: np.ndarray,
+    fixed_2d: np.ndarray,
+    fixed_3d: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Under a labelling (one candidate index per detection): the found corners plus the fixed points,
     (n, 2) px and (n, 3) mm, and every rig corner's pixel (P, 2) in rig order, NaN where not found."""
     corners = np.full((len(rig_points), 2), np.nan)
     for o, c in zip(opts, labelling):
-        corners[o.rig_index[c]] = o.corners_px[c]
+        corners[o[c].rig_index] = o[c].corners_px
     found = np.isfinite(corners[:, 0])
     return np.concatenate([corners[found], fixed_2d]), np.concatenate([rig_points[found], fixed_3d]), corners
 
@@ -109,44 +116,108 @@ def pnp_rms(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tupl
     return float(np.sqrt(np.mean(err**2))), rvec, tvec
 
 
-def complete(seed: tuple[int, ...], opts: list[Options], predicted_px: np.ndarray) -> tuple[int, ...]:
+def complete(seed: tuple[int, ...], opts: list[list[Candidate]], predicted_px: np.ndarray) -> tuple[int, ...]:
     """The seed's labelling extended to every detection: closest free candidates first, against the rig
     corners ``predicted_px`` (P, 2) px projected from the seed's pose."""
     costs = []
     for r in range(len(seed), len(opts)):
-        o = opts[r]
-        sq = ((o.corners_px - predicted_px[o.rig_index]) ** 2).sum(-1)
-        costs += [(float(c), r, k) for k, c in enumerate(np.sqrt(np.nanmean(sq, axis=1)))]
+        for k, c in enumerate(opts[r]):
+            sq = np.sum((c.corners_px - predicted_px[c.rig_index]) ** 2, axis=1)
+            costs.append((float(np.sqrt(np.nanmean(sq))), r, k))
     chosen = dict(enumerate(seed))
-    used = {int(opts[r].board[c]) for r, c in chosen.items()}
+    used = {opts[r][c].board for r, c in chosen.items()}
     for _, r, k in sorted(costs):
-        if r not in chosen and int(opts[r].board[k]) not in used:
+        if r not in chosen and opts[r][k].board not in used:
             chosen[r] = k
-            used.add(int(opts[r].board[k]))
+            used.add(opts[r][k].board)
     return tuple(chosen[r] for r in range(len(opts)))
 
 
 def refit(
-    points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
+    points_2d: list[np.ndarray], points_3d: list[np.ndarray], K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray
 ) -> tuple[np.ndarray, least_squares.FitResult]:
     """Single-frame calibration (K and pose free, LM from the given start) of B labellings: points_2d
-    (B, n, 2) px, points_3d (B, n, 3) mm. Returns the RMS (B,) px, inf where the points do not span 3D
+    (n_b, 2) px, points_3d (n_b, 3) mm each. Returns the RMS (B,) px, inf where the points do not span 3D
     (K not observable), and the fit (K, pose)."""
-    fit = least_squares.fit(
-        points_2d,
-        points_3d,
-        np.ones(points_2d.shape[:2]),
-        np.broadcast_to(K, (len(rvec), 3, 3)),
-        rvec,
-        tvec,
-        fit_k=True,
-    )
-    err = reprojection_errors(points_2d, points_3d, fit.K, fit.rvec, fit.tvec)
-    rms = np.sqrt(np.mean(err**2, axis=1))
+    n = max(len(p) for p in points_2d)
+    weights = np.array([np.r_[np.ones(len(p)), np.zeros(n - len(p))] for p in points_2d])
+    p2 = np.stack([np.vstack([p, np.zeros((n - len(p), 2))]) for p in points_2d])
+    p3 = np.stack([np.vstack([p, np.zeros((n - len(p), 3))]) for p in points_3d])
+    fit = least_squares.fit(p2, p3, weights, np.broadcast_to(K, (len(rvec), 3, 3)), rvec, tvec, fit_k=True)
+    err = reprojection_errors(p2, p3, fit.K, fit.rvec, fit.tvec)
+    rms = np.sqrt(np.sum(weights * err**2, axis=1) / weights.sum(1))
     return np.where([spans_3d(p, RIG_VIEW_RATIO) for p in points_3d], rms, np.inf), fit
 
 
 _NO_POINTS_2D, _NO_POINTS_3D = np.empty((0, 2)), np.empty((0, 3))  # no fixed correspondences
+
+
+def label(
+    detections: list[Detection],
+    rig: Rig,
+    K_rough: np.ndarray,
+    fixed_2d: np.ndarray = _NO_POINTS_2D,
+    fixed_3d: np.ndarray = _NO_POINTS_3D,
+    refits: int = TOP_N,
+) -> Identification:
+    """The best labelling of the detections with rig boards (see the module doc) and its single-frame fit,
+    with the runner-up's RMS, however close (inf with ``refits`` = 1: only the best PnP labelling refitted).
+    ``fixed_2d`` (m, 2) px and ``fixed_3d`` (m, 3) mm are known correspondences (labelled natural points)
+    used in every fit.
+
+    Raises IdentificationError when no labelling gives a camera pose, CalibrationError when none gives a
+    single-frame K (the points do not span 3D).
+    """
+    all_opts = [candidates(d, rig) for d in detections]
+    order = sorted(range(len(detections)), key=lambda i: (detections[i].board is None, len(all_opts[i])))
+    opts = [all_opts[i] for i in order]
+    n_known = sum(detections[i].board is not None for i in order)
+    n_seed = min(len(opts), max(n_known, 1 if len(fixed_3d) else 2))
+    rig_points = rig.points()
+    scored: dict[tuple[int, ...], tuple[float, np.ndarray, np.ndarray]] = {}
+    for seed in itertools.product(*(range(len(o)) for o in opts[:n_seed])):
+        if len({o[c].board for o, c in zip(opts, seed)}) < n_seed:
+            continue
+        rms, rvec, tvec = pnp_rms(*correspondences(opts[:n_seed], seed, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
+        if not np.isfinite(rms):
+            continue
+        labelling = complete(seed, opts, project(rig_points, K_rough, rvec, tvec))
+        if labelling not in scored:
+            scored[labelling] = pnp_rms(*correspondences(opts, labelling, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
+    best = sorted(scored, key=lambda lab: scored[lab][0])[:refits]
+    if not best:
+        raise IdentificationError("no labelling of the boards found gives a camera pose")
+    p2, p3, corners = zip(*(correspondences(opts, lab, rig_points, fixed_2d, fixed_3d) for lab in best))
+    rms, fit = refit(
+        list(p2),
+        list(p3),
+        K_rough,
+        np.stack([scored[lab][1] for lab in best]),
+        np.stack([scored[lab][2] for lab in best]),
+    )
+    rank = np.argsort(rms)
+    win = int(rank[0])
+    if not np.isfinite(rms[win]):
+        raise CalibrationError("the points found lie (nearly) in one plane: K is not observable from this photo")
+    boards = dict(zip(order, (o[c].board for o, c in zip(opts, best[win]))))
+    return Identification(
+        corners_px=corners[win],
+        boards=tuple(boards[i] for i in range(len(detections))),
+        K=fit.K[win],
+        rvec=fit.rvec[win],
+        tvec=fit.tvec[win],
+        rms_px=float(rms[win]),
+        runner_up_rms_px=float(rms[rank[1]]) if len(rank) > 1 else float("inf"),
+    )
+
+
+def check_unambiguous(found: Identification) -> None:
+    """IdentificationError unless the runner-up labelling leaves at least AMBIGUITY_RATIO times the winner's RMS."""
+    if found.runner_up_rms_px < AMBIGUITY_RATIO * found.rms_px:
+        raise IdentificationError(
+            f"ambiguous board identity: the best labelling leaves {found.rms_px:.2f} px RMS, "
+            f"the next {found.runner_up_rms_px:.2f} px (needs {AMBIGUITY_RATIO:g}x apart)"
+        )
 
 
 def identify(
@@ -156,55 +227,42 @@ def identify(
     fixed_2d: np.ndarray = _NO_POINTS_2D,
     fixed_3d: np.ndarray = _NO_POINTS_3D,
 ) -> Identification:
-    """Label every detection with its rig board (see the module doc). ``fixed_2d`` (m, 2) px and
-    ``fixed_3d`` (m, 3) mm are known correspondences (labelled natural points) used in every fit.
+    """``label``, then ``check_unambiguous``: raises IdentificationError when the labelling is ambiguous or
+    gives no pose, CalibrationError when no labelling gives a single-frame K."""
+    found = label(detections, rig, K_rough, fixed_2d, fixed_3d)
+    check_unambiguous(found)
+    return found
 
-    Raises IdentificationError when the labelling is ambiguous, CalibrationError when no labelling
-    gives a single-frame K (the points do not span 3D).
-    """
-    order = sorted(range(len(detections)), key=lambda i: detections[i].board is None)
-    opts = [options(detections[i], rig) for i in order]
-    n_known = sum(detections[i].board is not None for i in order)
-    n_seed = min(len(opts), max(n_known, 1 if len(fixed_3d) else 2))
-    rig_points = rig.points()
-    scored: dict[tuple[int, ...], tuple[float, np.ndarray, np.ndarray]] = {}
-    for seed in itertools.product(*(range(len(o.board)) for o in opts[:n_seed])):
-        if len({int(o.board[c]) for o, c in zip(opts, seed)}) < n_seed:
-            continue
-        rms, rvec, tvec = pnp_rms(*correspondences(opts[:n_seed], seed, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
-        if not np.isfinite(rms):
-            continue
-        labelling = complete(seed, opts, project(rig_points, K_rough, rvec, tvec))
-        if labelling not in scored:
-            scored[labelling] = pnp_rms(*correspondences(opts, labelling, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
-    best = sorted(scored, key=lambda lab: scored[lab][0])[:TOP_N]
-    if not best:
-        raise IdentificationError("no labelling of the boards found gives a camera pose")
-    p2, p3, corners = zip(*(correspondences(opts, lab, rig_points, fixed_2d, fixed_3d) for lab in best))
-    rms, fit = refit(
-        np.stack(p2),
-        np.stack(p3),
-        K_rough,
-        np.stack([scored[lab][1] for lab in best]),
-        np.stack([scored[lab][2] for lab in best]),
-    )
-    rank = np.argsort(rms)
-    win = int(rank[0])
-    if not np.isfinite(rms[win]):
-        raise CalibrationError("the points found lie (nearly) in one plane: K is not observable from this photo")
-    runner_up = float(rms[rank[1]]) if len(rank) > 1 else float("inf")
-    if runner_up < AMBIGUITY_RATIO * rms[win]:
+
+def upright(options: list[Candidate], rig: Rig) -> Candidate:
+    """Of one board's candidates, the one turned upright in the image: its grid x (the mean of each row's last
+    minus first corner, px) closest to the image's +x, then its first corner highest."""
+
+    def key(c: Candidate) -> tuple[float, float]:
+        g = c.corners_px.reshape(-1, rig.boards[c.board].inner_corners[0], 2)
+        ex = np.nanmean(g[:, -1] - g[:, 0], axis=0)
+        return -float(ex[0] / max(float(np.linalg.norm(ex)), 1e-12)), float(c.corners_px[0, 1])
+
+    return min(options, key=key)
+
+
+def label_planar(detection: Detection, rig: Rig) -> tuple[int, np.ndarray]:
+    """The rig board of a photo's one detection, and every rig corner's pixel (P, 2) in rig order (NaN where
+    not found): a planar frame, whose K one view cannot tell. The detection's own board when identified; else
+    the one plain board it may be, turned upright (``upright``: one plane alone cannot tell a turn, and every
+    turn is a valid pose). Raises IdentificationError when it may be more than one board, or sit at more than
+    one place in its grid (grown at a fold)."""
+    options = candidates(detection, rig)
+    boards = sorted({c.board for c in options})
+    if len(boards) > 1:
+        names = ", ".join(repr(rig.boards[b].name) for b in boards)
+        raise IdentificationError(f"one board alone cannot be told apart: it may be any of {names}")
+    if detection.board is None and detection.grid_shape != detection.pattern:
         raise IdentificationError(
-            f"ambiguous board identity: the best labelling leaves {rms[win]:.2f} px RMS, "
-            f"the next {runner_up:.2f} px (needs {AMBIGUITY_RATIO:g}x apart)"
+            f"the board's grid of {detection.grid_shape[0]}x{detection.grid_shape[1]} corners runs past its "
+            f"{detection.pattern[0]}x{detection.pattern[1]} pattern: one board alone cannot tell where it sits"
         )
-    boards = dict(zip(order, (int(o.board[c]) for o, c in zip(opts, best[win]))))
-    return Identification(
-        corners_px=corners[win],
-        boards=tuple(boards[i] for i in range(len(detections))),
-        K=fit.K[win],
-        rvec=fit.rvec[win],
-        tvec=fit.tvec[win],
-        rms_px=float(rms[win]),
-        runner_up_rms_px=runner_up,
-    )
+    chosen = options[0] if detection.board is not None else upright(options, rig)
+    corners = np.full((rig.n_points, 2), np.nan)
+    corners[chosen.rig_index] = chosen.corners_px
+    return chosen.board, corners

@@ -1,14 +1,16 @@
 """Photos of the rig (and of a natural object with labelled points) -> a ``dimenet-dataset/1`` dataset.
 
-Per photo (``ingest_photo``; in worker processes when ``workers`` > 1): decode it
-(``photo.read_photo``), find the boards at native resolution (``board_detection``), tell them
-apart and fit the photo's single-frame K (``board_identity``); when that camera shows a board in
-view that was not found, the boards are searched again with every fallback detector
-(``detect_boards(thorough=True)``). A photo without labels needs
-MIN_BOARDS boards; a labelled one (scene ``natural``, as the paper's LEGO test) needs
-MIN_BOARDS_NATURAL, its labels giving the rest. A photo that fails, whatever the stage (a size beyond
-the caps of ``photo.check_size``, undecodable, a label outside the image, an OpenCV or numeric error
-in detection or identification), is skipped with the reason in the report; the run goes on.
+Per photo (``ingest_photo``; in worker processes when ``workers`` > 1, results in the photos' order):
+decode it (``photo.read_photo``), find the boards (``detection.detect_boards``), tell them apart and
+fit the photo's single-frame K (``identity``); when that camera shows a board in view that was not
+found, it is looked for again where the camera puts it (``detection.search_predicted``). A photo
+without labels needs ``min_boards`` boards (``default_min_boards``: MIN_BOARDS, or 1 for a one-board
+rig; a photo of one board is a planar frame without K); a labelled one (scene ``natural``, as the
+paper's LEGO test) needs MIN_BOARDS_NATURAL, its labels giving the rest. Each board's outcome (kept,
+dropped and why, not found) is in the result's ``board_lines`` (``outcome``). A photo that fails,
+whatever the stage (a size beyond the caps of ``photo.check_size``, undecodable, a label outside the
+image, an OpenCV or numeric error in detection or identification), is skipped with the reason in the
+report; the run goes on.
 
 Then, in the photos' order, every accepted photo becomes one frame: the rig's corners (rig order,
 NaN where not found), then the object's points (OBJECT.csv order) where labelled. On a rig
@@ -36,16 +38,17 @@ from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, N
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
-from dimenet.runtime.ingest.detection import detect_boards
-from dimenet.runtime.ingest.identity import identify, rough_k
+from dimenet.runtime.ingest.detection import BoardSearch, detect_boards, search_predicted
+from dimenet.runtime.ingest.identity import check_unambiguous, label, label_planar, rough_k
+from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 
 GENERATOR = "dimenet.ingest"
-MIN_BOARDS = 2  # boards a rig photo needs: two planes make K observable from the photo alone
+MIN_BOARDS = 2  # boards a rig photo needs (a rig of 2 or more boards): two planes make K observable from the photo
 MIN_BOARDS_NATURAL = 1  # boards a labelled photo needs (its labelled points add the depth)
 SPLITS = ("auto", "train", "test")
 AUTO_TRAIN_FRACTION = 0.8  # --split auto: share of rig photos in train, by file-name hash
-IN_VIEW_MARGIN_PX = 16.0  # a board is expected in a photo when its corners lie this far inside the image
+IN_VIEW_MARGIN_PX = 4.0  # a board is looked for where the camera puts it when its corners lie this far inside the image
 LABEL_MARGIN = 1.0  # a label may lie this many image sizes beyond the image (a point extrapolated, e.g. hidden)
 # What a photo's failure may raise besides DimenetError: OpenCV's errors and numeric ones (a singular or
 # non-converging linear algebra step, an overflow). Anything else (a bug, KeyboardInterrupt, MemoryError) propagates.
@@ -66,6 +69,7 @@ class PhotoResult:
     rms_px: Optional[float] = None  # reprojection RMS under K
     runner_up_rms_px: Optional[float] = None  # the same under the next-best board labelling
     skipped: Optional[str] = None
+    board_lines: tuple[BoardLine, ...] = ()  # what became of each board (outcome.board_lines)
 
 
 @dataclass(frozen=True)
@@ -104,6 +108,33 @@ def check_labels(labels: ImageLabels, image_size: tuple[int, int], point_ids: tu
         )
 
 
+def points_shortfall(n_points: int) -> str:
+    """A skipped photo's reason when it has fewer than MIN_POINTS points."""
+    return f"{n_points} points found, a frame needs {MIN_POINTS}"
+
+
+def default_min_boards(rig: Rig) -> int:
+    """Boards a rig photo needs unless told: 1 for a one-board rig (planar frames), else MIN_BOARDS."""
+    return min(MIN_BOARDS, len(rig.boards))
+
+
+def find_and_label(gray: np.ndarray, rig: Rig, fixed_2d: np.ndarray, fixed_3d: np.ndarray, search: BoardSearch):
+    """The labelling of the boards found (``identity.label``), after looking again, where its camera puts them,
+    for the boards it shows in view but that were not found (``detection.search_predicted``; the camera of
+    the best labelling is good enough to say where, even before it is known to be unambiguous). Returns the
+    final labelling, the search with the boards found again, and which rig boards are in view (B,)."""
+    h, w = gray.shape
+    first = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d, refits=1)
+    in_view = boards_in_view(rig, first.K, first.rvec, first.tvec, (w, h))
+    missing = sorted(set(np.flatnonzero(in_view)) - set(first.boards))
+    if missing:
+        predicted = {int(b): project(rig.boards[b].points(), first.K, first.rvec, first.tvec) for b in missing}
+        again = search_predicted(gray, rig, search.detections, predicted)
+        search = BoardSearch(search.detections + again.detections, search.dropped + again.dropped)
+    found = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d)
+    return found, search, boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h))
+
+
 def ingest_photo(
     path: Path,
     rig: Rig,
@@ -111,11 +142,15 @@ def ingest_photo(
     object_points_mm: np.ndarray,
     max_megapixels: float = MAX_MEGAPIXELS,
     point_ids: tuple[str, ...] = (),
+    min_boards: Optional[int] = None,
 ) -> PhotoResult:
-    """Decode, detect, identify and fit one photo (pure: reads only ``path``). Never raises for a bad photo:
-    any of PHOTO_FAILURES becomes the result's ``skipped`` reason."""
+    """Decode, detect, identify and fit one photo (pure: reads only ``path``). A rig photo needs ``min_boards``
+    boards (``default_min_boards`` when None), a labelled one MIN_BOARDS_NATURAL; a rig photo of one board is
+    a planar frame (no K). Never raises for a bad photo: any of PHOTO_FAILURES becomes the result's
+    ``skipped`` reason."""
     result = PhotoResult(name=path.name, labels=labels)
     stage = "decoding"
+    search = BoardSearch(())
     try:
         photo = read_photo(path, max_megapixels)
         h, w = photo.gray.shape
@@ -123,26 +158,29 @@ def ingest_photo(
         if labels is not None:
             check_labels(labels, (w, h), point_ids)
         stage = "finding the boards"
-        detections = detect_boards(photo.gray, rig)
-        need = MIN_BOARDS if labels is None else MIN_BOARDS_NATURAL
-        if len(detections) < need:
+        search = detect_boards(photo.gray, rig)
+        need = (default_min_boards(rig) if min_boards is None else min_boards) if labels is None else MIN_BOARDS_NATURAL
+        if len(search.detections) < need:
             kind = "a rig photo" if labels is None else "a labelled photo"
-            return replace(result, skipped=f"{len(detections)} board(s) found, {kind} needs {need}")
+            return replace(result, skipped=shortfall(search, need, kind), board_lines=board_lines(rig, search))
+        stage = "identifying the boards"
+        if labels is None and len(search.detections) == 1:
+            board, corners = label_planar(search.detections[0], rig)
+            lines = board_lines(rig, search, (board,))
+            n_points = int(np.isfinite(corners[:, 0]).sum())
+            if n_points < MIN_POINTS:
+                return replace(result, skipped=points_shortfall(n_points), board_lines=lines)
+            return replace(result, corners_px=corners, boards=(board,), board_lines=lines)
         fixed_2d = np.empty((0, 2)) if labels is None else labels.points_px
         fixed_3d = np.empty((0, 3)) if labels is None else object_points_mm[labels.index]
-        stage = "identifying the boards"
-        found = identify(detections, rig, rough_k((w, h)), fixed_2d, fixed_3d)
-        missing = set(np.flatnonzero(boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h)))) - set(found.boards)
-        if missing:  # the rig says a board is in view: search again with every fallback detector
-            stage = "searching the boards again"
-            detections = detect_boards(photo.gray, rig, thorough=True)
-            stage = "identifying the boards"
-            found = identify(detections, rig, rough_k((w, h)), fixed_2d, fixed_3d)
+        found, search, in_view = find_and_label(photo.gray, rig, fixed_2d, fixed_3d, search)
+        check_unambiguous(found)
         n_points = int(np.isfinite(found.corners_px[:, 0]).sum()) + len(fixed_3d)
     except PHOTO_FAILURES as exc:
-        return replace(result, skipped=failure_reason(exc, stage))
+        return replace(result, skipped=failure_reason(exc, stage), board_lines=board_lines(rig, search))
+    lines = board_lines(rig, search, found.boards, in_view)
     if n_points < MIN_POINTS:
-        return replace(result, skipped=f"{n_points} points found, a frame needs {MIN_POINTS}")
+        return replace(result, skipped=points_shortfall(n_points), board_lines=lines)
     return replace(
         result,
         corners_px=found.corners_px,
@@ -150,6 +188,7 @@ def ingest_photo(
         K=found.K,
         rms_px=found.rms_px,
         runner_up_rms_px=found.runner_up_rms_px,
+        board_lines=lines,
     )
 
 
@@ -190,6 +229,16 @@ def frame_split(result: PhotoResult, split: str) -> str:
     return "test" if result.labels is not None else auto_split(result.name)
 
 
+def worker_context() -> multiprocessing.context.BaseContext:
+    """How worker processes start: from a fork server that has imported this module (0.15 s for two workers,
+    no OpenCV thread forked; POSIX), else spawned (0.5 s, each importing it on its first photo)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
 def _results(
     paths: list[Path],
     rig: Rig,
@@ -197,15 +246,16 @@ def _results(
     obj: Optional[NaturalObject],
     workers: int,
     max_megapixels: float,
+    min_boards: int,
 ) -> Iterator[PhotoResult]:
     object_points = np.empty((0, 3)) if obj is None else obj.points_mm
     point_ids = () if obj is None else obj.point_ids
-    jobs = ([p, rig, labels.get(p.name), object_points, max_megapixels, point_ids] for p in paths)
+    jobs = ([p, rig, labels.get(p.name), object_points, max_megapixels, point_ids, min_boards] for p in paths)
     if workers == 1:
         yield from (ingest_photo(*job) for job in jobs)
         return
     with ProcessPoolExecutor(
-        workers, mp_context=multiprocessing.get_context("spawn"), initializer=cv2.setNumThreads, initargs=(1,)
+        workers, mp_context=worker_context(), initializer=cv2.setNumThreads, initargs=(1,)
     ) as pool:
         yield from pool.map(ingest_photo, *zip(*jobs))
 
@@ -303,6 +353,14 @@ def assemble(results: list[PhotoResult], rig: Rig, obj: Optional[NaturalObject],
     return Ingestion(dataset=dataset, results=tuple(results), splits=splits)
 
 
+def check_min_boards(min_boards: int, rig: Rig) -> None:
+    """IngestError unless 1 <= ``min_boards`` <= the rig's number of boards."""
+    if isinstance(min_boards, bool) or not isinstance(min_boards, int) or not 1 <= min_boards <= len(rig.boards):
+        raise IngestError(
+            f"min_boards must be an integer from 1 to the rig's {len(rig.boards)} boards, got {min_boards!r}"
+        )
+
+
 def ingest(
     paths: Iterable[str | Path],
     rig: Rig,
@@ -313,8 +371,10 @@ def ingest(
     workers: int = 1,
     progress: Callable[[Iterator[PhotoResult]], Iterable[PhotoResult]] = iter,
     max_megapixels: float = MAX_MEGAPIXELS,
+    min_boards: Optional[int] = None,
 ) -> Ingestion:
-    """Ingest photos of ``rig`` (see the module doc); ``labels`` by photo file name need ``obj``.
+    """Ingest photos of ``rig`` (see the module doc); ``labels`` by photo file name need ``obj``. A rig photo
+    needs ``min_boards`` boards (``default_min_boards(rig)`` when None: 1 for a one-board rig, else 2).
 
     ``progress`` wraps the iterator of per-photo results (e.g. ``dimenet.runtime.cli.progress.progress``).
     Raises IngestError / LabelsError for bad input (before any photo is read); a photo that cannot be used
@@ -327,8 +387,23 @@ def ingest(
     if obj is not None:
         check_object(obj)
     check_inputs(paths, labels, split, workers, max_megapixels)
-    results = list(progress(_results(paths, rig, labels, obj, workers, max_megapixels)))
+    min_boards = default_min_boards(rig) if min_boards is None else min_boards
+    check_min_boards(min_boards, rig)
+    results = list(progress(_results(paths, rig, labels, obj, workers, max_megapixels, min_boards)))
     return assemble(results, rig, obj, split)
+
+
+def board_line_entry(line: BoardLine, rig: Rig, finite: Callable[[Optional[float]], Optional[float]]) -> dict:
+    """One board's line of the JSON report."""
+    return {
+        "board": None if line.board is None else rig.boards[line.board].name,
+        "pattern": list(line.pattern),
+        "status": line.status,
+        "found_by": line.found_by,
+        "residual_px": finite(line.residual_px),
+        "tolerance_px": finite(line.tolerance_px),
+        "why": line.why,
+    }
 
 
 def report(ingestion: Ingestion, rig: Rig) -> dict:
@@ -353,6 +428,7 @@ def report(ingestion: Ingestion, rig: Rig) -> dict:
                 "runner_up_rms_px": finite(r.runner_up_rms_px),
                 "exif_orientation": r.exif_orientation,
                 "skipped": r.skipped,
+                "board_lines": [board_line_entry(line, rig, finite) for line in r.board_lines],
             }
         )
     ds = ingestion.dataset

@@ -20,7 +20,7 @@ the true K (px), the pose {W}->{C}, every rig corner's true pixel and whether it
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Optional
@@ -169,19 +169,28 @@ def covered_boards(
     return np.asarray(hit)[rig.board_of_point]
 
 
+def view_rule(rig: Rig, min_boards: int) -> Callable[[Scene, np.ndarray], bool]:
+    """When a shot's view is usable: a one-board rig's board seen whole (a planar view: one printed
+    checkerboard photographed from many views); else the simulator's rig view (``rig_view_ok``: >= 2
+    boards spanning 3D) with at least ``min_boards`` boards seen."""
+    if len(rig.boards) == 1:
+        return lambda scene, seen: board_count(rig, seen) == 1
+    return lambda scene, seen: rig_view_ok(scene, seen) and board_count(rig, seen) >= min_boards
+
+
 def plan_shot(rig: Rig, profile: DeviceProfile, rng: np.random.Generator, *, upside_down: bool, covered: bool) -> Shot:
     """Pose, K and truth of one photo: the simulator's hand-held shot (``simulator.shoot``) of the rig's papers.
 
-    A covered photo puts an occluder over part of one of >= 3 boards seen; every board whose printed
-    pattern the occluder touches is lost; the photo keeps >= 2 boards seen, spanning 3D.
+    A covered photo (of a rig of >= 3 boards; on a smaller rig it is not covered) puts an occluder over
+    part of one of >= 3 boards seen; every board whose printed pattern the occluder touches is lost; the
+    photo keeps >= 2 boards seen, spanning 3D.
     """
     scene = paper_scene(rig)
-    min_boards = 3 if covered else 2
+    covered = covered and len(rig.boards) >= 3
+    usable = view_rule(rig, 3 if covered else 2)
     pose = upside_down_pose if upside_down else sample_pose
     for _ in range(MAX_POSE_ATTEMPTS):
-        K, rvec, tvec, px, seen = shoot(
-            scene, profile, rng, lambda sc, s: rig_view_ok(sc, s) and board_count(rig, s) >= min_boards, pose
-        )
+        K, rvec, tvec, px, seen = shoot(scene, profile, rng, usable, pose)
         if not covered:
             return Shot(K, rvec, tvec, px, seen, upside_down, -1, None)
         board = int(rng.choice(np.unique(rig.board_of_point[seen])))

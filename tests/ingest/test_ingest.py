@@ -90,6 +90,15 @@ def test_upside_down_and_covered_photos_keep_their_identities(rendered, ingested
         assert not valid[truth.covered_board[photo]].any()
 
 
+def test_worker_processes_give_the_same_results_in_the_photos_order(rendered, ingested):
+    folder, truth = rendered
+    photos = [folder / str(f) for f in truth.frame_id[:4]][::-1]  # not in file order
+    one, two = ingest(photos, paper_rig(), workers=1), ingest(photos, paper_rig(), workers=2)
+    assert [r.name for r in two.results] == [p.name for p in photos]
+    assert report(one, paper_rig()) == report(two, paper_rig())
+    np.testing.assert_array_equal(one.dataset.points_2d, two.dataset.points_2d)
+
+
 def test_k_star_of_the_ingested_dataset_is_the_renderers_k(rendered, ingested):
     folder, truth = rendered
     ds = ingested.dataset
@@ -291,7 +300,7 @@ def test_a_board_cut_by_the_image_edge_is_dropped_not_faked(rendered):
     corners = truth.corners_px[0].reshape(4, 80, 2)
     cut = int(np.median(corners[0, :, 0]))  # through the middle of board 0's corners
     crop = np.ascontiguousarray(gray[:, cut:])
-    detections = detect_boards(crop, paper_rig())
+    detections = detect_boards(crop, paper_rig()).detections
     truth_px = corners - [cut, 0]
     assert len(detections) >= 2
     for d in detections:  # every detection is a whole board, exactly where a true board lies (either way round)
@@ -365,7 +374,7 @@ def test_charuco_boards_are_identified_by_their_markers_even_partly_hidden(charu
     hull = cv2.convexHull(np.float32(true_px[hidden])).astype(np.int32)
     cv2.fillConvexPoly(gray, hull, 90)
     cv2.polylines(gray, [hull], True, 90, thickness=int(0.6 * np.linalg.norm(true_px[1] - true_px[0])))
-    partial = {d.board: d for d in detect_boards(gray, rig)}[b]
+    partial = {d.board: d for d in detect_boards(gray, rig).detections}[b]
     found = np.isfinite(partial.corners_px[:, 0])
     assert 10 < found.sum() < 80 and not (found & hidden).any()  # the markers still seen vouch for their corners
     assert np.abs(partial.corners_px[found] - true_px[found]).max() < 0.5

@@ -204,10 +204,10 @@ def test_pnm_headers_and_formats_without_a_size_check(tmp_path):
     ],
 )
 def test_a_numeric_failure_in_one_photo_skips_that_photo(good, monkeypatch, error, words):
-    def identify(*args, **kwargs):
+    def label(*args, **kwargs):
         raise error
 
-    monkeypatch.setattr(pipeline, "identify", identify)
+    monkeypatch.setattr(pipeline, "label", label)
     result = ingest([good], paper_rig())
     assert result.dataset is None and words in result.results[0].skipped
 
@@ -217,10 +217,10 @@ def test_an_opencv_error_in_detection_skips_that_photo_and_others_go_on(good, tm
     copy.write_bytes(good.read_bytes())
     real = pipeline.detect_boards
 
-    def detect(gray, rig, thorough=False):  # the first photo goes through as if it were 5000x1 px
+    def detect(gray, rig):  # the first photo goes through as if it were 5000x1 px
         gray = np.zeros((1, 5000), np.uint8) if detect.calls == 0 else gray
         detect.calls += 1
-        return real(gray, rig, thorough)
+        return real(gray, rig)
 
     detect.calls = 0
     monkeypatch.setattr(pipeline, "detect_boards", detect)

@@ -7,15 +7,16 @@ import json
 import time
 from pathlib import Path
 
-from dimenet.runtime.cli.main import CliError, Command, finite_float_in, nonempty_path, parallelism
+from dimenet.runtime.cli.main import CliError, Command, finite_float_in, integer_in, nonempty_path, parallelism
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.rig import rig_from_argument
+from dimenet.runtime.ingest.outcome import DROPPED, IDENTIFIED, NOT_FOUND
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
-from dimenet.runtime.ingest.pipeline import SPLITS, check_object, ingest, report
+from dimenet.runtime.ingest.pipeline import MIN_BOARDS, SPLITS, check_object, ingest, report
 
 OPENCV_MAX_MEGAPIXELS = 1000.0  # OpenCV refuses to decode more than 2**30 px (1073.7 MP) whatever the flag
 
@@ -41,7 +42,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--object", metavar="OBJECT.csv", help="the natural object's points in the rig frame: point_id,X_mm,Y_mm,Z_mm"
     )
-    p.add_argument("--workers", type=parallelism, default=1, help="photos processed in parallel (processes; default 1)")
+    p.add_argument(
+        "--workers",
+        type=parallelism,
+        default=1,
+        help="photos processed in parallel (processes; results in the photos' order whatever N; default 1)",
+    )
+    p.add_argument(
+        "--min-boards",
+        type=integer_in(1),
+        metavar="N",
+        help=f"boards a rig photo needs, at most the rig's (default: 1 for a one-board rig, whose photos are planar "
+        f"frames, else {MIN_BOARDS}); a labelled photo needs 1",
+    )
     p.add_argument(
         "--max-megapixels",
         type=finite_float_in(0.0, OPENCV_MAX_MEGAPIXELS, above=True),
@@ -58,15 +71,41 @@ def report_path(out: str | Path) -> Path:
     return out.with_name(f"{out.stem}.report.json")
 
 
+def board_text(line: dict) -> str:
+    """One board's line of the printed report (indented under its photo)."""
+    name = line["board"] or f"{line['pattern'][0]}x{line['pattern'][1]} board"
+    if line["status"] == NOT_FOUND:
+        return f"    {name}: not found" + (f" ({line['why']})" if line["why"] else "")
+    fit = (
+        ""
+        if line["residual_px"] is None
+        else f"; residual {line['residual_px']:.1f} px, tolerance {line['tolerance_px']:.1f} px"
+    )
+    if line["status"] == DROPPED:
+        return f"    {name}: found ({line['found_by']}), dropped: {line['why']}"
+    return f"    {name}: {line['status']} ({line['found_by']}{fit})"
+
+
+def printed_board_lines(p: dict) -> list[str]:
+    """The board lines printed under a photo: all of a skipped photo's; an accepted photo's boards dropped and
+    in view but not found."""
+    lines = p["board_lines"]
+    if p["skipped"] is None:
+        lines = [b for b in lines if b["status"] == DROPPED or (b["status"] == NOT_FOUND and b["why"] != "not in view")]
+    return [board_text(b) for b in lines if p["skipped"] is not None or b["status"] != IDENTIFIED]
+
+
 def photo_line(p: dict) -> str:
-    """One photo's line of the printed report."""
+    """One photo's line of the printed report, then its board lines (``printed_board_lines``)."""
+    boards = "".join("\n" + line for line in printed_board_lines(p))
     if p["skipped"] is not None:
-        return f"{p['photo']}  skipped: {p['skipped']}"
+        return f"{p['photo']}  skipped: {p['skipped']}{boards}"
     labels = f" + {p['labels']} labels" if p["labels"] else ""
     exif = f"  (EXIF orientation {p['exif_orientation']} not applied)" if p["exif_orientation"] != 1 else ""
+    fit = "  planar (one board: no K)" if p["K_px"] is None else f"  RMS {p['rms_px']:.3f} px"
     return (
         f"{p['photo']}  {p['split']}  {len(p['boards'])} boards ({', '.join(p['boards'])})  {p['corners']} corners"
-        f"{labels}  RMS {p['rms_px']:.3f} px{exif}"
+        f"{labels}{fit}{exif}{boards}"
     )
 
 
@@ -88,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         progress=lambda items: progress(items, total=len(args.photos), desc="ingest"),
         max_megapixels=args.max_megapixels,
+        min_boards=args.min_boards,
     )
     seconds = time.monotonic() - start
     rep = report(result, rig)
