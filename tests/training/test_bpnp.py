@@ -113,8 +113,15 @@ def test_gradient_near_zero_and_half_turn_rotations():
     pose = _pose(x, X, K, w)
     exact = _implicit_jacobians(x, X, K, w)[0]
     for b in range(2):
-        r_cv, _ = _opencv_pose(x[b].numpy(), X[b].numpy(), K[b].numpy())
-        assert _rotation_angle(pose[b, :3].numpy(), r_cv) <= 1e-8
+        r_cv, t_cv = _opencv_pose(x[b].numpy(), X[b].numpy(), K[b].numpy())
+        # OpenCV's LM (Rodrigues parameters) stops short near a half-turn: on OpenCV 5.1 it ends
+        # 2e-8 rad from ours with a 5e-10 px^2 larger cost, so: the same pose, and ours no worse.
+        assert _rotation_angle(pose[b, :3].numpy(), r_cv) <= 1e-6
+        cost, cost_cv = (
+            (g.reprojection_errors(x[b].numpy(), X[b].numpy(), K[b].numpy(), r, t) ** 2).sum()
+            for r, t in ((pose[b, :3].numpy(), pose[b, 3:].numpy()), (r_cv, t_cv))
+        )
+        assert cost <= cost_cv + 1e-12
         fd = _fd_jacobian(x, X, K, w, 0, b, range(20), 1e-3)
         assert _relative_error(fd, exact[b].reshape(6, -1)) <= GRAD_RTOL
     assert np.linalg.norm(pose[1, :3]) > np.pi - 2e-4  # the half-turn branch of the log was used
