@@ -13,10 +13,11 @@ the others (``outliers``: a wrong point, a poisoned frame) stays out of the mean
 frame cannot move K_c; ``Calibration.outliers`` says which. When no train frame gives K (a set
 of single-board views), K_c is their joint multi-view fit (``evaluation.multiview``).
 
-Lens distortion: with a ``distortion`` model, the lens is fitted jointly over the train frames
-(K_c with one distortion, ``multiview.joint_fit``) and every frame is undistorted with it before
-its K*; a dataset that carries its lens (``dist_coeffs`` about ``dist_K``) is undistorted with
-that. K* and K_c are then the pinhole camera's, and ``Calibration`` carries the lens.
+Lens distortion: with a ``distortion`` model, one lens is fitted over the train frames (with each
+rig frame's own K, ``geometry.lens_bundle``; with one K for single-board views,
+``multiview.joint_fit``) and every frame is undistorted with it before its K*; a dataset that
+carries its lens (``dist_coeffs`` about ``dist_K``) is undistorted with that. K* and K_c are
+then the pinhole camera's, and ``Calibration`` carries the lens.
 """
 
 from __future__ import annotations
@@ -28,13 +29,14 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.errors import CalibrationError, CameraError, DatasetError
-from dimenet.runtime.evaluation.multiview import joint_fit
+from dimenet.runtime.evaluation.multiview import distortion_coefficients, joint_fit
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.geometry.least_squares import dlt_starts, fit
+from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
 from dimenet.runtime.rectify.camera import Camera, checked_camera, checked_dist_coeffs
 
 CALIBRATION_KEYS = ("K_c", "K_star", "rvec", "tvec", "e_star")
@@ -120,18 +122,36 @@ def _pinhole(
     dataset: Dataset, distortion: str
 ) -> tuple[Dataset, Optional[np.ndarray], Optional[np.ndarray], Optional[np.ndarray]]:
     """The dataset's points in the pinhole camera, the lens (dist_coeffs, dist_K) they were
-    undistorted with, and the joint fit's K (with a ``distortion`` model), else None. The joint
-    fit holds one K for all train frames: under OIS it takes part of the frames' K spread into
-    the lens (METHOD.md, "Lens distortion"), so it is for captures without OIS motion."""
+    undistorted with, and the joint fit's K when the lens came from one, else None.
+
+    With a ``distortion`` model the lens is fitted over the train frames: where frames give K*
+    (rig views), by the bundle adjustment of their own K and pose with one shared lens about the
+    mean of their pinhole K* (``geometry.lens_bundle``: OIS moves K, the lens stays), the K*
+    outliers left out; where none does (single-board views), by the joint fit of one K and the
+    lens (``multiview.joint_fit``, Zhang's), which holds K fixed over the views (METHOD.md,
+    "Lens distortion")."""
     if distortion == "none":
         if dataset.dist_coeffs is None:
             return dataset, None, None, None
         return dataset.undistorted(), dataset.dist_coeffs, dataset.dist_K, None
+    n_coeffs = distortion_coefficients(distortion)
     train = dataset.select(dataset.frames_in("train"))
-    K_star = oracle_fit(train.points_2d, train.points_3d, train.valid)[0]
-    finite = np.all(np.isfinite(k_params(K_star)), axis=1)
+    K_star, rvec, tvec, e_star, _ = oracle_fit(train.points_2d, train.points_3d, train.valid)
+    gives_k = np.all(np.isfinite(k_params(K_star)), axis=1)
+    if gives_k.any():
+        rows = np.flatnonzero(gives_k)
+        rows = rows[~outliers(K_star[rows], e_star[rows])]
+        if len(rows) == 0:
+            raise CalibrationError("every train frame's K* is an outlier: no lens fit")
+        points = tuple(a[rows] for a in (train.points_2d, train.points_3d, train.valid))
+        lens = fit_lens_bundle(*points, K_star[rows], rvec[rows], tvec[rows], prior_k(K_star[rows]), np.zeros(n_coeffs))
+        # Stated about the pinhole K*'s mean, which the lens biased, the lens is then refitted
+        # about the mean of the bundle's own K: K_c (METHOD.md, "Lens distortion").
+        K_lens = prior_k(lens.K)
+        lens = fit_lens_bundle(*points, lens.K, lens.rvec, lens.tvec, K_lens, lens.dist_coeffs)
+        return _undistorted(dataset, K_lens, lens.dist_coeffs), lens.dist_coeffs, K_lens, None
     views = _views(train, np.ones(train.n_frames, bool))
-    lens = joint_fit(views, dataset.image_size, distortion, prior_k(K_star[finite]) if finite.any() else None)
+    lens = joint_fit(views, dataset.image_size, distortion, prior_k(K_star[gives_k]) if gives_k.any() else None)
     return _undistorted(dataset, lens.K, lens.dist_coeffs), lens.dist_coeffs, lens.K, lens.K
 
 

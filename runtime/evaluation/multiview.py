@@ -52,13 +52,19 @@ def _plane_coordinates(points_3d: np.ndarray) -> np.ndarray:
     return np.c_[inplane, np.zeros(len(points_3d))]
 
 
+def distortion_coefficients(model: str) -> int:
+    """How many of OpenCV's coefficients ``model`` fits (0 for ``none``); CalibrationError if unknown."""
+    if model not in DISTORTION_MODELS:
+        raise CalibrationError(f"distortion: unknown model {model!r} (known: {', '.join(DISTORTION_MODELS)})")
+    return DISTORTION_MODELS[model][1]
+
+
 def joint_fit(frames: list, image_size, model: str = "none", K_guess: Optional[np.ndarray] = None) -> JointFit:
     """K_c and one distortion of ``model`` from ``frames``: (points_2d (N, 2) px, points_3d (N, 3)
     mm) pairs, one per view, each with >= MIN_POINTS points; image_size (width, height) px.
     K_guess (3, 3) px starts the fit when no view is planar. CalibrationError when nothing can."""
-    if model not in DISTORTION_MODELS:
-        raise CalibrationError(f"distortion: unknown model {model!r} (known: {', '.join(DISTORTION_MODELS)})")
-    flags, n_coeffs = DISTORTION_MODELS[model]
+    n_coeffs = distortion_coefficients(model)
+    flags = DISTORTION_MODELS[model][0]
     views = [(np.asarray(x, np.float64), np.asarray(X, np.float64)) for x, X in frames if len(x) >= MIN_POINTS]
     if not views:
         raise CalibrationError(f"a joint fit needs views of >= {MIN_POINTS} points, got none")

@@ -24,6 +24,14 @@ _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, UNDISTORT_ITERATIO
 _undistort = getattr(cv2, "undistortPointsIter", None) or cv2.undistortPoints
 
 
+def _rays(points_2d: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N, 2) pinhole px under K (3, 3) -> (N, 3) their rays (a, b, 1) in K's normalised coordinates."""
+    rays = np.ones((len(points_2d), 3))
+    rays[:, 0] = (points_2d[:, 0] - K[0, 2]) / K[0, 0]
+    rays[:, 1] = (points_2d[:, 1] - K[1, 2]) / K[1, 1]
+    return rays
+
+
 def undistort_points(points_2d: np.ndarray, K: np.ndarray, dist_coeffs: np.ndarray) -> np.ndarray:
     """(..., 2) distorted px -> (..., 2) pinhole px under the same K (3, 3) px; NaN stays NaN."""
     points_2d = np.asarray(points_2d, dtype=np.float64)
@@ -44,13 +52,23 @@ def distort_points(points_2d: np.ndarray, K: np.ndarray, dist_coeffs: np.ndarray
     finite = np.all(np.isfinite(flat), axis=1)
     out = np.full_like(flat, np.nan)
     if finite.any():
-        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-        rays = np.ones((int(finite.sum()), 3))
-        rays[:, 0] = (flat[finite, 0] - cx) / fx
-        rays[:, 1] = (flat[finite, 1] - cy) / fy
-        projected, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, np.asarray(dist_coeffs, np.float64))
+        projected, _ = cv2.projectPoints(
+            _rays(flat[finite], K), np.zeros(3), np.zeros(3), K, np.asarray(dist_coeffs, np.float64)
+        )
         out[finite] = projected.reshape(-1, 2)
     return out.reshape(points_2d.shape)
+
+
+def distort_points_with_jacobians(points_2d: np.ndarray, K: np.ndarray, dist_coeffs: np.ndarray) -> tuple:
+    """(N, 2) finite pinhole px under K (3, 3) px -> the distorted px (N, 2), their derivatives
+    (N, 2, 2) by the pinhole px and (N, 2, n) by the n ``dist_coeffs`` (OpenCV's analytic ones)."""
+    coeffs = np.asarray(dist_coeffs, np.float64)
+    projected, J = cv2.projectPoints(_rays(points_2d, K), np.zeros(3), np.zeros(3), K, coeffs)
+    J = J.reshape(len(points_2d), 2, -1)
+    # Columns: rvec (3), tvec (3), f (2), c (2), the coefficients. A ray (a, b, 1) moved by tvec
+    # (dx, dy, 0) is the ray (a + dx, b + dy, 1): d/d tvec_x,y are d/da, d/db, and a = (u - cx) / fx.
+    by_pixel = J[..., 3:5] / np.array([K[0, 0], K[1, 1]])
+    return projected.reshape(-1, 2), by_pixel, J[..., 10 : 10 + len(coeffs)]
 
 
 def mean_distorted_error(points_2d, points_3d, valid, K, rvec, tvec, K_lens, dist_coeffs) -> np.ndarray:

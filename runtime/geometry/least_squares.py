@@ -3,7 +3,9 @@
 The one LM core of the runtime: the PnP optimum under a fixed K (the metric e(K)), the joint
 (K*, pose) calibration (the oracle e*) and self-calibration. Mode map's one Gauss-Newton step
 uses this core's Jacobian in closed form (``normal_equations``); the training's BPnP layer
-(torch, dimenet.training.bpnp) solves the same PnP problem with its exact Hessian. Frames are solved
+(torch, dimenet.training.bpnp) solves the same PnP problem with its exact Hessian; the lens bundle
+adjustment (``lens_bundle``) chains this core's residuals and Jacobian with a lens, its frames
+coupled by the lens's coefficients and so stepped together (a Schur complement). Frames are solved
 together with analytic Jacobians and batched 6x6 or 10x10 normal equations; each frame
 keeps its own damping. Points with weight 0 have no effect (their values are ignored).
 
@@ -34,7 +36,9 @@ class FitResult:
     iterations: int
 
 
-def _residuals(points_2d, points_3d, sqrt_w, kp, R, t):
+def residuals(points_2d, points_3d, sqrt_w, kp, R, t):
+    """Weighted residuals (B, N, 2) px of pi(kp, R X + t) - x, and X_C (B, N, 3) mm, its depth z
+    (clamped at MIN_DEPTH_MM) and normalised coordinates xn, yn (B, N) for ``jacobian``."""
     Xc = np.einsum("bij,bnj->bni", R, points_3d) + t[:, None, :]
     z = np.maximum(Xc[..., 2], MIN_DEPTH_MM)
     xn, yn = Xc[..., 0] / z, Xc[..., 1] / z
@@ -44,7 +48,7 @@ def _residuals(points_2d, points_3d, sqrt_w, kp, R, t):
     return r, Xc, z, xn, yn
 
 
-def _jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
+def jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
     """(B, N, 2, 6 or 10) Jacobian of the weighted residuals: [rotation, translation, (K)]."""
     B, N = z.shape
     fx, fy = kp[:, None, 0], kp[:, None, 1]
@@ -88,12 +92,12 @@ def fit(
     B = len(p2)
     n_par = 10 if fit_k else 6
     lam = np.full(B, 1e-3)
-    r, Xc, z, xn, yn = _residuals(p2, p3, sqrt_w, kp, R, t)
+    r, Xc, z, xn, yn = residuals(p2, p3, sqrt_w, kp, R, t)
     cost = (r**2).sum((1, 2))
     active = np.ones(B, bool)
     it = 0
     for it in range(1, max_iterations + 1):  # noqa: B007 (it is the count reported)
-        J = _jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
+        J = jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
         H = np.einsum("bki,bkj->bij", J, J)
         g = np.einsum("bki,bk->bi", J, r.reshape(B, -1))
         diag = np.einsum("bii->bi", H)
@@ -103,7 +107,7 @@ def fit(
         R_new = rvec_to_matrix(step[:, :3]) @ R
         t_new = t + step[:, 3:6]
         kp_new = kp + step[:, 6:10] if fit_k else kp
-        r_new, Xc_new, z_new, xn_new, yn_new = _residuals(p2, p3, sqrt_w, kp_new, R_new, t_new)
+        r_new, Xc_new, z_new, xn_new, yn_new = residuals(p2, p3, sqrt_w, kp_new, R_new, t_new)
         cost_new = (r_new**2).sum((1, 2))
         better = (cost_new < cost) & active
         rel_gain = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)

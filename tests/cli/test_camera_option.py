@@ -152,7 +152,7 @@ def test_a_lens_goes_from_the_dataset_through_calibrate_to_a_camera_file_and_rec
     assert main(["rectify", str(tmp_path / "lens.npz"), "--json"]) == 0  # the dataset's own lens and K_c
     own = json.loads(capsys.readouterr().out)
     assert with_file["summary"]["avg_e_px"] < 1.0 and own["summary"]["avg_e_px"] < 1.0  # the lens is undone
-    # Fitted jointly instead: the lens is the fit's, said so.
+    # Fitted instead: the lens is the fit's, said so.
     assert main([*argv, "--distortion", "opencv5", "--camera-out", str(tmp_path / "fit.json")]) == 0
     assert "lens (fitted, opencv5)" in capsys.readouterr().out
     assert len(read_camera(tmp_path / "fit.json").dist_coeffs) == 5

@@ -93,7 +93,7 @@ def test_a_distorted_rig_dataset_calibrates_under_its_lens(tmp_path):
     assert np.nanmean(np.abs(k_params(own.K_star) - k_params(lens.K_true)), 0).max() < 1.5
     ignored = calibrate_dataset(lens.undistorted())
     assert own.e_star.mean() == pytest.approx(ignored.e_star.mean(), rel=1e-6)
-    # Fitted jointly (one K for all frames), the lens removes most of the distortion's error.
+    # Fitted (each frame's own K, one lens), the lens removes most of the distortion's error.
     fitted = calibrate_dataset(lens, distortion="opencv4")
     as_pinhole = calibrate_dataset(_without_lens(lens))
     assert fitted.e_star.mean() < 0.5 * as_pinhole.e_star.mean()

@@ -49,8 +49,8 @@ def test_map_normal_equations_are_the_lm_cores_jacobian_in_the_left_pose_paramet
     rng = np.random.default_rng(7)
     x, X, K, rvec, tvec = random_frames(rng, frames=1, points=40, noise_px=0.8)
     R, k, sqrt_w = g.rvec_to_matrix(rvec), g.k_params(K), np.ones(x.shape[:2])
-    r, Xc, z, xn, yn = ls._residuals(x, X, sqrt_w, k, R, tvec)
-    J = ls._jacobian(sqrt_w, k, Xc, tvec, z, xn, yn, fit_k=True).reshape(-1, 10)  # (2N, 10)
+    r, Xc, z, xn, yn = ls.residuals(x, X, sqrt_w, k, R, tvec)
+    J = ls.jacobian(sqrt_w, k, Xc, tvec, z, xn, yn, fit_k=True).reshape(-1, 10)  # (2N, 10)
     T = np.eye(10)
     T[3:6, 0:3] = -g.skew(tvec[0])
     J_left = J @ T

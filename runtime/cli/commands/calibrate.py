@@ -35,9 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--distortion",
         choices=tuple(DISTORTION_MODELS),
         default="none",
-        help="fit one lens distortion jointly over the train frames with K (opencv4: k1, k2, p1, p2; opencv5: + k3; "
-        "opencv8: rational), then each frame's K* on the undistorted points; for captures without OIS motion "
-        "(default none: the dataset's own lens, if it carries one)",
+        help="fit one lens distortion over the train frames (opencv4: k1, k2, p1, p2; opencv5: + k3; opencv8: "
+        "rational) with each frame's own K and pose (rig views; OIS moves K, the lens stays), or with one K "
+        "(single-board views), then each frame's K* on the undistorted points (default none: the dataset's own "
+        "lens, if it carries one)",
     )
     suffixes = ", ".join(f"{suffix} {fmt}" for suffix, fmt in SUFFIX_FORMATS.items())
     p.add_argument(
