@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -17,14 +18,17 @@ from dimenet.runtime.evaluation.calibration import oracle_fit
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry.distortion import undistort_points
 
+LENS_KEYS = ("dist_coeffs", "dist_K")  # optional: the lens the photos were taken through
 IDENTITY_TOLERANCE_PX = 5.0  # a found board further than this (RMS) from its true corners has the wrong identity
 
 
 @dataclass(frozen=True)
 class Truth:
     """Per photo: file name (N,), K (N, 3, 3) px, pose {W}->{C} (N, 3) rad / mm, every rig corner's true
-    pixel (N, P, 2) and whether its board is shown whole (N, P); the rig's board of each corner (P,)."""
+    pixel (N, P, 2) and whether its board is shown whole (N, P); the rig's board of each corner (P,);
+    the lens the photos were taken through (dist_coeffs (n,) about dist_K (3, 3) px), or None."""
 
     frame_id: np.ndarray
     K: np.ndarray
@@ -35,6 +39,8 @@ class Truth:
     board_of_point: np.ndarray
     upside_down: np.ndarray  # (N,) bool
     covered_board: np.ndarray  # (N,) int, -1 for none
+    dist_coeffs: Optional[np.ndarray] = None
+    dist_K: Optional[np.ndarray] = None
 
 
 def _truth_array(arrays: dict, key: str, kinds: str, shape: tuple, named: str) -> np.ndarray:
@@ -51,13 +57,22 @@ def read_truth(path: str | Path) -> Truth:
     """Read a renderer's truth.npz (never pickle-loads). Raises DatasetError naming the file: also for a
     corrupt, truncated or oversized archive (refused before decoding) and for arrays of the wrong shape."""
     arrays = read_npz(path, DatasetError, "render truth file")
-    missing = [k for k in Truth.__dataclass_fields__ if k not in arrays]
+    missing = [k for k in Truth.__dataclass_fields__ if k not in arrays and k not in LENS_KEYS]
     if missing:
         raise DatasetError(f"{path}: not a render truth file (missing {missing[0]!r})")
     try:
         frame_id = arrays["frame_id"]
         N = frame_id.shape[0] if frame_id.ndim == 1 else -1
         P = arrays["board_of_point"].shape[0] if arrays["board_of_point"].ndim == 1 else -1
+        lens = {}
+        if any(k in arrays for k in LENS_KEYS):
+            if not all(k in arrays for k in LENS_KEYS):
+                raise DatasetError(f"{LENS_KEYS[0]} and {LENS_KEYS[1]}: give both or neither")
+            n = arrays["dist_coeffs"].shape[0] if arrays["dist_coeffs"].ndim == 1 else -1
+            lens = {
+                "dist_coeffs": _truth_array(arrays, "dist_coeffs", "f", (n,), "(n,)"),
+                "dist_K": _truth_array(arrays, "dist_K", "f", (3, 3), "(3, 3)"),
+            }
         return Truth(
             frame_id=_truth_array(arrays, "frame_id", "U", (N,), "(N,)"),
             K=_truth_array(arrays, "K", "f", (N, 3, 3), "(N, 3, 3)"),
@@ -68,6 +83,7 @@ def read_truth(path: str | Path) -> Truth:
             board_of_point=_truth_array(arrays, "board_of_point", "iu", (P,), "(P,)"),
             upside_down=_truth_array(arrays, "upside_down", "b", (N,), "(N,)"),
             covered_board=_truth_array(arrays, "covered_board", "iu", (N,), "(N,)"),
+            **lens,
         )
     except DatasetError as exc:
         raise DatasetError(f"{path}: {exc}") from None
@@ -116,7 +132,10 @@ def score(dataset: Dataset, truth: Truth) -> IngestScore:
             else:
                 errors.append(err)
     err = np.concatenate(errors) if errors else np.array([np.nan])
-    K_star = oracle_fit(dataset.points_2d, dataset.points_3d, dataset.valid)[0]
+    points = dataset.points_2d
+    if truth.dist_coeffs is not None:  # K* of the pinhole camera: the points undistorted by the true lens
+        points = undistort_points(points, truth.dist_K, truth.dist_coeffs)
+    K_star = oracle_fit(points, dataset.points_3d, dataset.valid)[0]
     return IngestScore(
         photos=len(truth.frame_id),
         frames=dataset.n_frames,

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
+from dimenet.runtime.cli.commands.simulate import dist_coeffs
 from dimenet.runtime.cli.main import Command, finite_float_in, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.formats.rig import rig_from_argument
@@ -30,6 +33,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"render this many times fewer pixels per side, same field of view, 1 to {MAX_SCALE:g} "
         "(default 1: full size)",
     )
+    p.add_argument(
+        "--dist-coeffs",
+        type=dist_coeffs,
+        metavar="K1,K2,P1,P2[,K3...]",
+        help="take the photos through a lens: OpenCV's 4/5/8/12/14 coefficients about the profile's nominal K "
+        "(default: none); truth.npz then holds the distorted corners and the lens (a negative first one: "
+        "--dist-coeffs=-0.1,...)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         fmt=args.format,
         progress=lambda items: progress(items, total=args.n, desc="render"),
+        dist_coeffs=None if args.dist_coeffs is None else np.array(args.dist_coeffs),
     )
     w, h = profile.image_size_px
     print(
@@ -55,7 +67,8 @@ COMMAND = Command(
     name="render",
     summary="Render photos of a rig through the simulator's OIS camera (clutter, blur, noise, vignetting), "
     "with the true corners and K per photo, to test `dimenet ingest` end to end.",
-    example="dimenet render --rig paper --profile galaxy-s8 --n 30 --out shots",
+    example="dimenet render --rig paper --profile galaxy-s8 --n 30 --out shots\n"
+    "  dimenet render --rig paper --profile galaxy-s8 --n 30 --scale 3 --dist-coeffs=-0.11,0.06,0,0 --out lens-shots",
     add_arguments=add_arguments,
     run=run,
 )
