@@ -87,9 +87,16 @@ FLAGS = {
         "--n": counts(1),
         "--seed": SEED,
         "--scale": FLOAT + ["0", "0.5", "65"],
+        "--dist-coeffs": ["", "abc", "0.1,0.2,0.3", "nan,0,0,0", "1e300,0,0,0"],
         "--out": OUT,
     },
-    "ingest": {"--out": OUT},
+    "ingest": {
+        "--out": OUT,
+        "--camera": OUT,
+        "--min-boards": counts(1),
+        "--workers": PARALLEL,
+        "--max-megapixels": FLOAT + ["0", "1001"],
+    },
 }
 BAD = [(cmd, flag, value) for cmd, flags in FLAGS.items() for flag, values in flags.items() for value in values]
 BAD.append(("bench", "--ingest", ""))
@@ -118,6 +125,9 @@ GOOD = [
     ("bench-ingest", "--workers", "1", 1),
     ("render", "--scale", "64", 64.0),
     ("render", "--scale", "1", 1.0),
+    ("render", "--dist-coeffs", "0.1,-0.05,0,0", (0.1, -0.05, 0.0, 0.0)),
+    ("ingest", "--min-boards", "1", 1),
+    ("ingest", "--max-megapixels", "1000", 1000.0),
 ]
 
 

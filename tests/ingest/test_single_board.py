@@ -124,3 +124,10 @@ def test_min_boards_one_on_a_rig_of_identical_boards_cannot_tell_one_board_apart
     assert skipped.startswith("one board alone cannot be told apart: it may be any of 'top-left', 'top-right'")
     with pytest.raises(IngestError, match="min_boards must be an integer from 1 to the rig's 4 boards, got 0"):
         ingest([crop], paper_rig(), min_boards=0)
+
+
+def test_cli_render_of_a_one_board_rig_promises_no_covered_photo(rig_file, tmp_path, capsys):
+    argv = ["render", "--rig", str(rig_file), "--profile", "galaxy-s8", "--n", "1", "--scale", "8"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "every 5th from the 2nd upside down)" in out and "covered" not in out

@@ -17,7 +17,7 @@ from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
-from dimenet.runtime.formats.rig import rig_from_argument
+from dimenet.runtime.formats.rig import MAX_RIG_POINTS, rig_from_argument
 from dimenet.runtime.ingest.outcome import DROPPED, IDENTIFIED, NOT_FOUND
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
 from dimenet.runtime.ingest.pipeline import MIN_BOARDS, SPLITS, check_object, ingest, report
@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--min-boards",
-        type=integer_in(1),
+        type=integer_in(1, MAX_RIG_POINTS),  # a rig has fewer boards than corners; its own count is checked next
         metavar="N",
         help=f"boards a rig photo needs, at most the rig's (default: 1 for a one-board rig, whose photos are planar "
         f"frames, else {MIN_BOARDS}); a labelled photo needs 1",

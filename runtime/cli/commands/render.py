@@ -45,9 +45,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     profile = scaled_profile(get_profile(args.profile), args.scale)
+    rig = rig_from_argument(args.rig)
     truth = write_render(
         args.out,
-        rig_from_argument(args.rig),
+        rig,
         profile,
         args.n,
         seed=args.seed,
@@ -56,9 +57,11 @@ def run(args: argparse.Namespace) -> int:
         dist_coeffs=None if args.dist_coeffs is None else np.array(args.dist_coeffs),
     )
     w, h = profile.image_size_px
+    covered = ", every 5th from the 4th with a board covered" if len(rig.boards) >= 3 else ""
+    lens = "" if args.dist_coeffs is None else ", through the lens"
     print(
-        f"{args.n} photos of {w}x{h} px ({args.profile}, seed {args.seed}; every 5th from the 2nd upside down, "
-        f"every 5th from the 4th with a board covered) -> {args.out} (truth: {truth})"
+        f"{args.n} photos of {w}x{h} px ({args.profile}, seed {args.seed}{lens}; every 5th from the 2nd upside "
+        f"down{covered}) -> {args.out} (truth: {truth})"
     )
     return 0
 
