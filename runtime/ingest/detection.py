@@ -47,34 +47,31 @@ MASK_GREY = 128
 SEARCH_UNTIL = 2  # the search over the whole photo stops when this many boards are kept (enough to identify them)
 MIN_CHARUCO_CORNERS = 4  # a ChArUco board counts as found with at least this many corners
 CHARUCO_TOLERANCE = 0.05  # a ChArUco corner off its board model by more than this fraction of the spacing is dropped
-CLASSIC_FLAG_NAMES = {
-    cv2.CALIB_CB_ADAPTIVE_THRESH: "ADAPTIVE_THRESH",
-    cv2.CALIB_CB_NORMALIZE_IMAGE: "NORMALIZE_IMAGE",
-    cv2.CALIB_CB_FAST_CHECK: "FAST_CHECK",
-}
+CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
 SB_FLAG_NAMES = {cv2.CALIB_CB_NORMALIZE_IMAGE: "NORMALIZE_IMAGE", cv2.CALIB_CB_EXHAUSTIVE: "EXHAUSTIVE"}
 
 
 @dataclass(frozen=True)
 class Step:
-    """One detector call: ``cv2.findChessboardCorners`` (``classic``) or ``cv2.findChessboardCornersSB``
-    (``sb``) with ``flags``."""
+    """One detector call: ``cv2.findChessboardCorners`` (``classic``, CLASSIC_FLAGS) or
+    ``cv2.findChessboardCornersSB`` (``sb``) with ``flags``."""
 
     detector: str
     flags: int = 0
 
     def describe(self, factor: int) -> str:
         """E.g. ``findChessboardCornersSB(NORMALIZE_IMAGE) at 1/2 size``."""
-        names = CLASSIC_FLAG_NAMES if self.detector == "classic" else SB_FLAG_NAMES
-        flags = "|".join(n for f, n in names.items() if self.flags & f) or "0"
-        call = f"findChessboardCorners{'' if self.detector == 'classic' else 'SB'}({flags})"
+        if self.detector == "classic":
+            call = "findChessboardCorners"
+        else:
+            names = [n for f, n in SB_FLAG_NAMES.items() if self.flags & f]
+            call = f"findChessboardCornersSB({'|'.join(names) or '0'})"
         return call + ("" if factor == 1 else f" at 1/{factor} size")
 
 
 STEPS = (  # in order: cheapest and most finding first (models_spec/ingest.md, "Detector steps")
-    Step("classic", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK),  # no adaptive threshold: 5x cheaper
+    Step("classic", CLASSIC_FLAGS),
     Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE),
-    Step("classic", cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK),
     Step("sb", 0),
     Step("sb", cv2.CALIB_CB_EXHAUSTIVE),
     Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
