@@ -2,14 +2,16 @@
 
     dimenet bench --ingest DIR [--n 30] [--seed 1] [--profile galaxy-s8] [--workers 2] [--json]
 
-Rendered: renders ``n`` photos into DIR first unless DIR already holds a ``truth.npz`` (then the photos
-it names, whatever their size, e.g. ``dimenet render --scale 2.52`` for 1600x1200); then ingests them
-(timed: photos/s) and reports the detection rate, identity errors, corner RMS against the true
-projections and the mean |K* - K_true| of the ingested frames (``render_truth.score``).
+Rendered: renders ``n`` photos into DIR first (a new or empty folder) unless DIR already holds a
+``truth.npz`` (then the photos it names, whatever their size, e.g. ``dimenet render --scale 2.52``
+for 1600x1200); then ingests them (timed: photos/s) and reports the detection rate, identity errors,
+corner RMS against the true projections and the mean |K* - K_true| of the ingested frames
+(``render_truth.score``).
 
 Real: a DIR without ``truth.npz`` but with a rig file ``rig.json`` (``dimenet-rig/1``) beside its photos
 (every JPEG, PNG, TIFF, WebP, BMP or PNM in it, by name): ingests them with that rig (timed) and reports
 the frames, the boards identified per photo and each photo's K (no truth to score against).
+A folder that holds files but neither is refused: rendering into it would mix the renders with them.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.rig import load_rig, paper_rig
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.ingest.pipeline import ingest
@@ -56,6 +59,11 @@ def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int) -
         return run_real_bench(folder, workers=workers)
     rig = paper_rig()
     if not (folder / TRUTH_FILE).is_file():
+        if folder.is_dir() and any(folder.iterdir()):
+            raise IngestError(
+                f"{folder}: holds files but neither {TRUTH_FILE} (rendered photos) nor {RIG_FILE} (real photos "
+                "and their rig); give an empty or new folder to render into"
+            )
         write_render(folder, rig, get_profile(profile), n, seed=seed)
     truth = read_truth(folder / TRUTH_FILE)
     start = time.monotonic()

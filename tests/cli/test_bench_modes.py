@@ -74,3 +74,11 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
     assert sum(report["counts"]["rectify"].values()) == 24  # 12 per mode
     assert report["failures"] == [] and all("crash" not in c for c in report["counts"].values())
     assert main(["bench", "--fuzz", "3", "--bpnp"]) == 2
+
+
+def test_bench_ingest_never_renders_into_a_folder_of_other_files(tmp_path, capsys):
+    (tmp_path / "IMG_0001.jpg").write_bytes(b"a photo of something else")
+    assert main(["bench", "--ingest", str(tmp_path), "--n", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "neither truth.npz" in err[0] and "rig.json" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["IMG_0001.jpg"]
