@@ -5,11 +5,12 @@ inner), as the rig numbers them. A detection's grid may be larger than its rig p
 (mx, my) >= (nx, ny)): the rows of corners where a board meets a neighbour at a fold (see
 ``refine.grow``); ``placements`` lists where the rig pattern may sit in it.
 
-The board model maps grid units to native px: a homography to undistorted px, then a one-parameter
-division model of radial lens distortion about the image centre (Fitzgibbon 2001),
-u - c = (d - c) / (1 + k·r_d²) with r_d = |d - c| / s, s = half the image's longer side. It is fitted
-per board (k by golden-section search, the homography by least squares for each k) and absorbs a lens's
-barrel or pincushion distortion, which a homography alone cannot (models_spec/ingest.md, "Acceptance").
+The board model maps grid units to native px: a homography to undistorted px, then a division model of
+radial lens distortion about the image centre (Fitzgibbon 2001), u - c = (d - c) / (1 + k1·r_d² + k2·r_d⁴)
+with r_d = |d - c| / s, s = half the image's longer side. It is fitted per board, with one term (k2 = 0,
+k1 by golden-section search, the homography by least squares for each k1) or two (k1 and k2 by damped
+Gauss-Newton from the one-term fit, the homography refitted for each), and absorbs a lens's barrel or
+pincushion distortion, which a homography alone cannot (models_spec/ingest.md, "Acceptance").
 
 Pixels: x right, y down, origin at the centre of the top-left pixel.
 """
@@ -23,8 +24,11 @@ from typing import Optional
 import cv2
 import numpy as np
 
-K_RANGE = (-0.5, 0.5)  # division coefficient searched (r normalised by half the longer side): beyond any phone lens
-K_TOLERANCE = 1e-3  # golden-section search stops when k is known to this (moves a corner < 0.01 px at 4000 px)
+K_RANGE = (-0.5, 0.5)  # k1 searched (r normalised by half the longer side): beyond any phone lens
+K2_RANGE = (-0.25, 0.25)  # k2 fitted within (OpenCV's k1 = -0.3, k2 = 0.1, k3 = -0.02 at f = 1.25 s needs 0.04)
+K_TOLERANCE = 1e-3  # the coefficients are searched to this (k1 moves a corner < 0.01 px at 4000 px)
+GAUSS_NEWTON_STEPS = 20  # at most this many steps of the two-term fit
+NEWTON_STEPS = 8  # steps inverting the two-term division model, from the one-term inverse
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
@@ -46,29 +50,46 @@ def corner_spacing(corners_px: np.ndarray, pattern: tuple[int, int]) -> float:
     return float(d.min()) if d.size else float("inf")
 
 
+def coefficients(k) -> tuple[float, float]:
+    """(k1, k2) of a board model's distortion ``k``: a number (k1, one term) or a pair."""
+    k = np.ravel(k).astype(np.float64)
+    return float(k[0]), float(k[1]) if k.size > 1 else 0.0
+
+
 @dataclass(frozen=True)
 class BoardModel:
     """Grid units -> native px: homography ``H`` (3, 3) to undistorted px, then the division model of
-    coefficient ``k`` about ``centre`` (2,) px, radii normalised by ``scale`` px."""
+    coefficients ``k`` (k1, k2) about ``centre`` (2,) px, radii normalised by ``scale`` px."""
 
     H: np.ndarray
-    k: float
+    k: tuple[float, float]
     centre: np.ndarray
     scale: float
 
     def undistort(self, px: np.ndarray) -> np.ndarray:
         """(n, 2) native px -> undistorted px."""
+        k1, k2 = self.k
         d = px - self.centre
         r2 = np.sum((d / self.scale) ** 2, axis=1, keepdims=True)
-        return self.centre + d / (1.0 + self.k * r2)
+        return self.centre + d / (1.0 + k1 * r2 + k2 * r2 * r2)
 
     def distort(self, px: np.ndarray) -> np.ndarray:
-        """(n, 2) undistorted px -> native px (the division model's exact inverse; NaN where it has none)."""
+        """(n, 2) undistorted px -> native px: the division model's inverse, exact for one term, else by Newton's
+        method from the one-term inverse; NaN where it has none (or the model folds there)."""
+        k1, k2 = self.k
         d = px - self.centre
-        r2 = np.sum((d / self.scale) ** 2, axis=1, keepdims=True)
-        disc = 1.0 - 4.0 * self.k * r2
-        with np.errstate(invalid="ignore"):
-            return self.centre + d * (2.0 / (1.0 + np.sqrt(np.where(disc >= 0, disc, np.nan))))
+        ru = np.sqrt(np.sum((d / self.scale) ** 2, axis=1, keepdims=True))
+        disc = 1.0 - 4.0 * k1 * ru * ru
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            rd = ru * (2.0 / (1.0 + np.sqrt(np.where(disc >= 0, disc, np.nan))))  # r_d of k1 alone
+            rd = np.where(np.isfinite(rd), rd, ru)
+            for _ in range(NEWTON_STEPS if k2 != 0 else 0):  # r_d - r_u (1 + k1 r_d² + k2 r_d⁴) = 0
+                rd = rd - (rd - ru * (1 + k1 * rd**2 + k2 * rd**4)) / (1 - ru * (2 * k1 * rd + 4 * k2 * rd**3))
+            denominator = 1 + k1 * rd**2 + k2 * rd**4
+            folds = denominator - rd * (2 * k1 * rd + 4 * k2 * rd**3) <= 0  # r_u no longer grows with r_d
+            off = np.abs(rd - ru * denominator) > 1e-9 * (1 + ru)
+            ratio = np.where(ru > 0, rd / ru, 1.0 / denominator)
+        return self.centre + d * np.where(folds | off | ~np.isfinite(ratio), np.nan, ratio)
 
     def predict(self, grid: np.ndarray) -> np.ndarray:
         """(n, 2) grid units -> native px."""
@@ -79,13 +100,6 @@ def _homography(grid: np.ndarray, px: np.ndarray) -> Optional[np.ndarray]:
     """Least-squares homography grid -> px (n >= 4 rows), None when degenerate."""
     H = cv2.findHomography(grid, px, 0)[0]
     return None if H is None or not np.isfinite(H).all() else H
-
-
-def _rms(grid: np.ndarray, px: np.ndarray, H: Optional[np.ndarray]) -> float:
-    if H is None:
-        return float("inf")
-    fitted = cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H).reshape(-1, 2)
-    return float(np.sqrt(np.mean(np.sum((fitted - px) ** 2, 1))))
 
 
 def golden_section(f, lo: float, hi: float, tol: float) -> float:
@@ -105,30 +119,82 @@ def golden_section(f, lo: float, hi: float, tol: float) -> float:
     return (a + b) / 2.0
 
 
-def fit_model(
-    corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int], k: Optional[float] = None
-) -> Optional[BoardModel]:
-    """The board model fitted to the (nx·ny, 2) px corners (NaN rows ignored) of a (width, height) px image,
-    its distortion coefficient ``k`` searched when None, else kept (only the homography fitted); None when the
-    corners found fix no homography (fewer than 4, or collinear)."""
-    grid = grid_points(pattern)
-    found = np.isfinite(corners_px).all(1)
-    if found.sum() < 4:
-        return None
-    grid, px = grid[found], corners_px[found].astype(np.float64)
+def _fit(grid: np.ndarray, px: np.ndarray, image_size: tuple[int, int], k, terms: int, start=None) -> BoardModel:
+    """The board model of corners ``px`` (n, 2) at ``grid`` (n, 2): distortion ``k`` kept when not None, else
+    fitted with ``terms`` (1 or 2) terms (two from ``start`` (k1, k2) when given, else from the one-term fit);
+    its ``H`` None when the corners fix no homography."""
     w, h = image_size
     centre, scale = np.array([(w - 1) / 2.0, (h - 1) / 2.0]), max(w, h) / 2.0
 
-    def model(coefficient: float) -> BoardModel:
-        m = BoardModel(np.eye(3), coefficient, centre, scale)
-        return BoardModel(_homography(grid, m.undistort(px)), coefficient, centre, scale)
+    def model(ks) -> BoardModel:
+        m = BoardModel(np.eye(3), coefficients(ks), centre, scale)
+        return BoardModel(_homography(grid, m.undistort(px)), m.k, centre, scale)
 
-    def rms(coefficient: float) -> float:
-        m = model(coefficient)
-        return _rms(grid, m.undistort(px), m.H)
+    def misfit(ks) -> np.ndarray:
+        m = model(ks)
+        if m.H is None:
+            return np.full(px.size, np.inf)
+        return (cv2.perspectiveTransform(grid.reshape(-1, 1, 2), m.H).reshape(-1, 2) - m.undistort(px)).ravel()
 
-    best = model(golden_section(rms, *K_RANGE, K_TOLERANCE) if k is None else k)
+    if k is None and start is None:
+        start = (golden_section(lambda k1: float(np.sqrt(np.mean(misfit(k1) ** 2))), *K_RANGE, K_TOLERANCE), 0.0)
+        k = start if terms == 1 else None
+    if k is None:
+        k = gauss_newton(misfit, np.array(start, np.float64), np.array([K_RANGE, K2_RANGE]))
+    return model(k)
+
+
+def gauss_newton(f, start: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """A minimiser of |f(x)|² from ``start`` within ``bounds`` (m, 2) (damped Gauss-Newton, forward-difference
+    Jacobian), to K_TOLERANCE or GAUSS_NEWTON_STEPS steps."""
+    x, r, damping = start.astype(np.float64), f(start), 1e-3
+    for _ in range(GAUSS_NEWTON_STEPS):
+        if not np.isfinite(r).all():
+            break
+        J = np.stack([(f(x + step) - r) / step[i] for i, step in enumerate(np.eye(len(x)) * 1e-6)], 1)
+        A, g = J.T @ J, J.T @ r
+        while damping < 1e6:
+            trial = np.clip(x - np.linalg.solve(A + damping * np.diag(np.diag(A) + 1e-12), g), *bounds.T)
+            r_trial = f(trial)
+            if r_trial @ r_trial < r @ r:
+                break
+            damping *= 10.0
+        else:
+            break
+        moved = np.abs(trial - x).max()
+        x, r, damping = trial, r_trial, damping / 10.0
+        if moved < K_TOLERANCE:
+            break
+    return x
+
+
+def fit_model(
+    corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int], k=None, terms: int = 1
+) -> Optional[BoardModel]:
+    """The board model fitted to the (nx·ny, 2) px corners (NaN rows ignored) of a (width, height) px image,
+    its distortion ``k`` (k1, or (k1, k2)) fitted with ``terms`` (1 or 2) terms when None, else kept (only the
+    homography fitted); None when the corners found fix no homography (fewer than 4, or collinear)."""
+    found = np.isfinite(corners_px).all(1)
+    if found.sum() < 4:
+        return None
+    best = _fit(grid_points(pattern)[found], corners_px[found].astype(np.float64), image_size, k, terms)
     return None if best.H is None else best
+
+
+def held_out_residuals(
+    corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int], model: BoardModel
+) -> np.ndarray:
+    """(nx·ny,) px how far each corner lies from where the two-term board model of the other corners puts it
+    (fitted from ``model``'s distortion; inf where missing or no model): a corner the model bends to fit shows."""
+    grid, found = grid_points(pattern), np.isfinite(corners_px).all(1)
+    out = np.full(len(corners_px), np.inf)
+    for i in np.flatnonzero(found):
+        others = found & (np.arange(len(found)) != i)
+        if others.sum() >= 4:
+            m = _fit(grid[others], corners_px[others].astype(np.float64), image_size, None, 2, model.k)
+            if m.H is not None:
+                out[i] = np.linalg.norm(m.predict(grid[i : i + 1])[0] - corners_px[i])
+    return np.where(np.isfinite(out), out, np.inf)
 
 
 def residuals(corners_px: np.ndarray, model: Optional[BoardModel], pattern: tuple[int, int]) -> np.ndarray:

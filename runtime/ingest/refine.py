@@ -3,12 +3,13 @@
 1. ``refine``: every corner by ``cv2.cornerSubPix`` on the native grey image, with a half-window of
    SUBPIX_WINDOW_FRACTION of the corner spacing, smaller where the image edge is nearer.
 2. ``refine_plain``: a corner farther than RESEED_TOLERANCE of the spacing from the board model
-   (``grid.fit_model``: homography + radial distortion) is started again where the model of the
+   (``grid.fit_model``: homography + one radial term) is started again where the model of the
    other corners puts it. The board is kept when every corner then lies within ACCEPT_TOLERANCE of
    the spacing of the model, else dropped with the reason (the largest residual and the tolerance, or
-   a corner at the image edge). Real boards leave up to 7.7 % (paper that is not flat, print),
-   a corner moved by a fifth of a square 15 % or more, a grid bent over two boards 47-73 %
-   (models_spec/ingest.md, "Acceptance").
+   a corner at the image edge). Where the one-term model leaves a corner beyond it (a strong lens),
+   the two-term model judges instead, each corner both fitted and held out (``judged``). Real boards
+   leave up to 7.7 % (paper that is not flat, print), a corner moved by a fifth of a square 15 % or
+   more, a grid bent over two boards 47-73 % (models_spec/ingest.md, "Acceptance").
 3. ``grow``: where the checker pattern runs on past a side of the grid (a board meeting another one at
    a fold, with no gap between the patterns), that side gets more rows of corners, so that the
    rig's pattern can be placed in the grid by the board identification (``grid.placements``): a
@@ -25,13 +26,21 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from dimenet.runtime.ingest.grid import BoardModel, corner_spacing, fit_model, grid_points, residuals
+from dimenet.runtime.ingest.grid import (
+    BoardModel,
+    corner_spacing,
+    fit_model,
+    grid_points,
+    held_out_residuals,
+    residuals,
+)
 
 SUBPIX_WINDOW_FRACTION = 0.3  # cornerSubPix half-window as a fraction of the smallest corner spacing
 SUBPIX_WINDOW_PX = (2, 12)  # clip of that half-window, native px
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 0.001)
 RESEED_TOLERANCE = 0.05  # a corner farther than this fraction of the spacing from the model is refined again
 ACCEPT_TOLERANCE = 0.12  # a board is kept when every corner lies within this fraction of the spacing of the model
+HELD_OUT_TOLERANCE = 0.24  # and, judged by two terms, within this of where the model of the other corners puts it
 TOLERANCE_MIN_PX = 1.0  # (each tolerance at least this many px)
 GROW_CONTRAST = 0.5  # a grown corner's checker contrast is at least this fraction of the board's median
 QUADRANT_OFFSET = 0.25  # the four squares around a corner are sampled this far from it along both axes (grid units)
@@ -101,13 +110,32 @@ def predicted(corners_px: np.ndarray, pattern: tuple[int, int], image_size: tupl
 class Refined:
     """A plain board after refinement: its corners (nx·ny, 2) px when kept, else None and ``reason``.
     ``residual_px``: its largest corner residual under the board model; ``tolerance_px``: what it may be;
-    ``k``: the model's distortion coefficient (``grid.BoardModel``)."""
+    ``k``: the model's distortion coefficients (k1, k2) (``grid.BoardModel``)."""
 
     corners_px: Optional[np.ndarray]
     residual_px: float
     tolerance_px: float
     reason: Optional[str] = None
-    k: float = 0.0
+    k: tuple[float, float] = (0.0, 0.0)
+
+
+def judged(corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int]) -> tuple:
+    """(board model, largest corner residual px, tolerance px) a board's whole corners are judged by: the
+    one-term model, within ACCEPT_TOLERANCE of the spacing; where it leaves a corner beyond that (a strong lens),
+    the two-term model, within ACCEPT_TOLERANCE and every corner within HELD_OUT_TOLERANCE of where the model
+    of the other corners puts it (``grid.held_out_residuals``: the second term can bend to one misplaced corner,
+    the model of the others does not; a strong lens's outermost corner is held out to 14-16 %)."""
+    tolerance = tolerance_px(ACCEPT_TOLERANCE, corners_px, pattern)
+    model = fit_model(corners_px, pattern, image_size)
+    worst = float(residuals(corners_px, model, pattern).max())
+    if worst <= tolerance or model is None:
+        return model, worst, tolerance
+    two = fit_model(corners_px, pattern, image_size, terms=2)
+    worst_two = float(residuals(corners_px, two, pattern).max())
+    held_out = tolerance_px(HELD_OUT_TOLERANCE, corners_px, pattern)
+    if worst_two <= tolerance and held_out_residuals(corners_px, pattern, image_size, two).max() <= held_out:
+        return two, worst_two, tolerance
+    return model, worst, tolerance
 
 
 def refine_plain(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int]) -> Refined:
@@ -125,9 +153,7 @@ def refine_plain(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, i
         return Refined(
             None, float("inf"), float("nan"), f"a corner lies within {SUBPIX_WINDOW_PX[0] + 1} px of the image edge"
         )
-    model = fit_model(refined, pattern, size)
-    worst = float(residuals(refined, model, pattern).max())
-    tolerance = tolerance_px(ACCEPT_TOLERANCE, refined, pattern)
+    model, worst, tolerance = judged(refined, pattern, size)
     if not worst <= tolerance:
         return Refined(None, worst, tolerance, f"corner residual {worst:.1f} px > {tolerance:.1f} px tolerance")
     return Refined(refined, worst, tolerance, k=model.k)
@@ -230,10 +256,15 @@ def colouring(gray: np.ndarray, model: BoardModel, grid_shape: tuple[int, int]) 
 
 
 def grow_once(
-    gray: np.ndarray, corners_px: np.ndarray, grid_shape: tuple[int, int], side: int, k: float, colours: Colouring
+    gray: np.ndarray,
+    corners_px: np.ndarray,
+    grid_shape: tuple[int, int],
+    side: int,
+    k: tuple[float, float],
+    colours: Colouring,
 ) -> Optional[np.ndarray]:
     """The (n, 2) px row of corners one beyond ``side`` (0 left, 1 right, 2 top, 3 bottom) of the grid, or None
-    when the checker pattern does not run on there (see ``grow``); ``k`` the board model's distortion."""
+    when the checker pattern does not run on there (see ``grow``); ``k`` the board model's distortion (k1, k2)."""
     model = fit_model(corners_px, grid_shape, (gray.shape[1], gray.shape[0]), k)
     row = _side_rows(grid_shape)[side]
     start = None if model is None else model.predict(row)
@@ -249,10 +280,10 @@ def grow_once(
 
 
 def grow(
-    gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], k: float
+    gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], k: tuple[float, float]
 ) -> tuple[np.ndarray, tuple[int, int]]:
     """The board's corners and grid (mx, my), grown row by row on each side while the checker pattern runs on;
-    ``k`` the distortion of its board model (``Refined.k``), kept as the grid grows.
+    ``k`` the distortion (k1, k2) of its board model (``Refined.k``), kept as the grid grows.
 
     A side grows when every corner one row beyond it (where the board model puts it) refines within
     ACCEPT_TOLERANCE of that place, with its window inside the image, and is a corner of the board's

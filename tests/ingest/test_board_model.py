@@ -14,7 +14,7 @@ from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.ingest.detection import BoardSearch, Detection, Dropped
 from dimenet.runtime.ingest.grid import BoardModel, corner_spacing, fit_model, grid_points, placements, residuals
 from dimenet.runtime.ingest.outcome import DROPPED, FOUND, NOT_FOUND, board_lines, shortfall
-from dimenet.runtime.ingest.refine import ACCEPT_TOLERANCE, grow, refine_plain
+from dimenet.runtime.ingest.refine import ACCEPT_TOLERANCE, grow, judged, refine_plain
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
 from dimenet.runtime.sim.render_truth import read_truth
 from dimenet.runtime.sim.simulator import get_profile
@@ -43,10 +43,34 @@ def test_the_board_model_absorbs_a_lens_barrel_distortion_that_a_homography_cann
     corners = projected_board(-0.1)  # a phone main camera's order of barrel distortion
     assert homography_residual(corners, (10, 8)).max() > 5.0
     model = fit_model(corners, (10, 8), SIZE)
-    assert residuals(corners, model, (10, 8)).max() < 1.0 and model.k < 0
+    assert residuals(corners, model, (10, 8)).max() < 1.0 and model.k[0] < 0
     assert residuals(projected_board(0.0), fit_model(projected_board(0.0), (10, 8), SIZE), (10, 8)).max() < 1e-3
-    m = BoardModel(np.eye(3), -0.08, np.array([2015.5, 1511.5]), 2016.0)
+    m = BoardModel(np.eye(3), (-0.08, 0.0), np.array([2015.5, 1511.5]), 2016.0)
     np.testing.assert_allclose(m.distort(m.undistort(corners)), corners, atol=1e-9)
+
+
+def strong_lens_board() -> np.ndarray:
+    """(54, 2) px a 9x6, 25 mm board 330 mm away near the bottom-right corner of a 640x480 image, through a wide
+    lens (f = 400 px) of OpenCV radial k1 = -0.3, k2 = 0.1, k3 = -0.02 (models_spec/ingest.md, "Acceptance")."""
+    K = np.array([[400.0, 0, 319.5], [0, 400.0, 233.0], [0, 0, 1]])
+    points = np.hstack([grid_points((9, 6)) * 25.0, np.zeros((54, 1))])
+    lens = np.array([-0.3, 0.1, 0, 0, -0.02])
+    px = cv2.projectPoints(points, np.array([-0.5, 0.5, 0.0]), np.array([24.0, 59.6, 324.6]), K, lens)
+    return px[0].reshape(-1, 2)
+
+
+def test_a_strong_lens_is_judged_by_two_terms_and_a_misplaced_corner_still_refused():
+    corners, size = strong_lens_board(), (640, 480)
+    tolerance = ACCEPT_TOLERANCE * corner_spacing(corners, (9, 6))
+    assert residuals(corners, fit_model(corners, (9, 6), size), (9, 6)).max() > 1.3 * tolerance  # one term: 18 %
+    model, worst, tol = judged(corners, (9, 6), size)
+    assert tol == pytest.approx(tolerance) and worst < 0.6 * tol and model.k[1] != 0  # two terms: 6 %
+    np.testing.assert_allclose(model.distort(model.undistort(corners)), corners, atol=1e-6)
+    for i, step in ((53, (0.3, 0.0)), (22, (0.0, 0.3)), (0, (-0.2, -0.2))):  # the outermost, a middle, the first
+        moved = corners.copy()
+        moved[i] += np.array(step) * corner_spacing(corners, (9, 6))
+        _, worst, tol = judged(moved, (9, 6), size)
+        assert worst > tol
 
 
 def checkerboard(squares: tuple[int, int], square_px: int = 40, margin_px: int = 60) -> np.ndarray:
@@ -72,11 +96,11 @@ def test_a_grid_grows_to_where_the_pattern_runs_on_and_no_further():
     img = checkerboard((11, 9))  # 10 x 8 inner corners
     full = inner_corners((11, 9)).reshape(8, 10, 2)
     window = full[1:7, 1:9].reshape(-1, 2)  # an 8 x 6 window of it, as a detector asked for (8, 6) may return
-    corners, grid = grow(img, window, (8, 6), 0.0)
+    corners, grid = grow(img, window, (8, 6), (0.0, 0.0))
     assert grid == (10, 8)
     np.testing.assert_allclose(corners, full.reshape(-1, 2), atol=0.2)
     exact = checkerboard((9, 7))  # a board of just the pattern: white paper beyond its outer squares
-    corners, grid = grow(exact, inner_corners((9, 7)), (8, 6), 0.0)
+    corners, grid = grow(exact, inner_corners((9, 7)), (8, 6), (0.0, 0.0))
     assert grid == (8, 6)
 
 
