@@ -40,7 +40,7 @@ SUBPIX_WINDOW_PX = (2, 12)  # clip of that half-window, native px
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 0.001)
 RESEED_TOLERANCE = 0.05  # a corner farther than this fraction of the spacing from the model is refined again
 ACCEPT_TOLERANCE = 0.12  # a board is kept when every corner lies within this fraction of the spacing of the model
-HELD_OUT_TOLERANCE = 0.24  # and, judged by two terms, within this of where the model of the other corners puts it
+HELD_OUT_TOLERANCE = 0.15  # and, judged by two terms, within this of where the model of the other corners puts it
 TOLERANCE_MIN_PX = 1.0  # (each tolerance at least this many px)
 GROW_CONTRAST = 0.5  # a grown corner's checker contrast is at least this fraction of the board's median
 QUADRANT_OFFSET = 0.25  # the four squares around a corner are sampled this far from it along both axes (grid units)
@@ -124,7 +124,8 @@ def judged(corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[i
     one-term model, within ACCEPT_TOLERANCE of the spacing; where it leaves a corner beyond that (a strong lens),
     the two-term model, within ACCEPT_TOLERANCE and every corner within HELD_OUT_TOLERANCE of where the model
     of the other corners puts it (``grid.held_out_residuals``: the second term can bend to one misplaced corner,
-    the model of the others does not; a strong lens's outermost corner is held out to 14-16 %)."""
+    the model of the others does not: a corner of a real board moved by 0.2 of the spacing is held out at 15.8 % or
+    more, a strong lens's corners mostly within 10 %; models_spec/ingest.md, "Acceptance")."""
     tolerance = tolerance_px(ACCEPT_TOLERANCE, corners_px, pattern)
     model = fit_model(corners_px, pattern, image_size)
     worst = float(residuals(corners_px, model, pattern).max())

@@ -50,21 +50,21 @@ def test_the_board_model_absorbs_a_lens_barrel_distortion_that_a_homography_cann
 
 
 def strong_lens_board() -> np.ndarray:
-    """(54, 2) px a 9x6, 25 mm board 330 mm away near the bottom-right corner of a 640x480 image, through a wide
+    """(54, 2) px a 9x6, 25 mm board 250-340 mm away in the bottom-left corner of a 640x480 image, through a wide
     lens (f = 400 px) of OpenCV radial k1 = -0.3, k2 = 0.1, k3 = -0.02 (models_spec/ingest.md, "Acceptance")."""
     K = np.array([[400.0, 0, 319.5], [0, 400.0, 233.0], [0, 0, 1]])
     points = np.hstack([grid_points((9, 6)) * 25.0, np.zeros((54, 1))])
     lens = np.array([-0.3, 0.1, 0, 0, -0.02])
-    px = cv2.projectPoints(points, np.array([-0.5, 0.5, 0.0]), np.array([24.0, 59.6, 324.6]), K, lens)
+    px = cv2.projectPoints(points, np.array([0.3, -0.4, 0.1]), np.array([-256.7, 107.1, 243.5]), K, lens)
     return px[0].reshape(-1, 2)
 
 
 def test_a_strong_lens_is_judged_by_two_terms_and_a_misplaced_corner_still_refused():
     corners, size = strong_lens_board(), (640, 480)
     tolerance = ACCEPT_TOLERANCE * corner_spacing(corners, (9, 6))
-    assert residuals(corners, fit_model(corners, (9, 6), size), (9, 6)).max() > 1.3 * tolerance  # one term: 18 %
+    assert residuals(corners, fit_model(corners, (9, 6), size), (9, 6)).max() > 1.1 * tolerance  # one term: 14 %
     model, worst, tol = judged(corners, (9, 6), size)
-    assert tol == pytest.approx(tolerance) and worst < 0.6 * tol and model.k[1] != 0  # two terms: 6 %
+    assert tol == pytest.approx(tolerance) and worst < 0.6 * tol and model.k[1] != 0  # two terms: 6 %, held out 9 %
     np.testing.assert_allclose(model.distort(model.undistort(corners)), corners, atol=1e-6)
     for i, step in ((53, (0.3, 0.0)), (22, (0.0, 0.3)), (0, (-0.2, -0.2))):  # the outermost, a middle, the first
         moved = corners.copy()
