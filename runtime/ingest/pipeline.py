@@ -15,7 +15,9 @@ report; the run goes on.
 Then, in the photos' order, every accepted photo becomes one frame: the rig's corners (rig order,
 NaN where not found), then the object's points (OBJECT.csv order) where labelled. On a rig
 frame every valid point is in ``infer_mask``; on a natural frame only the labelled points.
-``frame_id`` is the photo's file name. Specified in models_spec/ingest.md.
+``frame_id`` is the photo's file name. With a ``camera`` (its lens known, e.g. from a camera file), a
+photo of another image size is skipped, each photo's single-frame K is the pinhole camera's (its points
+undistorted by the lens) and the dataset carries the lens. Specified in models_spec/ingest.md.
 """
 
 from __future__ import annotations
@@ -38,10 +40,12 @@ from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, N
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
+from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.ingest.detection import BoardSearch, detect_boards, search_predicted
-from dimenet.runtime.ingest.identity import check_unambiguous, label, label_planar, rough_k
+from dimenet.runtime.ingest.identity import Identification, check_unambiguous, label, label_planar, refit, rough_k
 from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
+from dimenet.runtime.rectify.camera import Camera
 
 GENERATOR = "dimenet.ingest"
 MIN_BOARDS = 2  # boards a rig photo needs (a rig of 2 or more boards): two planes make K observable from the photo
@@ -135,6 +139,15 @@ def find_and_label(gray: np.ndarray, rig: Rig, fixed_2d: np.ndarray, fixed_3d: n
     return found, search, boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h))
 
 
+def under_lens(found: Identification, rig: Rig, fixed_2d: np.ndarray, fixed_3d: np.ndarray, camera: Camera):
+    """The photo's single-frame K, pose and RMS of the pinhole camera: its points undistorted by the lens."""
+    seen = np.isfinite(found.corners_px[:, 0])
+    points_2d = undistort_points(np.vstack([found.corners_px[seen], fixed_2d]), camera.lens_K, camera.dist_coeffs)
+    points_3d = np.vstack([rig.points()[seen], fixed_3d])
+    rms, fit = refit([points_2d], [points_3d], found.K, found.rvec[None], found.tvec[None])
+    return replace(found, K=fit.K[0], rvec=fit.rvec[0], tvec=fit.tvec[0], rms_px=float(rms[0]))
+
+
 def ingest_photo(
     path: Path,
     rig: Rig,
@@ -143,11 +156,12 @@ def ingest_photo(
     max_megapixels: float = MAX_MEGAPIXELS,
     point_ids: tuple[str, ...] = (),
     min_boards: Optional[int] = None,
+    camera: Optional[Camera] = None,
 ) -> PhotoResult:
     """Decode, detect, identify and fit one photo (pure: reads only ``path``). A rig photo needs ``min_boards``
     boards (``default_min_boards`` when None), a labelled one MIN_BOARDS_NATURAL; a rig photo of one board is
-    a planar frame (no K). Never raises for a bad photo: any of PHOTO_FAILURES becomes the result's
-    ``skipped`` reason."""
+    a planar frame (no K). With a ``camera``, a photo of another image size is skipped and K is fitted under
+    its lens. Never raises for a bad photo: any of PHOTO_FAILURES becomes the result's ``skipped`` reason."""
     result = PhotoResult(name=path.name, labels=labels)
     stage = "decoding"
     search = BoardSearch(())
@@ -155,6 +169,9 @@ def ingest_photo(
         photo = read_photo(path, max_megapixels)
         h, w = photo.gray.shape
         result = replace(result, exif_orientation=photo.exif_orientation, image_size=(w, h))
+        if camera is not None and tuple(camera.image_size) != (w, h):
+            cw, ch = camera.image_size
+            return replace(result, skipped=f"{w}x{h} px, the camera's image is {cw}x{ch} px")
         if labels is not None:
             check_labels(labels, (w, h), point_ids)
         stage = "finding the boards"
@@ -175,6 +192,8 @@ def ingest_photo(
         fixed_3d = np.empty((0, 3)) if labels is None else object_points_mm[labels.index]
         found, search, in_view = find_and_label(photo.gray, rig, fixed_2d, fixed_3d, search)
         check_unambiguous(found)
+        if camera is not None and camera.dist_coeffs is not None:
+            found = under_lens(found, rig, fixed_2d, fixed_3d, camera)
         n_points = int(np.isfinite(found.corners_px[:, 0]).sum()) + len(fixed_3d)
     except PHOTO_FAILURES as exc:
         return replace(result, skipped=failure_reason(exc, stage), board_lines=board_lines(rig, search))
@@ -247,10 +266,11 @@ def _results(
     workers: int,
     max_megapixels: float,
     min_boards: int,
+    camera: Optional[Camera],
 ) -> Iterator[PhotoResult]:
     object_points = np.empty((0, 3)) if obj is None else obj.points_mm
     point_ids = () if obj is None else obj.point_ids
-    jobs = ([p, rig, labels.get(p.name), object_points, max_megapixels, point_ids, min_boards] for p in paths)
+    jobs = ([p, rig, labels.get(p.name), object_points, max_megapixels, point_ids, min_boards, camera] for p in paths)
     if workers == 1:
         yield from (ingest_photo(*job) for job in jobs)
         return
@@ -299,9 +319,11 @@ def check_inputs(
         raise LabelsError(f"labels for {foreign[0]}, which is not among the photos given")
 
 
-def assemble(results: list[PhotoResult], rig: Rig, obj: Optional[NaturalObject], split: str) -> Ingestion:
-    """The dataset of the accepted photos, in order. A photo whose image size differs from the first
-    accepted photo's is skipped (one dataset, one image size)."""
+def assemble(
+    results: list[PhotoResult], rig: Rig, obj: Optional[NaturalObject], split: str, camera: Optional[Camera] = None
+) -> Ingestion:
+    """The dataset of the accepted photos, in order, with the ``camera``'s lens if it has one. A photo whose
+    image size differs from the first accepted photo's is skipped (one dataset, one image size)."""
     size = next((r.image_size for r in results if r.skipped is None), None)
     results = [
         replace(
@@ -350,6 +372,8 @@ def assemble(results: list[PhotoResult], rig: Rig, obj: Optional[NaturalObject],
         meta=meta,
         frame_id=np.array([r.name for r in accepted]),
     )
+    if camera is not None and camera.dist_coeffs is not None:
+        dataset = replace(dataset, dist_coeffs=np.array(camera.dist_coeffs), dist_K=np.array(camera.lens_K))
     return Ingestion(dataset=dataset, results=tuple(results), splits=splits)
 
 
@@ -372,9 +396,11 @@ def ingest(
     progress: Callable[[Iterator[PhotoResult]], Iterable[PhotoResult]] = iter,
     max_megapixels: float = MAX_MEGAPIXELS,
     min_boards: Optional[int] = None,
+    camera: Optional[Camera] = None,
 ) -> Ingestion:
     """Ingest photos of ``rig`` (see the module doc); ``labels`` by photo file name need ``obj``. A rig photo
     needs ``min_boards`` boards (``default_min_boards(rig)`` when None: 1 for a one-board rig, else 2).
+    ``camera``: the photos' camera with its lens (see the module doc), or None.
 
     ``progress`` wraps the iterator of per-photo results (e.g. ``dimenet.runtime.cli.progress.progress``).
     Raises IngestError / LabelsError for bad input (before any photo is read); a photo that cannot be used
@@ -389,8 +415,8 @@ def ingest(
     check_inputs(paths, labels, split, workers, max_megapixels)
     min_boards = default_min_boards(rig) if min_boards is None else min_boards
     check_min_boards(min_boards, rig)
-    results = list(progress(_results(paths, rig, labels, obj, workers, max_megapixels, min_boards)))
-    return assemble(results, rig, obj, split)
+    results = list(progress(_results(paths, rig, labels, obj, workers, max_megapixels, min_boards, camera)))
+    return assemble(results, rig, obj, split, camera)
 
 
 def board_line_entry(line: BoardLine, rig: Rig, finite: Callable[[Optional[float]], Optional[float]]) -> dict:

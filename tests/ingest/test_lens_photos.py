@@ -4,6 +4,8 @@ frame's K (the bundle), and `ingest --camera` puts a known lens into the dataset
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -67,8 +69,8 @@ def test_photos_through_a_lens_are_ingested_and_their_lens_fitted(lens_shots, tm
     assert np.abs(lens.dist_coeffs[:2] - LENS[:2]).max() < 0.01
 
 
-def test_ingest_camera_puts_a_known_lens_into_the_dataset(lens_shots, tmp_path, capsys):
-    _, photos, truth, _ = lens_shots
+def test_ingest_camera_puts_a_known_lens_into_the_dataset_and_its_report(lens_shots, tmp_path, capsys):
+    folder, photos, truth, _ = lens_shots
     camera = checked_camera(PROFILE.nominal_K, PROFILE.image_size_px, "test", np.array(LENS))
     cam = write_camera(tmp_path / "cam.yaml", camera, "opencv-yaml")
     data = tmp_path / "with-lens.npz"
@@ -78,13 +80,21 @@ def test_ingest_camera_puts_a_known_lens_into_the_dataset(lens_shots, tmp_path, 
     ds = read_dataset(data)
     np.testing.assert_allclose(ds.dist_coeffs, LENS, atol=1e-12)
     np.testing.assert_allclose(ds.dist_K, PROFILE.nominal_K, atol=1e-9)
-    assert main(["calibrate", str(data), "--out", str(tmp_path / "cal.npz")]) == 0  # undistorts with the dataset's
+    # The report's K per photo is the pinhole camera's, as calibrate's K* under the dataset's lens.
+    assert main(["calibrate", str(data), "--out", str(tmp_path / "cal.npz")]) == 0
     cal = read_calibration(tmp_path / "cal.npz")
     assert np.abs(k_params(cal.K_star) - k_params(truth.K)).mean() <= 0.2
+    with_lens = json.loads((tmp_path / "with-lens.report.json").read_text())["photos"]
+    reported = {p["photo"]: p["K_px"] for p in with_lens}  # rounded to 0.01 px
+    np.testing.assert_allclose([reported[str(f)] for f in ds.frame_id], k_params(cal.K_star), atol=0.006)
+    without = json.loads((folder / "shots.report.json").read_text())["photos"]
+    assert np.mean([p["rms_px"] for p in without]) > 3 * np.mean([p["rms_px"] for p in with_lens])
+    # A camera of another image size: every photo skipped with why, no dataset.
     half = checked_camera(PROFILE.nominal_K / 2 + np.diag([0, 0, 0.5]), (672, 504), "test", np.array(LENS))
     wrong = write_camera(tmp_path / "half.json", half, "json")
     capsys.readouterr()
     assert main([*argv, "--out", str(tmp_path / "no.npz"), "--camera", str(wrong)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "the camera is 672x504 px, the photos 1344x1008 px" in err
+    out, err = capsys.readouterr()
+    assert err.strip().count("\n") == 0 and "no photo gave a frame" in err
+    assert "skipped: 1344x1008 px, the camera's image is 672x504 px" in out
     assert not (tmp_path / "no.npz").exists()

@@ -5,23 +5,19 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 from dimenet.runtime.cli.main import CliError, Command, finite_float_in, integer_in, nonempty_path, parallelism
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.camera import read_camera
-from dimenet.runtime.formats.dataset import Dataset, write_dataset
+from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.rig import MAX_RIG_POINTS, rig_from_argument
 from dimenet.runtime.ingest.outcome import DROPPED, IDENTIFIED, NOT_FOUND
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
 from dimenet.runtime.ingest.pipeline import MIN_BOARDS, SPLITS, check_object, ingest, report
-from dimenet.runtime.rectify.camera import Camera
 
 OPENCV_MAX_MEGAPIXELS = 1000.0  # OpenCV refuses to decode more than 2**30 px (1073.7 MP) whatever the flag
 
@@ -64,9 +60,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--camera",
         type=nonempty_path,
         metavar="FILE",
-        help="the camera's lens from a camera file (OpenCV YAML/XML, ROS, COLMAP, Kalibr, mrcal, camera.json; "
-        "its image size must be the photos'): the dataset carries its distortion (dist_coeffs about the file's K) "
-        "and calibrate, train, evaluate and rectify undistort with it",
+        help="the photos' camera file with its lens (OpenCV YAML/XML, ROS, COLMAP, Kalibr, mrcal, camera.json): "
+        "a photo of another image size is skipped, each photo's K in the report is fitted under the lens, and "
+        "the dataset carries it (dist_coeffs about the file's K), so calibrate, train, evaluate and rectify "
+        "undistort with it",
     )
     p.add_argument(
         "--max-megapixels",
@@ -122,18 +119,6 @@ def photo_line(p: dict) -> str:
     )
 
 
-def with_lens(dataset: Dataset, camera: Camera, source: str) -> Dataset:
-    """The dataset carrying the camera's lens (dist_coeffs about its lens K); CliError when the
-    camera's image size is not the photos'."""
-    size = tuple(int(v) for v in dataset.image_size)
-    if tuple(camera.image_size) != size:
-        w, h = camera.image_size
-        raise CliError(f"{source}: the camera is {w}x{h} px, the photos {size[0]}x{size[1]} px")
-    if camera.dist_coeffs is None:
-        return dataset
-    return replace(dataset, dist_coeffs=np.array(camera.dist_coeffs), dist_K=np.array(camera.lens_K))
-
-
 def run(args: argparse.Namespace) -> int:
     if (args.labels is None) != (args.object is None):
         raise CliError("dimenet ingest: --labels and --object go together")
@@ -154,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
         progress=lambda items: progress(items, total=len(args.photos), desc="ingest"),
         max_megapixels=args.max_megapixels,
         min_boards=args.min_boards,
+        camera=camera,
     )
     seconds = time.monotonic() - start
     rep = report(result, rig)
@@ -163,8 +149,7 @@ def run(args: argparse.Namespace) -> int:
     if result.dataset is None:  # nothing to write but the report, which says so (0 frames)
         where = atomic_write_text(report_path(args.out), text)
         raise IngestError(f"no photo gave a frame (report: {where})")
-    dataset = result.dataset if camera is None else with_lens(result.dataset, camera, args.camera)
-    path = write_dataset(dataset, args.out)  # first: a report never claims a dataset that is not there
+    path = write_dataset(result.dataset, args.out)  # first: a report never claims a dataset that is not there
     where = atomic_write_text(report_path(args.out), text)
     t = rep["totals"]
     print(
@@ -173,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         f"{t['photos'] / seconds:.1f} photos/s -> {path} (report: {where})"
     )
     if camera is not None:
-        lens = "no distortion" if dataset.dist_coeffs is None else f"{len(dataset.dist_coeffs)} distortion coefficients"
+        lens = "no distortion" if camera.dist_coeffs is None else f"{len(camera.dist_coeffs)} distortion coefficients"
         print(f"lens: {lens} from {args.camera}")
     return 0
 
