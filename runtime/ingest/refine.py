@@ -8,8 +8,9 @@
    the spacing of the model, else dropped with the reason (the largest residual and the tolerance, or
    a corner at the image edge). Where the one-term model leaves a corner beyond it (a strong lens),
    the two-term model judges instead, each corner both fitted and held out (``judged``). Real boards
-   leave up to 7.7 % (paper that is not flat, print), a corner moved by a fifth of a square 15 % or
-   more, a grid bent over two boards 47-73 % (models_spec/ingest.md, "Acceptance").
+   leave up to 7.7 % (paper that is not flat, print), a corner moved by 0.3 of a square 13.7 % or
+   more, by 0.2 mostly more than 12 %, a grid bent over two boards 47-102 % (models_spec/ingest.md,
+   "Acceptance").
 3. ``grow``: where the checker pattern runs on past a side of the grid (a board meeting another one at
    a fold, with no gap between the patterns), that side gets more rows of corners, so that the
    rig's pattern can be placed in the grid by the board identification (``grid.placements``): a
