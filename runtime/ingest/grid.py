@@ -136,11 +136,10 @@ def _fit(grid: np.ndarray, px: np.ndarray, image_size: tuple[int, int], k, terms
             return np.full(px.size, np.inf)
         return (cv2.perspectiveTransform(grid.reshape(-1, 1, 2), m.H).reshape(-1, 2) - m.undistort(px)).ravel()
 
-    if k is None and start is None:
-        start = (golden_section(lambda k1: float(np.sqrt(np.mean(misfit(k1) ** 2))), *K_RANGE, K_TOLERANCE), 0.0)
-        k = start if terms == 1 else None
     if k is None:
-        k = gauss_newton(misfit, np.array(start, np.float64), np.array([K_RANGE, K2_RANGE]))
+        if start is None:
+            start = (golden_section(lambda k1: float(np.sqrt(np.mean(misfit(k1) ** 2))), *K_RANGE, K_TOLERANCE), 0.0)
+        k = start if terms == 1 else gauss_newton(misfit, np.array(start, np.float64), np.array([K_RANGE, K2_RANGE]))
     return model(k)
 
 
