@@ -92,7 +92,7 @@ class Detection:
     found_by: str = ""
     residual_px: float = float("nan")
     tolerance_px: float = float("nan")
-    k: float = 0.0  # the distortion coefficient of its board model (``grid.BoardModel``)
+    k: tuple[float, float] = (0.0, 0.0)  # the distortion (k1, k2) of its board model (``grid.BoardModel``)
 
     @property
     def grid_shape(self) -> tuple[int, int]:
@@ -152,10 +152,14 @@ def to_reduced(points: np.ndarray, factor: int) -> np.ndarray:
 
 
 def outline(
-    corners_px: np.ndarray, grid: tuple[int, int], margin: float, image_size: tuple[int, int], k: float = 0.0
+    corners_px: np.ndarray,
+    grid: tuple[int, int],
+    margin: float,
+    image_size: tuple[int, int],
+    k: tuple[float, float] = (0.0, 0.0),
 ) -> np.ndarray:
     """(4, 2) px the grid's outline ``margin`` squares beyond its outer corners (board model of the corners,
-    distortion ``k``)."""
+    distortion ``k`` = (k1, k2))."""
     mx, my = grid
     box = np.array([[-margin, -margin], [mx - 1 + margin, -margin], [mx - 1 + margin, my - 1 + margin]])
     box = np.vstack([box, [-margin, my - 1 + margin]])
@@ -175,7 +179,7 @@ def mask(
     grid: tuple[int, int],
     size: tuple[int, int],
     origin: tuple[int, int] = (0, 0),
-    k: float = 0.0,
+    k: tuple[float, float] = (0.0, 0.0),
 ) -> None:
     """Fill the grid's printed pattern (native corners of a (width, height) image; board model distortion
     ``k``) with grey in the padded copy, reduced by ``factor``, of the image region whose top-left pixel is
