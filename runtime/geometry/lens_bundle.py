@@ -38,8 +38,8 @@ class LensBundleResult:
 
 def _distorted(p2, p3, sqrt_w, kp, R, t, K_lens, dist):
     """Weighted residuals (B, N, 2) in the distorted image and what the Jacobians need."""
-    _, Xc, z, xn, yn = residuals(p2, p3, sqrt_w, kp, R, t)
-    pinhole = np.stack([kp[:, None, 0] * xn + kp[:, None, 2], kp[:, None, 1] * yn + kp[:, None, 3]], -1)
+    offset, Xc, z, xn, yn = residuals(p2, p3, np.ones_like(sqrt_w), kp, R, t)  # pi(K, X_C) - x, unweighted
+    pinhole = offset + p2
     image, by_pixel, by_coeff = distort_points_with_jacobians(pinhole.reshape(-1, 2), K_lens, dist)
     B, N = z.shape
     r = (image.reshape(B, N, 2) - p2) * sqrt_w[..., None]

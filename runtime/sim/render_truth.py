@@ -14,13 +14,12 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.errors import DatasetError
-from dimenet.runtime.evaluation.calibration import oracle_fit
+from dimenet.runtime.evaluation.calibration import LENS_KEYS, oracle_fit
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.geometry.distortion import undistort_points
 
-LENS_KEYS = ("dist_coeffs", "dist_K")  # optional: the lens the photos were taken through
 IDENTITY_TOLERANCE_PX = 5.0  # a found board further than this (RMS) from its true corners has the wrong identity
 
 
