@@ -116,21 +116,56 @@ def pnp_rms(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tupl
     return float(np.sqrt(np.mean(err**2))), rvec, tvec
 
 
-def complete(seed: tuple[int, ...], opts: list[list[Candidate]], predicted_px: np.ndarray) -> tuple[int, ...]:
-    """The seed's labelling extended to every detection: closest free candidates first, against the rig
-    corners ``predicted_px`` (P, 2) px projected from the seed's pose."""
+def stacked(options: list[Candidate]) -> tuple[np.ndarray, np.ndarray]:
+    """One detection's candidates stacked: their corners (K, n, 2) px and rig corners (K, n), padded to the
+    most corners with NaN corners (of rig corner 0)."""
+    n = max(len(c.rig_index) for c in options)
+    corners = np.full((len(options), n, 2), np.nan)
+    rig_index = np.zeros((len(options), n), dtype=int)
+    for k, c in enumerate(options):
+        corners[k, : len(c.rig_index)] = c.corners_px
+        rig_index[k, : len(c.rig_index)] = c.rig_index
+    return corners, rig_index
+
+
+def complete(
+    seeds: list[tuple[int, ...]],
+    opts: list[list[Candidate]],
+    rig_points: np.ndarray,
+    fixed_2d: np.ndarray,
+    fixed_3d: np.ndarray,
+    K: np.ndarray,
+) -> list[tuple[int, ...]]:
+    """The seeds (labellings of the first detections) extended to every detection: a PnP (SQPnP) under K on
+    a seed's points fixes its camera (a seed without a pose is dropped), then each other detection takes the
+    free candidate whose corners lie closest (RMS px) to the rig corners projected, closest first."""
+    poses = {}
+    for seed in seeds:
+        try:
+            poses[seed] = solve_pnp_start(*correspondences(opts, seed, rig_points, fixed_2d, fixed_3d)[:2], K)
+        except InputError:
+            continue
+    if not poses:
+        return []
+    rvec, tvec = (np.array(a) for a in zip(*poses.values()))
+    predicted_px = project(rig_points, K, rvec, tvec)  # (S, P, 2)
+    n_seed = len(seeds[0])
     costs = []
-    for r in range(len(seed), len(opts)):
-        for k, c in enumerate(opts[r]):
-            sq = np.sum((c.corners_px - predicted_px[c.rig_index]) ** 2, axis=1)
-            costs.append((float(np.sqrt(np.nanmean(sq))), r, k))
-    chosen = dict(enumerate(seed))
-    used = {opts[r][c].board for r, c in chosen.items()}
-    for _, r, k in sorted(costs):
-        if r not in chosen and opts[r][k].board not in used:
-            chosen[r] = k
-            used.add(opts[r][k].board)
-    return tuple(chosen[r] for r in range(len(opts)))
+    for o in opts[n_seed:]:
+        corners, rig_index = stacked(o)
+        costs.append(np.sqrt(np.nanmean(np.sum((corners - predicted_px[:, rig_index]) ** 2, axis=-1), axis=-1)))
+    pairs = [(r, k) for r in range(n_seed, len(opts)) for k in range(len(opts[r]))]
+    labellings = []
+    for seed, cost in zip(poses, np.concatenate(costs, axis=1)):
+        chosen = dict(enumerate(seed))
+        used = {opts[r][c].board for r, c in chosen.items()}
+        for i in np.argsort(cost, kind="stable"):
+            r, k = pairs[i]
+            if r not in chosen and opts[r][k].board not in used:
+                chosen[r] = k
+                used.add(opts[r][k].board)
+        labellings.append(tuple(chosen[r] for r in range(len(opts))))
+    return labellings
 
 
 def refit(
@@ -174,16 +209,18 @@ def label(
     n_known = sum(detections[i].board is not None for i in order)
     n_seed = min(len(opts), max(n_known, 1 if len(fixed_3d) else 2))
     rig_points = rig.points()
+    seeds = [
+        seed
+        for seed in itertools.product(*(range(len(o)) for o in opts[:n_seed]))
+        if len({o[c].board for o, c in zip(opts, seed)}) == n_seed
+    ]
+    # A seed of every detection is a labelling already: its one PnP scores it.
+    labellings = complete(seeds, opts, rig_points, fixed_2d, fixed_3d, K_rough) if n_seed < len(opts) else seeds
     scored: dict[tuple[int, ...], tuple[float, np.ndarray, np.ndarray]] = {}
-    for seed in itertools.product(*(range(len(o)) for o in opts[:n_seed])):
-        if len({o[c].board for o, c in zip(opts, seed)}) < n_seed:
-            continue
-        rms, rvec, tvec = pnp_rms(*correspondences(opts[:n_seed], seed, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
-        if not np.isfinite(rms):
-            continue
-        labelling = complete(seed, opts, project(rig_points, K_rough, rvec, tvec))
-        if labelling not in scored:
-            scored[labelling] = pnp_rms(*correspondences(opts, labelling, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
+    for labelling in labellings:  # distinct: each keeps its seed
+        score = pnp_rms(*correspondences(opts, labelling, rig_points, fixed_2d, fixed_3d)[:2], K_rough)
+        if np.isfinite(score[0]):
+            scored[labelling] = score
     best = sorted(scored, key=lambda lab: scored[lab][0])[:refits]
     if not best:
         raise IdentificationError("no labelling of the boards found gives a camera pose")
