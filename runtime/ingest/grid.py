@@ -8,7 +8,7 @@ inner), as the rig numbers them. A detection's grid may be larger than its rig p
 The board model maps grid units to native px: a homography to undistorted px, then a division model of
 radial lens distortion about the image centre (Fitzgibbon 2001), u - c = (d - c) / (1 + k1·r_d² + k2·r_d⁴)
 with r_d = |d - c| / s, s = half the image's longer side. It is fitted per board, with one term (k2 = 0,
-k1 by golden-section search, the homography by least squares for each k1) or two (k1 and k2 by damped
+k1 by Brent's method, the homography by least squares for each k1) or two (k1 and k2 by damped
 Gauss-Newton from the one-term fit, the homography refitted for each), and absorbs a lens's barrel or
 pincushion distortion, which a homography alone cannot (models_spec/ingest.md, "Acceptance").
 
@@ -102,21 +102,47 @@ def _homography(grid: np.ndarray, px: np.ndarray) -> Optional[np.ndarray]:
     return None if H is None or not np.isfinite(H).all() else H
 
 
-def golden_section(f, lo: float, hi: float, tol: float) -> float:
-    """The minimiser of a unimodal scalar function ``f`` on [lo, hi], to ``tol``."""
+def _vertex(x: float, fx: float, w: float, fw: float, v: float, fv: float) -> tuple[float, float]:
+    """(p, q), q >= 0: the parabola through (x, fx), (w, fw), (v, fv) has its vertex at x + p / q."""
+    r, q = (x - w) * (fx - fv), (x - v) * (fx - fw)
+    p, q = (x - v) * q - (x - w) * r, 2.0 * (q - r)
+    return (-p, q) if q > 0 else (p, -q)
+
+
+def brent(f, lo: float, hi: float, tol: float) -> float:
+    """The minimiser of a unimodal scalar function ``f`` on [lo, hi], to ``tol``: Brent's method (golden-section
+    steps, a step to the vertex of the parabola through the three best points where that lies inside the bracket
+    and the steps shrink), ending at the last such vertex when it lies inside the final bracket."""
     a, b = lo, hi
-    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
-    fc, fd = f(c), f(d)
-    while b - a > tol:
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - _GOLDEN * (b - a)
-            fc = f(c)
+    x = w = v = b - _GOLDEN * (b - a)
+    fx = fw = fv = f(x)
+    step = previous = 0.0  # the last step and the one before it
+    least = tol / 4.0  # no two points nearer than this; x ends within 2 least = tol / 2 of both bracket ends
+    while max(x - a, b - x) > 2.0 * least:
+        middle = (a + b) / 2.0
+        golden = True
+        if abs(previous) > least and math.isfinite(fx + fw + fv):
+            p, q = _vertex(x, fx, w, fw, v, fv)
+            if abs(p) < abs(0.5 * q * previous) and q * (a - x) < p < q * (b - x):
+                previous, step, golden = step, p / q, False
+                if min(x + step - a, b - x - step) < 2.0 * least:
+                    step = math.copysign(least, middle - x)
+        if golden:
+            previous = (a - x) if x >= middle else (b - x)
+            step = (1.0 - _GOLDEN) * previous
+        u = x + (step if abs(step) >= least else math.copysign(least, step))
+        fu = f(u)
+        if fu <= fx:
+            a, b = (x, b) if u >= x else (a, x)
+            v, fv, w, fw, x, fx = w, fw, x, fx, u, fu
         else:
-            a, c, fc = c, d, fd
-            d = a + _GOLDEN * (b - a)
-            fd = f(d)
-    return (a + b) / 2.0
+            a, b = (u, b) if u < x else (a, u)
+            if fu <= fw or w == x:
+                v, fv, w, fw = w, fw, u, fu
+            elif fu <= fv or v == x or v == w:
+                v, fv = u, fu
+    p, q = _vertex(x, fx, w, fw, v, fv) if math.isfinite(fx + fw + fv) else (0.0, 0.0)
+    return x + p / q if q * (a - x) < p < q * (b - x) else x
 
 
 def _fit(grid: np.ndarray, px: np.ndarray, image_size: tuple[int, int], k, terms: int, start=None) -> BoardModel:
@@ -138,7 +164,7 @@ def _fit(grid: np.ndarray, px: np.ndarray, image_size: tuple[int, int], k, terms
 
     if k is None:
         if start is None:
-            start = (golden_section(lambda k1: float(np.sqrt(np.mean(misfit(k1) ** 2))), *K_RANGE, K_TOLERANCE), 0.0)
+            start = (brent(lambda k1: float(np.mean(misfit(k1) ** 2)), *K_RANGE, K_TOLERANCE), 0.0)
         k = start if terms == 1 else gauss_newton(misfit, np.array(start, np.float64), np.array([K_RANGE, K2_RANGE]))
     return model(k)
 
