@@ -152,21 +152,23 @@ def _fit(grid: np.ndarray, px: np.ndarray, image_size: tuple[int, int], k, terms
     w, h = image_size
     centre, scale = np.array([(w - 1) / 2.0, (h - 1) / 2.0]), max(w, h) / 2.0
 
-    def model(ks) -> BoardModel:
+    def model(ks) -> tuple[BoardModel, np.ndarray]:
+        """The board model of distortion ``ks`` and the corners it undistorts (n, 2) px."""
         m = BoardModel(np.eye(3), coefficients(ks), centre, scale)
-        return BoardModel(_homography(grid, m.undistort(px)), m.k, centre, scale)
+        undistorted = m.undistort(px)
+        return BoardModel(_homography(grid, undistorted), m.k, centre, scale), undistorted
 
     def misfit(ks) -> np.ndarray:
-        m = model(ks)
+        m, undistorted = model(ks)
         if m.H is None:
             return np.full(px.size, np.inf)
-        return (cv2.perspectiveTransform(grid.reshape(-1, 1, 2), m.H).reshape(-1, 2) - m.undistort(px)).ravel()
+        return (cv2.perspectiveTransform(grid.reshape(-1, 1, 2), m.H).reshape(-1, 2) - undistorted).ravel()
 
     if k is None:
         if start is None:
             start = (brent(lambda k1: float(np.mean(misfit(k1) ** 2)), *K_RANGE, K_TOLERANCE), 0.0)
         k = start if terms == 1 else gauss_newton(misfit, np.array(start, np.float64), np.array([K_RANGE, K2_RANGE]))
-    return model(k)
+    return model(k)[0]
 
 
 def gauss_newton(f, start: np.ndarray, bounds: np.ndarray) -> np.ndarray:
