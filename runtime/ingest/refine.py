@@ -93,13 +93,6 @@ def refine(
     return subpix(gray, corners_px, half_window(corner_spacing(corners_px, pattern), window_fraction))
 
 
-def off_model(corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int]) -> np.ndarray:
-    """(nx·ny,) whether each corner lies farther than RESEED_TOLERANCE of the spacing from the board model
-    fitted to all (missing corners, and every corner when there is no model, count as off)."""
-    model = fit_model(corners_px, pattern, image_size)
-    return residuals(corners_px, model, pattern) > tolerance_px(RESEED_TOLERANCE, corners_px, pattern)
-
-
 def predicted(corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int]) -> np.ndarray:
     """(nx·ny, 2) px every corner where the board model of the found (finite) corners puts it; NaN without a model."""
     model = fit_model(corners_px, pattern, image_size)
@@ -120,15 +113,18 @@ class Refined:
     k: tuple[float, float] = (0.0, 0.0)
 
 
-def judged(corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int]) -> tuple:
+def judged(
+    corners_px: np.ndarray, pattern: tuple[int, int], image_size: tuple[int, int], model: Optional[BoardModel] = None
+) -> tuple:
     """(board model, largest corner residual px, tolerance px) a board's whole corners are judged by: the
-    one-term model, within ACCEPT_TOLERANCE of the spacing; where it leaves a corner beyond that (a strong lens),
-    the two-term model, within ACCEPT_TOLERANCE and every corner within HELD_OUT_TOLERANCE of where the model
-    of the other corners puts it (``grid.held_out_residuals``: the second term can bend to one misplaced corner,
-    the model of the others does not: a corner of a real board moved by 0.2 of the spacing is held out at 15.8 % or
-    more, a strong lens's corners mostly within 10 %; models_spec/ingest.md, "Acceptance")."""
+    one-term model (``model`` when already fitted to them by ``grid.fit_model``), within ACCEPT_TOLERANCE of the
+    spacing; where it leaves a corner beyond that (a strong lens), the two-term model, within ACCEPT_TOLERANCE and
+    every corner within HELD_OUT_TOLERANCE of where the model of the other corners puts it
+    (``grid.held_out_residuals``: the second term can bend to one misplaced corner, the model of the others does
+    not: a corner of a real board moved by 0.2 of the spacing is held out at 15.8 % or more, a strong lens's corners
+    mostly within 10 %; models_spec/ingest.md, "Acceptance")."""
     tolerance = tolerance_px(ACCEPT_TOLERANCE, corners_px, pattern)
-    model = fit_model(corners_px, pattern, image_size)
+    model = fit_model(corners_px, pattern, image_size) if model is None else model
     worst = float(residuals(corners_px, model, pattern).max())
     if worst <= tolerance or model is None:
         return model, worst, tolerance
@@ -145,17 +141,18 @@ def refine_plain(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, i
     A corner started again that cannot be refined there (its start off the image) keeps its first place."""
     size = (gray.shape[1], gray.shape[0])
     refined = refine(gray, corners_px, pattern)
-    if np.isfinite(refined).all():
-        off = off_model(refined, pattern, size)
-        if off.any():
-            start = np.where(off[:, None], predicted(np.where(off[:, None], np.nan, refined), pattern, size), refined)
-            again = refine(gray, start, pattern)
-            refined = np.where(np.isfinite(again), again, refined)  # where starting again fails, judge the first
     if not np.isfinite(refined).all():
         return Refined(
             None, float("inf"), float("nan"), f"a corner lies within {SUBPIX_WINDOW_PX[0] + 1} px of the image edge"
         )
-    model, worst, tolerance = judged(refined, pattern, size)
+    model = fit_model(refined, pattern, size)
+    off = residuals(refined, model, pattern) > tolerance_px(RESEED_TOLERANCE, refined, pattern)
+    if off.any():
+        start = np.where(off[:, None], predicted(np.where(off[:, None], np.nan, refined), pattern, size), refined)
+        again = refine(gray, start, pattern)
+        refined = np.where(np.isfinite(again), again, refined)  # where starting again fails, judge the first
+        model = fit_model(refined, pattern, size)
+    model, worst, tolerance = judged(refined, pattern, size, model)
     if not worst <= tolerance:
         return Refined(None, worst, tolerance, f"corner residual {worst:.1f} px > {tolerance:.1f} px tolerance")
     return Refined(refined, worst, tolerance, k=model.k)
@@ -262,12 +259,11 @@ def grow_once(
     corners_px: np.ndarray,
     grid_shape: tuple[int, int],
     side: int,
-    k: tuple[float, float],
+    model: Optional[BoardModel],
     colours: Colouring,
 ) -> Optional[np.ndarray]:
     """The (n, 2) px row of corners one beyond ``side`` (0 left, 1 right, 2 top, 3 bottom) of the grid, or None
-    when the checker pattern does not run on there (see ``grow``); ``k`` the board model's distortion (k1, k2)."""
-    model = fit_model(corners_px, grid_shape, (gray.shape[1], gray.shape[0]), k)
+    when the checker pattern does not run on there (see ``grow``); ``model`` the board model of the grid's corners."""
     row = _side_rows(grid_shape)[side]
     start = None if model is None else model.predict(row)
     if start is None or not np.isfinite(start).all():
@@ -291,14 +287,16 @@ def grow(
     ACCEPT_TOLERANCE of that place, with its window inside the image, and is a corner of the board's
     colouring at least GROW_CONTRAST times as clear as the board's own corners (median). Past a fold the
     next row lies on the other board's plane, away from where this board's model puts it: growth stops."""
-    model = fit_model(corners_px, pattern, (gray.shape[1], gray.shape[0]), k)
+    size = (gray.shape[1], gray.shape[0])
+    model = fit_model(corners_px, pattern, size, k)
     colours = colouring(gray, model, pattern) if model is not None else Colouring(1.0, 0.0)
     grid_shape = pattern
     if not colours.contrast > 0:
         return corners_px, grid_shape
     for side in range(4):
-        while (row := grow_once(gray, corners_px, grid_shape, side, k, colours)) is not None:
+        while (row := grow_once(gray, corners_px, grid_shape, side, model, colours)) is not None:
             corners_px, grid_shape = _add_row(corners_px, grid_shape, side, row)
+            model = fit_model(corners_px, grid_shape, size, k)
             if side in (0, 2):  # a row before the first: every corner's i + j, so the phase, changes parity
                 colours = Colouring(-colours.phase, colours.contrast)
     return corners_px, grid_shape
