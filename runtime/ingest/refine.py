@@ -268,13 +268,12 @@ def grow_once(
     start = None if model is None else model.predict(row)
     if start is None or not np.isfinite(start).all():
         return None
+    clear = checker_contrast(quadrant_means(gray, model, row), row, colours.phase)
+    if not np.all(clear >= GROW_CONTRAST * colours.contrast):  # first: it fails where most sides stop
+        return None
     refined = subpix(gray, start, half_window(corner_spacing(corners_px, grid_shape)))
     moved = np.linalg.norm(refined - start, axis=1)
-    clear = checker_contrast(quadrant_means(gray, model, row), row, colours.phase)
-    ok = np.all(moved <= tolerance_px(ACCEPT_TOLERANCE, corners_px, grid_shape)) and np.all(
-        clear >= GROW_CONTRAST * colours.contrast
-    )
-    return refined if ok else None
+    return refined if np.all(moved <= tolerance_px(ACCEPT_TOLERANCE, corners_px, grid_shape)) else None
 
 
 def grow(
