@@ -24,7 +24,14 @@ from dimenet.runtime.geometry.camera import (
     to_camera,
 )
 from dimenet.runtime.geometry.normal_equations import frame_normal_equations
-from dimenet.runtime.geometry.pnp import MIN_POINTS, MIN_POSE_POINTS, check_not_degenerate, dlt_camera, solve_pnp_start
+from dimenet.runtime.geometry.pnp import (
+    MIN_POINTS,
+    MIN_POSE_POINTS,
+    check_not_degenerate,
+    dlt_camera,
+    planar_focal,
+    solve_pnp_start,
+)
 from dimenet.runtime.geometry.rotation import (
     FEW_POSES,
     left_update,
@@ -76,5 +83,6 @@ __all__ = [
     "check_not_degenerate",
     "solve_pnp_start",
     "dlt_camera",
+    "planar_focal",
     "frame_normal_equations",
 ]

@@ -100,3 +100,16 @@ def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray
     if np.linalg.det(R) < 0:
         raise CalibrationError("DLT gave a reflection: the correspondences are inconsistent")
     return k_matrix(k_params(Kr)), matrix_to_rvec(R), t
+
+
+def planar_focal(H: np.ndarray, centre_px: np.ndarray) -> float:
+    """The focal length (px) one plane's homography H (3, 3), plane coordinates with square units -> px,
+    gives a camera of square pixels and principal point ``centre_px`` (2,): the least-squares solution of
+    Zhang's two constraints on 1/f² (the plane's axes orthogonal and of equal length). NaN where the view
+    does not tell it (a plane seen face on, or constraints with no positive solution)."""
+    shift = np.array([[1.0, 0.0, -centre_px[0]], [0.0, 1.0, -centre_px[1]], [0.0, 0.0, 1.0]])
+    (a1, a2), (b1, b2), (c1, c2) = (shift @ np.asarray(H, np.float64))[:, :2]
+    lhs = np.array([a1 * a2 + b1 * b2, a1 * a1 + b1 * b1 - a2 * a2 - b2 * b2])
+    rhs = -np.array([c1 * c2, c1 * c1 - c2 * c2])
+    inverse_f2 = float(lhs @ rhs) / float(lhs @ lhs) if lhs @ lhs > 0 else float("nan")
+    return 1.0 / np.sqrt(inverse_f2) if inverse_f2 > 0 else float("nan")

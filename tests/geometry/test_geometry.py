@@ -98,6 +98,23 @@ def test_dlt_refuses_coplanar_points():
         g.dlt_camera(x[0], X[0])
 
 
+@pytest.mark.parametrize("rvec", [(0.5, -0.2, 0.1), (-0.1, 0.7, 2.0), (0.9, 0.4, -1.2)])
+def test_planar_focal_recovers_f_from_one_tilted_plane(rvec):
+    # A plane (square units, z = 0) seen by f = 1650 px, centre (799.5, 599.5): H = K [r1 r2 t], any scale.
+    K = g.k_matrix([1650.0, 1650.0, 799.5, 599.5])
+    R = g.rvec_to_matrix(np.array(rvec))
+    H = 3.7 * K @ np.c_[R[:, :2], [20.0, -15.0, 400.0]]
+    assert g.planar_focal(H, np.array([799.5, 599.5])) == pytest.approx(1650.0, rel=1e-9)
+    # A principal point off by 40 px moves it, but not far (what a rough centre costs).
+    assert g.planar_focal(H, np.array([839.5, 599.5])) == pytest.approx(1650.0, rel=0.1)
+
+
+def test_planar_focal_is_nan_for_a_plane_seen_face_on():
+    K = g.k_matrix([1650.0, 1650.0, 799.5, 599.5])
+    H = K @ np.c_[np.eye(3)[:, :2], [20.0, -15.0, 400.0]]
+    assert np.isnan(g.planar_focal(H, np.array([799.5, 599.5])))
+
+
 @pytest.mark.parametrize("kind", ["coincide", "collinear"])
 def test_degenerate_configurations_are_named(kind):
     X = np.zeros((8, 3)) if kind == "coincide" else np.c_[np.arange(8.0), np.arange(8.0), 500 + np.arange(8.0)]
