@@ -11,6 +11,14 @@ where the pattern runs on past it (``refine``); a board that fails is dropped wi
 Identical plain boards are told apart later (``identity``); here each detection only gets a
 canonical handedness (board x, y appear like image x, y).
 
+With a rig of several boards, the pipeline hands the first board kept to a placer
+(``placement.place``): a camera of that one board says where the others are, and ``confirm`` looks
+for each there with no detector call, its corners refined from where they are put; when it finds
+them the search ends there. For that first board, SEED_STEPS come before STEPS: the classic
+detector without its adaptive threshold (it fails in tens of ms where the adaptive one takes
+hundreds) and the SB detector asked for any grid at least as large as the pattern (``LARGER``: one
+board of a rig whose boards meet at folds, where the other modes find none).
+
 Once the photo's camera is known, ``search_predicted`` looks for every board that camera shows in
 view but that was not found: every step on a crop around where the board should be (the boards kept
 masked out), reduced so that its squares are about CROP_SPACING_PX.
@@ -28,14 +36,24 @@ Specified (with the measurements behind the steps) in models_spec/ingest.md.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
 
 from dimenet.runtime.formats.rig import Board, Rig
 from dimenet.runtime.ingest.grid import canonical, corner_spacing, fit_model, grid_points, residuals
-from dimenet.runtime.ingest.refine import SUBPIX_WINDOW_FRACTION, grow, refine, refine_plain, tolerance_px
+from dimenet.runtime.ingest.refine import (
+    GROW_CONTRAST,
+    SUBPIX_WINDOW_FRACTION,
+    checker_contrast,
+    checker_phase,
+    grow,
+    quadrant_means,
+    refine,
+    refine_plain,
+    tolerance_px,
+)
 
 DETECT_WIDTH_PX = 1008  # width of the reduced copy searched for plain boards (1/4 of 12 MP, 1/2 of 2 MP)
 CHARUCO_WIDTH_PX = 2016  # width of the reduced copy searched for ChArUco markers
@@ -47,26 +65,35 @@ MASK_GREY = 128
 SEARCH_UNTIL = 2  # the search over the whole photo stops when this many boards are kept (enough to identify them)
 MIN_CHARUCO_CORNERS = 4  # a ChArUco board counts as found with at least this many corners
 CHARUCO_TOLERANCE = 0.05  # a ChArUco corner off its board model by more than this fraction of the spacing is dropped
+PLACE_TOLERANCE = 0.35  # a corner looked for where a camera puts it may lie this fraction of the spacing from there
 CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
-SB_FLAG_NAMES = {cv2.CALIB_CB_NORMALIZE_IMAGE: "NORMALIZE_IMAGE", cv2.CALIB_CB_EXHAUSTIVE: "EXHAUSTIVE"}
+FLAG_NAMES = {
+    "classic": {
+        cv2.CALIB_CB_ADAPTIVE_THRESH: "ADAPTIVE_THRESH",
+        cv2.CALIB_CB_NORMALIZE_IMAGE: "NORMALIZE_IMAGE",
+        cv2.CALIB_CB_FAST_CHECK: "FAST_CHECK",
+    },
+    "sb": {
+        cv2.CALIB_CB_NORMALIZE_IMAGE: "NORMALIZE_IMAGE",
+        cv2.CALIB_CB_EXHAUSTIVE: "EXHAUSTIVE",
+        cv2.CALIB_CB_LARGER: "LARGER",
+    },
+}
 
 
 @dataclass(frozen=True)
 class Step:
-    """One detector call: ``cv2.findChessboardCorners`` (``classic``, CLASSIC_FLAGS) or
-    ``cv2.findChessboardCornersSB`` (``sb``) with ``flags``."""
+    """One detector call: ``cv2.findChessboardCorners`` (``classic``) or
+    ``cv2.findChessboardCornersSB`` (``sb``) with ``flags``; with LARGER the grid found may be larger than asked."""
 
     detector: str
     flags: int = 0
 
     def describe(self, factor: int) -> str:
         """E.g. ``findChessboardCornersSB(NORMALIZE_IMAGE) at 1/2 size``."""
-        if self.detector == "classic":
-            call = "findChessboardCorners"
-        else:
-            names = [n for f, n in SB_FLAG_NAMES.items() if self.flags & f]
-            call = f"findChessboardCornersSB({'|'.join(names) or '0'})"
-        return call + ("" if factor == 1 else f" at 1/{factor} size")
+        names = [n for f, n in FLAG_NAMES[self.detector].items() if self.flags & f]
+        call = "findChessboardCorners" if self.detector == "classic" else "findChessboardCornersSB"
+        return f"{call}({'|'.join(names) or '0'})" + ("" if factor == 1 else f" at 1/{factor} size")
 
 
 STEPS = (  # in order: cheapest and most finding first (models_spec/ingest.md, "Detector steps")
@@ -75,6 +102,10 @@ STEPS = (  # in order: cheapest and most finding first (models_spec/ingest.md, "
     Step("sb", 0),
     Step("sb", cv2.CALIB_CB_EXHAUSTIVE),
     Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE),
+)
+SEED_STEPS = (  # before STEPS when a first board can place the others (models_spec/ingest.md, "Placing")
+    Step("classic", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK),
+    Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER),
 )
 
 
@@ -188,22 +219,34 @@ def mask(
     cv2.fillConvexPoly(copy, np.round(quad).astype(np.int32), MASK_GREY)
 
 
-def find_one(copy: np.ndarray, pattern: tuple[int, int], step: Step) -> Optional[np.ndarray]:
-    """The (nx·ny, 2) corners (the copy's px) of one board found by ``step``, or None."""
+def find_one(copy: np.ndarray, pattern: tuple[int, int], step: Step) -> Optional[tuple[np.ndarray, tuple[int, int]]]:
+    """The (mx·my, 2) corners (the copy's px) of one board found by ``step`` and its grid (mx, my): the
+    ``pattern`` (nx, ny), or larger with LARGER; None when nothing is found."""
     if step.detector == "classic":
         ok, corners = cv2.findChessboardCorners(copy, pattern, flags=step.flags)
-    else:
-        ok, corners = cv2.findChessboardCornersSB(copy, pattern, flags=step.flags)
-    return corners.reshape(-1, 2) if ok else None
+        return (corners.reshape(-1, 2), pattern) if ok else None
+    if step.flags & cv2.CALIB_CB_LARGER:
+        ok, corners, meta = cv2.findChessboardCornersSBWithMeta(copy, pattern, flags=step.flags)
+        return (corners.reshape(-1, 2), (meta.shape[1], meta.shape[0])) if ok else None
+    ok, corners = cv2.findChessboardCornersSB(copy, pattern, flags=step.flags)
+    return (corners.reshape(-1, 2), pattern) if ok else None
 
 
-def settle(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], found_by: str):
-    """A plain board found at ``corners_px`` (native, unrefined): a Detection (refined, canonical, grown) or a
-    Dropped with the reason."""
-    refined = refine_plain(gray, corners_px, pattern)
+def settle(
+    gray: np.ndarray,
+    corners_px: np.ndarray,
+    pattern: tuple[int, int],
+    found_by: str,
+    found_grid: Optional[tuple[int, int]] = None,
+):
+    """A plain board found at ``corners_px`` (native, unrefined) over ``found_grid`` (the ``pattern`` when None;
+    larger where the detector may return more): a Detection (refined, canonical, grown) or a Dropped with the
+    reason."""
+    found_grid = pattern if found_grid is None else found_grid
+    refined = refine_plain(gray, corners_px, found_grid)
     if refined.corners_px is None:
         return Dropped(pattern, found_by, refined.reason, refined.residual_px, refined.tolerance_px)
-    corners, grid = grow(gray, canonical(refined.corners_px, pattern), pattern, refined.k)
+    corners, grid = grow(gray, canonical(refined.corners_px, found_grid), found_grid, refined.k)
     return Detection(
         pattern,
         corners,
@@ -213,6 +256,26 @@ def settle(gray: np.ndarray, corners_px: np.ndarray, pattern: tuple[int, int], f
         tolerance_px=refined.tolerance_px,
         k=refined.k,
     )
+
+
+def confirm(
+    gray: np.ndarray, predicted_px: np.ndarray, pattern: tuple[int, int], k: tuple[float, float], contrast: float
+) -> Optional[np.ndarray]:
+    """A plain board looked for where a camera puts its corners (``predicted_px`` (nx·ny, 2) native px; the lens
+    ``k`` of a board model, (k1, k2)), with no detector: its corners (nx·ny, 2) px, each refined from there
+    (``refine``), when every one lies within PLACE_TOLERANCE of the spacing of where it was put and is a checker
+    corner at least GROW_CONTRAST times ``contrast`` (grey levels) clear; else None. (Not yet judged: ``settle``.)"""
+    refined = refine(gray, predicted_px, pattern)
+    moved = np.linalg.norm(refined - predicted_px, axis=1)
+    if not np.all(moved <= PLACE_TOLERANCE * corner_spacing(predicted_px, pattern)):
+        return None
+    model = fit_model(refined, pattern, (gray.shape[1], gray.shape[0]), k)
+    if model is None:
+        return None
+    own = grid_points(pattern)
+    means = quadrant_means(gray, model, own)
+    clear = checker_contrast(means, own, checker_phase(means, own))
+    return refined if np.all(clear >= GROW_CONTRAST * contrast) else None
 
 
 def plain_patterns(rig: Rig) -> dict[tuple[int, int], int]:
@@ -229,6 +292,9 @@ def of_pattern(items, pattern: tuple[int, int]) -> int:
     return sum(d.pattern == pattern for d in items)
 
 
+Placer = Callable[[Detection], tuple[Detection, ...]]  # a board kept -> the boards found where its camera puts them
+
+
 def search_plain(
     gray: np.ndarray,
     copy: np.ndarray,
@@ -236,25 +302,29 @@ def search_plain(
     wanted: dict[tuple[int, int], int],
     steps: tuple[Step, ...],
     until: int,
+    place: Optional[Placer] = None,
 ) -> tuple[list[Detection], list[Dropped]]:
     """Plain boards in the padded ``copy`` of ``gray`` reduced by ``factor`` (masked in place): at most
-    ``wanted`` boards of each pattern, by each of ``steps`` in turn, until ``until`` boards are kept."""
+    ``wanted`` boards of each pattern, by each of ``steps`` in turn, until ``until`` boards are kept; with
+    ``place``, the first board kept is handed to it and, when it finds any, the search ends there."""
     size = (gray.shape[1], gray.shape[0])
     kept: list[Detection] = []
     dropped: list[Dropped] = []
     for step in steps:
         for pattern, count in sorted(wanted.items()):
             while len(kept) < until and of_pattern(kept, pattern) < count and of_pattern(dropped, pattern) < count:
-                raw = find_one(copy, pattern, step)
-                if raw is None:
+                found = find_one(copy, pattern, step)
+                if found is None:
                     break
-                native = to_native(raw, factor)
-                mask(copy, factor, native, pattern, size)  # never found twice, kept or not
-                outcome = settle(gray, native, pattern, step.describe(factor))
+                native, grid = to_native(found[0], factor), found[1]
+                mask(copy, factor, native, grid, size)  # never found twice, kept or not
+                outcome = settle(gray, native, pattern, step.describe(factor), grid)
                 if isinstance(outcome, Dropped):
                     dropped.append(outcome)
                     continue
                 kept.append(outcome)
+                if place is not None and len(kept) == 1 and (placed := place(outcome)):
+                    return kept + list(placed), dropped
                 mask(copy, factor, outcome.corners_px, outcome.grid_shape, size, k=outcome.k)
     return kept, dropped
 
@@ -297,10 +367,11 @@ def find_charuco(gray: np.ndarray, rig: Rig) -> dict[int, np.ndarray]:
     return found
 
 
-def detect_boards(gray: np.ndarray, rig: Rig) -> BoardSearch:
+def detect_boards(gray: np.ndarray, rig: Rig, place: Optional[Placer] = None) -> BoardSearch:
     """Every board found in the native grey image (see the module doc): ChArUco ones identified (maybe
     partly), plain ones whole, canonical and grown, until SEARCH_UNTIL boards are kept; the plain ones
-    dropped, with the reason."""
+    dropped, with the reason. With ``place`` and no ChArUco board found, SEED_STEPS come first and the first
+    plain board kept places the others (``search_plain``)."""
     size = (gray.shape[1], gray.shape[0])
     detections = [Detection(rig.boards[k].inner_corners, c, k) for k, c in find_charuco(gray, rig).items()]
     patterns = plain_patterns(rig)
@@ -310,7 +381,9 @@ def detect_boards(gray: np.ndarray, rig: Rig) -> BoardSearch:
     copy = reduce(gray, factor)
     for d in detections:
         mask(copy, factor, d.corners_px, d.pattern, size)
-    kept, dropped = search_plain(gray, copy, factor, patterns, STEPS, SEARCH_UNTIL - len(detections))
+    place = None if detections else place
+    steps = STEPS if place is None else SEED_STEPS + STEPS
+    kept, dropped = search_plain(gray, copy, factor, patterns, steps, SEARCH_UNTIL - len(detections), place)
     return BoardSearch(tuple(detections + kept), tuple(dropped))
 
 
@@ -349,10 +422,10 @@ def search_predicted(
         outcome = None
         for step in STEPS:
             for pattern in patterns:
-                raw = find_one(copy, pattern, step)
-                if raw is not None:
+                found_one = find_one(copy, pattern, step)
+                if found_one is not None:
                     where = f"{step.describe(factor)} in a crop around where {board.name!r} should be"
-                    outcome = settle(gray, to_native(raw, factor) + [x0, y0], pattern, where)
+                    outcome = settle(gray, to_native(found_one[0], factor) + [x0, y0], pattern, where, found_one[1])
                     break
             if outcome is not None:
                 (dropped if isinstance(outcome, Dropped) else found).append(outcome)

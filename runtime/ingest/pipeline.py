@@ -1,7 +1,8 @@
 """Photos of the rig (and of a natural object with labelled points) -> a ``dimenet-dataset/1`` dataset.
 
 Per photo (``ingest_photo``; in worker processes when ``workers`` > 1, results in the photos' order):
-decode it (``photo.read_photo``), find the boards (``detection.detect_boards``), tell them apart and
+decode it (``photo.read_photo``), find the boards (``detection.detect_boards``; with a rig of several
+boards the first one kept places the others, ``placement.place``), tell them apart and
 fit the photo's single-frame K (``identity``); when that camera shows a board in view that was not
 found, it is looked for again where the camera puts it (``detection.search_predicted``). A photo
 without labels needs ``min_boards`` boards (``default_min_boards``: MIN_BOARDS, or 1 for a one-board
@@ -27,6 +28,7 @@ import multiprocessing
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -38,13 +40,13 @@ from dimenet.runtime.errors import DimenetError, IngestError, LabelsError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, NaturalObject
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
-from dimenet.runtime.geometry import MIN_POINTS, k_params, project, to_camera
-from dimenet.runtime.geometry.camera import camera_centre, facing
+from dimenet.runtime.geometry import MIN_POINTS, k_params, project
 from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.ingest.detection import BoardSearch, detect_boards, search_predicted
 from dimenet.runtime.ingest.identity import Identification, check_unambiguous, label, label_planar, refit, rough_k
 from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
+from dimenet.runtime.ingest.placement import boards_in_view, place
 from dimenet.runtime.rectify.camera import Camera
 
 GENERATOR = "dimenet.ingest"
@@ -52,7 +54,6 @@ MIN_BOARDS = 2  # boards a rig photo needs (a rig of 2 or more boards): two plan
 MIN_BOARDS_NATURAL = 1  # boards a labelled photo needs (its labelled points add the depth)
 SPLITS = ("auto", "train", "test")
 AUTO_TRAIN_FRACTION = 0.8  # --split auto: share of rig photos in train, by file-name hash
-IN_VIEW_MARGIN_PX = 4.0  # a board is looked for where the camera puts it when its corners lie this far inside the image
 LABEL_MARGIN = 1.0  # a label may lie this many image sizes beyond the image (a point extrapolated, e.g. hidden)
 # What a photo's failure may raise besides DimenetError: OpenCV's errors and numeric ones (a singular or
 # non-converging linear algebra step, an overflow). Anything else (a bug, KeyboardInterrupt, MemoryError) propagates.
@@ -125,16 +126,20 @@ def default_min_boards(rig: Rig) -> int:
 def find_and_label(gray: np.ndarray, rig: Rig, fixed_2d: np.ndarray, fixed_3d: np.ndarray, search: BoardSearch):
     """The labelling of the boards found (``identity.label``), after looking again, where its camera puts them,
     for the boards it shows in view but that were not found (``detection.search_predicted``; the camera of
-    the best labelling is good enough to say where, even before it is known to be unambiguous). Returns the
-    final labelling, the search with the boards found again, and which rig boards are in view (B,)."""
+    the best labelling is good enough to say where, even before it is known to be unambiguous), labelled again
+    when any is found. Returns the final labelling, the search with the boards found again, and which rig
+    boards are in view (B,)."""
     h, w = gray.shape
-    first = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d, refits=1)
-    in_view = boards_in_view(rig, first.K, first.rvec, first.tvec, (w, h))
-    missing = sorted(set(np.flatnonzero(in_view)) - set(first.boards))
-    if missing:
-        predicted = {int(b): project(rig.boards[b].points(), first.K, first.rvec, first.tvec) for b in missing}
-        again = search_predicted(gray, rig, search.detections, predicted)
-        search = BoardSearch(search.detections + again.detections, search.dropped + again.dropped)
+    found = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d)
+    in_view = boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h))
+    missing = sorted(set(np.flatnonzero(in_view)) - set(found.boards))
+    if not missing:
+        return found, search, in_view
+    predicted = {int(b): project(rig.boards[b].points(), found.K, found.rvec, found.tvec) for b in missing}
+    again = search_predicted(gray, rig, search.detections, predicted)
+    search = BoardSearch(search.detections + again.detections, search.dropped + again.dropped)
+    if not again.detections:
+        return found, search, in_view
     found = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d)
     return found, search, boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h))
 
@@ -175,7 +180,8 @@ def ingest_photo(
         if labels is not None:
             check_labels(labels, (w, h), point_ids)
         stage = "finding the boards"
-        search = detect_boards(photo.gray, rig)
+        placer = partial(place, photo.gray, rig) if len(rig.boards) > 1 else None
+        search = detect_boards(photo.gray, rig, placer)
         need = (default_min_boards(rig) if min_boards is None else min_boards) if labels is None else MIN_BOARDS_NATURAL
         if len(search.detections) < need:
             kind = "a rig photo" if labels is None else "a labelled photo"
@@ -209,28 +215,6 @@ def ingest_photo(
         runner_up_rms_px=found.runner_up_rms_px,
         board_lines=lines,
     )
-
-
-def boards_in_view(
-    rig: Rig, K: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, image_size: tuple[int, int]
-) -> np.ndarray:
-    """(B,) whether each rig board, seen by the camera (K px, pose {W}->{C}), lies in front of it, faces it
-    and has every corner at least IN_VIEW_MARGIN_PX inside the (width, height) image."""
-    w, h = image_size
-    camera = camera_centre(rvec, tvec)
-    seen = []
-    for board in rig.boards:
-        points = board.points()
-        px = project(points, K, rvec, tvec)
-        inside = np.all((px >= IN_VIEW_MARGIN_PX) & (px <= np.array([w - 1, h - 1]) - IN_VIEW_MARGIN_PX))
-        seen.append(
-            bool(
-                inside
-                and np.all(to_camera(points, rvec, tvec)[:, 2] > 0)
-                and facing(points[:1], -board.normal()[None], camera)[0]
-            )
-        )
-    return np.array(seen)
 
 
 def auto_split(name: str) -> str:

@@ -217,10 +217,10 @@ def test_an_opencv_error_in_detection_skips_that_photo_and_others_go_on(good, tm
     copy.write_bytes(good.read_bytes())
     real = pipeline.detect_boards
 
-    def detect(gray, rig):  # the first photo goes through as if it were 5000x1 px
+    def detect(gray, rig, place=None):  # the first photo goes through as if it were 5000x1 px
         gray = np.zeros((1, 5000), np.uint8) if detect.calls == 0 else gray
         detect.calls += 1
-        return real(gray, rig)
+        return real(gray, rig, place)
 
     detect.calls = 0
     monkeypatch.setattr(pipeline, "detect_boards", detect)

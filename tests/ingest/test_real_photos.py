@@ -94,6 +94,9 @@ def test_every_real_photo_is_accepted_with_its_three_boards_identified(ingested,
         assert [b["status"] for b in p["board_lines"]] == [IDENTIFIED] * 3
         assert all(b["residual_px"] <= b["tolerance_px"] for b in p["board_lines"])
         assert p["rms_px"] < 2.5 and p["runner_up_rms_px"] > 3 * p["rms_px"]
+        # one board found by a detector, the other two refined where its one-plane camera puts them
+        placed = [b for b in p["board_lines"] if b["found_by"].startswith("refined where the first board's camera")]
+        assert len(placed) == 2, [b["found_by"] for b in p["board_lines"]]
 
 
 def test_our_corners_are_opencvs_findchessboardcornerssb_on_each_board(ingested, rig):

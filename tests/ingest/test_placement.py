@@ -1,0 +1,106 @@
+"""Placing the rig's boards from the first one found: its one-plane camera, the corners refined where it puts them.
+
+Rendered photos of the paper rig (four identical 10x8 boards) at 1/3 of the Galaxy S8's 4032x3024 px;
+the renderer's truth says where every corner is.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from dimenet.runtime.formats.rig import paper_rig
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.ingest.detection import PLACE_TOLERANCE, confirm, detect_boards
+from dimenet.runtime.ingest.grid import corner_spacing, fit_model
+from dimenet.runtime.ingest.outcome import IDENTIFIED
+from dimenet.runtime.ingest.pipeline import ingest
+from dimenet.runtime.ingest.placement import one_plane_k, place
+from dimenet.runtime.ingest.refine import colouring
+from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
+from dimenet.runtime.sim.render_truth import read_truth
+from dimenet.runtime.sim.simulator import get_profile
+
+SCALE = 3.0  # 1344 x 1008 px
+PHOTO = 0  # upright, no board covered: all four shown
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("place")
+    write_render(folder, paper_rig(), scaled_profile(get_profile("galaxy-s8"), SCALE), 3, seed=0)
+    truth = read_truth(folder / TRUTH_FILE)
+    return folder, truth
+
+
+@pytest.fixture(scope="module")
+def photo(rendered):
+    folder, truth = rendered
+    gray = cv2.imread(str(folder / truth.frame_id[PHOTO]), cv2.IMREAD_GRAYSCALE)
+    seeds = []
+    detect_boards(gray, paper_rig(), lambda d: seeds.append(d) or ())  # the first board kept, nothing placed
+    return gray, truth.corners_px[PHOTO].reshape(4, 80, 2), truth.K[PHOTO], seeds[0]
+
+
+def truth_board(corners_px: np.ndarray, truth_boards: np.ndarray) -> int:
+    """The board whose true corners these are, in any order (each within 0.15 px of one), or -1."""
+    for b, true_px in enumerate(truth_boards):
+        nearest = np.linalg.norm(corners_px[:, None] - true_px[None], axis=2).min(1)
+        if np.all(nearest <= 0.15):
+            return b
+    return -1
+
+
+def test_truth_shows_all_four_boards(rendered):
+    _, truth = rendered
+    assert truth.seen[PHOTO].all() and not truth.upside_down[PHOTO] and truth.covered_board[PHOTO] < 0
+
+
+def test_one_boards_homography_gives_the_focal_length_within_a_few_percent(photo):
+    gray, _, K_true, seed = photo
+    size = (gray.shape[1], gray.shape[0])
+    K = one_plane_k(fit_model(seed.corners_px, seed.grid_shape, size, seed.k).H, size)
+    assert abs(K[0, 0] / K_true[0, 0] - 1) < 0.05 and K[0, 0] == K[1, 1]
+    np.testing.assert_allclose(k_params(K)[2:], [(size[0] - 1) / 2, (size[1] - 1) / 2])
+
+
+def test_place_finds_the_other_boards_at_their_true_corners(photo):
+    gray, truth_boards, _, seed = photo
+    placed = place(gray, paper_rig(), seed)
+    boards = sorted(truth_board(d.corners_px, truth_boards) for d in placed)
+    seed_board = truth_board(seed.corners_px, truth_boards)
+    assert seed_board >= 0 and boards == sorted(set(range(4)) - {seed_board})
+    assert all("refined where the first board's camera" in d.found_by for d in placed)
+
+
+def test_place_confirms_nothing_where_the_other_boards_are_painted_out(photo):
+    gray, truth_boards, _, seed = photo
+    blank = gray.copy()
+    for b, true_px in enumerate(truth_boards):
+        if b != truth_board(seed.corners_px, truth_boards):
+            hull = cv2.convexHull(np.round(true_px).astype(np.int32))
+            cv2.fillConvexPoly(blank, cv2.convexHull(hull), 200)  # a flat grey board: no corners
+            cv2.polylines(blank, [hull], True, 0, 9)  # with a dark outline, edges but no checker corners
+    assert place(blank, paper_rig(), seed) == ()
+
+
+def test_confirm_refines_a_board_put_a_fraction_of_a_square_off_and_refuses_one_off_by_half(photo):
+    gray, truth_boards, _, seed = photo
+    size = (gray.shape[1], gray.shape[0])
+    contrast = colouring(gray, fit_model(seed.corners_px, seed.grid_shape, size, seed.k), seed.grid_shape).contrast
+    true_px = truth_boards[(truth_board(seed.corners_px, truth_boards) + 1) % 4]
+    spacing = corner_spacing(true_px, (10, 8))
+    step = (true_px[1] - true_px[0]) / np.linalg.norm(true_px[1] - true_px[0])  # along the board's rows
+    near = confirm(gray, true_px + 0.2 * spacing * step, (10, 8), seed.k, contrast)
+    assert near is not None and np.abs(near - true_px).max() < 0.15
+    assert confirm(gray, true_px + 0.5 * spacing * step, (10, 8), seed.k, contrast) is None
+    assert 0.5 > PLACE_TOLERANCE > 0.25  # between the quarter square a one-plane camera errs and a neighbour's
+
+
+def test_ingest_places_boards_and_still_finds_identifies_them_all(rendered):
+    folder, truth = rendered
+    result = ingest([folder / str(f) for f in truth.frame_id], paper_rig())
+    lines = [line for r in result.results for line in r.board_lines if line.status == IDENTIFIED]
+    placed = [line for line in lines if "refined where the first board's camera" in (line.found_by or "")]
+    assert len(lines) == int(truth.seen.reshape(3, 4, 80).all(2).sum()) and placed
