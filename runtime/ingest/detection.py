@@ -56,6 +56,7 @@ from dimenet.runtime.ingest.refine import (
 )
 
 DETECT_WIDTH_PX = 1008  # width of the reduced copy searched for plain boards (1/4 of 12 MP, 1/2 of 2 MP)
+SEED_WIDTH_PX = 544  # width of the reduced copy the LARGER seed step searches (1/3 of 2 MP)
 CHARUCO_WIDTH_PX = 2016  # width of the reduced copy searched for ChArUco markers
 CROP_SPACING_PX = 20  # a predicted board's crop is reduced so that its corner spacing is about this
 CROP_MARGIN_SQUARES = 2.0  # the crop reaches this far beyond the predicted inner corners
@@ -84,10 +85,12 @@ FLAG_NAMES = {
 @dataclass(frozen=True)
 class Step:
     """One detector call: ``cv2.findChessboardCorners`` (``classic``) or
-    ``cv2.findChessboardCornersSB`` (``sb``) with ``flags``; with LARGER the grid found may be larger than asked."""
+    ``cv2.findChessboardCornersSB`` (``sb``) with ``flags``; with LARGER, asked for the pattern's shorter side
+    squared, it returns any grid at least that large."""
 
     detector: str
     flags: int = 0
+    width_px: int = DETECT_WIDTH_PX  # the whole photo is searched on a copy reduced to about this wide
 
     def describe(self, factor: int) -> str:
         """E.g. ``findChessboardCornersSB(NORMALIZE_IMAGE) at 1/2 size``."""
@@ -105,7 +108,7 @@ STEPS = (  # in order: cheapest and most finding first (models_spec/ingest.md, "
 )
 SEED_STEPS = (  # before STEPS when a first board can place the others (models_spec/ingest.md, "Placing")
     Step("classic", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK),
-    Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER),
+    Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER, SEED_WIDTH_PX),
 )
 
 
@@ -221,12 +224,14 @@ def mask(
 
 def find_one(copy: np.ndarray, pattern: tuple[int, int], step: Step) -> Optional[tuple[np.ndarray, tuple[int, int]]]:
     """The (mx·my, 2) corners (the copy's px) of one board found by ``step`` and its grid (mx, my): the
-    ``pattern`` (nx, ny), or larger with LARGER; None when nothing is found."""
+    ``pattern`` (nx, ny), or with LARGER any grid of at least its shorter side squared; None when nothing is
+    found."""
     if step.detector == "classic":
         ok, corners = cv2.findChessboardCorners(copy, pattern, flags=step.flags)
         return (corners.reshape(-1, 2), pattern) if ok else None
     if step.flags & cv2.CALIB_CB_LARGER:
-        ok, corners, meta = cv2.findChessboardCornersSBWithMeta(copy, pattern, flags=step.flags)
+        side = min(pattern)
+        ok, corners, meta = cv2.findChessboardCornersSBWithMeta(copy, (side, side), flags=step.flags)
         return (corners.reshape(-1, 2), (meta.shape[1], meta.shape[0])) if ok else None
     ok, corners = cv2.findChessboardCornersSB(copy, pattern, flags=step.flags)
     return (corners.reshape(-1, 2), pattern) if ok else None
@@ -297,27 +302,45 @@ Placer = Callable[[Detection], tuple[Detection, ...]]  # a board kept -> the boa
 
 def search_plain(
     gray: np.ndarray,
-    copy: np.ndarray,
-    factor: int,
     wanted: dict[tuple[int, int], int],
     steps: tuple[Step, ...],
     until: int,
     place: Optional[Placer] = None,
+    known: tuple[Detection, ...] = (),
 ) -> tuple[list[Detection], list[Dropped]]:
-    """Plain boards in the padded ``copy`` of ``gray`` reduced by ``factor`` (masked in place): at most
-    ``wanted`` boards of each pattern, by each of ``steps`` in turn, until ``until`` boards are kept; with
-    ``place``, the first board kept is handed to it and, when it finds any, the search ends there."""
+    """Plain boards in ``gray``, each step on a padded copy reduced to about its ``width_px`` (``known`` boards and
+    every board found masked out of every copy): at most ``wanted`` boards of each pattern, by each of ``steps``
+    in turn, until ``until`` boards are kept; with ``place``, the first board kept is handed to it and, when it
+    finds any, the search ends there."""
     size = (gray.shape[1], gray.shape[0])
+    copies: dict[int, np.ndarray] = {}
+    masked: list[tuple[np.ndarray, tuple[int, int], tuple[float, float]]] = []
+
+    def copy_at(factor: int) -> np.ndarray:
+        if factor not in copies:
+            copies[factor] = reduce(gray, factor)
+            for corners, grid, k in masked:
+                mask(copies[factor], factor, corners, grid, size, k=k)
+        return copies[factor]
+
+    def mask_out(corners: np.ndarray, grid: tuple[int, int], k: tuple[float, float] = (0.0, 0.0)) -> None:
+        masked.append((corners, grid, k))
+        for factor, copy in copies.items():
+            mask(copy, factor, corners, grid, size, k=k)
+
+    for d in known:
+        mask_out(d.corners_px, d.grid_shape, d.k)
     kept: list[Detection] = []
     dropped: list[Dropped] = []
     for step in steps:
+        factor = reduction(gray.shape, step.width_px)
         for pattern, count in sorted(wanted.items()):
             while len(kept) < until and of_pattern(kept, pattern) < count and of_pattern(dropped, pattern) < count:
-                found = find_one(copy, pattern, step)
+                found = find_one(copy_at(factor), pattern, step)
                 if found is None:
                     break
                 native, grid = to_native(found[0], factor), found[1]
-                mask(copy, factor, native, grid, size)  # never found twice, kept or not
+                mask_out(native, grid)  # never found twice, kept or not
                 outcome = settle(gray, native, pattern, step.describe(factor), grid)
                 if isinstance(outcome, Dropped):
                     dropped.append(outcome)
@@ -325,7 +348,7 @@ def search_plain(
                 kept.append(outcome)
                 if place is not None and len(kept) == 1 and (placed := place(outcome)):
                     return kept + list(placed), dropped
-                mask(copy, factor, outcome.corners_px, outcome.grid_shape, size, k=outcome.k)
+                mask_out(outcome.corners_px, outcome.grid_shape, outcome.k)
     return kept, dropped
 
 
@@ -372,18 +395,14 @@ def detect_boards(gray: np.ndarray, rig: Rig, place: Optional[Placer] = None) ->
     partly), plain ones whole, canonical and grown, until SEARCH_UNTIL boards are kept; the plain ones
     dropped, with the reason. With ``place`` and no ChArUco board found, SEED_STEPS come first and the first
     plain board kept places the others (``search_plain``)."""
-    size = (gray.shape[1], gray.shape[0])
     detections = [Detection(rig.boards[k].inner_corners, c, k) for k, c in find_charuco(gray, rig).items()]
     patterns = plain_patterns(rig)
     if not patterns:
         return BoardSearch(tuple(detections))
-    factor = reduction(gray.shape, DETECT_WIDTH_PX)
-    copy = reduce(gray, factor)
-    for d in detections:
-        mask(copy, factor, d.corners_px, d.pattern, size)
     place = None if detections else place
     steps = STEPS if place is None else SEED_STEPS + STEPS
-    kept, dropped = search_plain(gray, copy, factor, patterns, steps, SEARCH_UNTIL - len(detections), place)
+    until = SEARCH_UNTIL - len(detections)
+    kept, dropped = search_plain(gray, patterns, steps, until, place, tuple(detections))
     return BoardSearch(tuple(detections + kept), tuple(dropped))
 
 

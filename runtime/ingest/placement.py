@@ -19,7 +19,7 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.rig import Rig
-from dimenet.runtime.geometry import k_matrix, planar_focal, project, solve_pnp_start, to_camera
+from dimenet.runtime.geometry import k_matrix, planar_focal, project, project_camera, solve_pnp_start, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
 from dimenet.runtime.ingest.detection import PLACE_TOLERANCE, Detection, confirm, settle
 from dimenet.runtime.ingest.grid import corner_spacing, fit_model
@@ -36,20 +36,14 @@ def boards_in_view(
     """(B,) whether each rig board, seen by the camera (K px, pose {W}->{C}), lies in front of it, faces it
     and has every corner at least IN_VIEW_MARGIN_PX inside the (width, height) image."""
     w, h = image_size
-    camera = camera_centre(rvec, tvec)
-    seen = []
-    for board in rig.boards:
-        points = board.points()
-        px = project(points, K, rvec, tvec)
-        inside = np.all((px >= IN_VIEW_MARGIN_PX) & (px <= np.array([w - 1, h - 1]) - IN_VIEW_MARGIN_PX))
-        seen.append(
-            bool(
-                inside
-                and np.all(to_camera(points, rvec, tvec)[:, 2] > 0)
-                and facing(points[:1], -board.normal()[None], camera)[0]
-            )
-        )
-    return np.array(seen)
+    points = rig.points()
+    points_cam = to_camera(points, rvec, tvec)
+    px = project_camera(K, points_cam)
+    inside = np.all((px >= IN_VIEW_MARGIN_PX) & (px <= np.array([w - 1, h - 1]) - IN_VIEW_MARGIN_PX), axis=1)
+    first = np.r_[0, np.cumsum([b.n_points for b in rig.boards])[:-1]]
+    seen = np.logical_and.reduceat(inside & (points_cam[:, 2] > 0), first)
+    normals = np.array([b.normal() for b in rig.boards])
+    return seen & facing(points[first], -normals, camera_centre(rvec, tvec))
 
 
 def one_plane_k(H: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
