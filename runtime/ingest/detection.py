@@ -46,12 +46,14 @@ from dimenet.runtime.ingest.grid import canonical, corner_spacing, fit_model, gr
 from dimenet.runtime.ingest.refine import (
     GROW_CONTRAST,
     SUBPIX_WINDOW_FRACTION,
+    SUBPIX_WINDOW_PX,
     checker_contrast,
     checker_phase,
     grow,
     quadrant_means,
     refine,
     refine_plain,
+    subpix,
     tolerance_px,
 )
 
@@ -268,11 +270,14 @@ def confirm(
 ) -> Optional[np.ndarray]:
     """A plain board looked for where a camera puts its corners (``predicted_px`` (nx·ny, 2) native px; the lens
     ``k`` of a board model, (k1, k2)), with no detector: its corners (nx·ny, 2) px, each refined from there
-    (``refine``), when every one lies within PLACE_TOLERANCE of the spacing of where it was put and is a checker
-    corner at least GROW_CONTRAST times ``contrast`` (grey levels) clear; else None. (Not yet judged: ``settle``.)"""
-    refined = refine(gray, predicted_px, pattern)
+    (``refine.subpix``), when every one lies within PLACE_TOLERANCE of the spacing of where it was put and is a checker
+    corner at least GROW_CONTRAST times ``contrast`` (grey levels) clear; else None. (Not yet judged: ``settle``.)
+    The ``cv2.cornerSubPix`` half-window is that tolerance, wider than ``refine``'s (at most SUBPIX_WINDOW_PX[1]):
+    a corner put 15 px off at 12 MP must lie inside it, or it does not move and is kept where it was put."""
+    reach = PLACE_TOLERANCE * corner_spacing(predicted_px, pattern)
+    refined = subpix(gray, predicted_px, max(SUBPIX_WINDOW_PX[0], int(np.ceil(reach))))  # the window holds the corner
     moved = np.linalg.norm(refined - predicted_px, axis=1)
-    if not np.all(moved <= PLACE_TOLERANCE * corner_spacing(predicted_px, pattern)):
+    if not np.all(moved <= reach):
         return None
     model = fit_model(refined, pattern, (gray.shape[1], gray.shape[0]), k)
     if model is None:

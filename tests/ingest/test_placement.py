@@ -17,7 +17,7 @@ from dimenet.runtime.ingest.grid import corner_spacing, fit_model
 from dimenet.runtime.ingest.outcome import IDENTIFIED
 from dimenet.runtime.ingest.pipeline import ingest
 from dimenet.runtime.ingest.placement import one_plane_k, place
-from dimenet.runtime.ingest.refine import colouring
+from dimenet.runtime.ingest.refine import SUBPIX_WINDOW_PX, colouring
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
 from dimenet.runtime.sim.render_truth import read_truth
 from dimenet.runtime.sim.simulator import get_profile
@@ -104,3 +104,19 @@ def test_ingest_places_boards_and_still_finds_identifies_them_all(rendered):
     lines = [line for r in result.results for line in r.board_lines if line.status == IDENTIFIED]
     placed = [line for line in lines if "refined where the first board's camera" in (line.found_by or "")]
     assert len(lines) == int(truth.seen.reshape(3, 4, 80).all(2).sum()) and placed
+
+
+def test_confirm_reaches_a_corner_put_beyond_refines_window_at_12_mp(photo):
+    # The photo at 3x (4032 px wide, ~105 px squares): put 0.2 of a square (~21 px) off, the corners lie
+    # beyond refine's largest half-window (12 px); confirm's window must still hold them, or they stay put.
+    gray, truth_boards, _, seed = photo
+    big = cv2.resize(gray, None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC)
+    true_px = 3 * (truth_boards[(truth_board(seed.corners_px, truth_boards) + 1) % 4] + 0.5) - 0.5
+    spacing = corner_spacing(true_px, (10, 8))
+    assert 0.2 * spacing > SUBPIX_WINDOW_PX[1]
+    step = (true_px[1] - true_px[0]) / np.linalg.norm(true_px[1] - true_px[0])
+    size = (big.shape[1], big.shape[0])
+    seed_px = 3 * (seed.corners_px + 0.5) - 0.5
+    contrast = colouring(big, fit_model(seed_px, seed.grid_shape, size), seed.grid_shape).contrast
+    found = confirm(big, true_px + 0.2 * spacing * step, (10, 8), (0.0, 0.0), contrast)
+    assert found is not None and np.abs(found - true_px).max() < 0.5
