@@ -16,8 +16,9 @@ With a rig of several boards, the pipeline hands the first board kept to a place
 for each there with no detector call, its corners refined from where they are put; when it finds
 them the search ends there. For that first board, SEED_STEPS come before STEPS: the classic
 detector without its adaptive threshold (it fails in tens of ms where the adaptive one takes
-hundreds) and the SB detector asked for any grid at least as large as the pattern (``LARGER``: one
-board of a rig whose boards meet at folds, where the other modes find none).
+hundreds) and the SB detector with ``LARGER``, asked for the shorter side squared on a copy about
+SEED_WIDTH_PX wide, which returns any grid at least that large (one board of a rig whose boards meet
+at folds, where the other modes find none).
 
 Once the photo's camera is known, ``search_predicted`` looks for every board that camera shows in
 view but that was not found: every step on a crop around where the board should be (the boards kept

@@ -15,6 +15,8 @@ Pixels: x right, y down; 3D in mm in the rig frame {W}; poses {W}->{C}.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from dimenet.runtime.errors import InputError
@@ -77,7 +79,7 @@ def place(gray: np.ndarray, rig: Rig, seed: Detection) -> tuple[Detection, ...]:
         in_view = boards_in_view(rig, K, rvec, tvec, size)
         return [b for b in np.flatnonzero(in_view) if b not in known and rig.boards[b].aruco is None]
 
-    def look(b: int, K, rvec, tvec) -> np.ndarray:
+    def look(b: int, K, rvec, tvec) -> Optional[np.ndarray]:
         board = rig.boards[b]
         return confirm(gray, project(board.points(), K, rvec, tvec), board.inner_corners, seed.k, contrast)
 
