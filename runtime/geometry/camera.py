@@ -31,7 +31,7 @@ def k_matrix(params: np.ndarray) -> np.ndarray:
 def to_camera(points_3d: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """{W} points (..., N, 3) in mm -> {C} points (..., N, 3) in mm for poses (..., 3)."""
     R = rvec_to_matrix(rvec)
-    return np.einsum("...ij,...nj->...ni", R, points_3d) + np.asarray(tvec)[..., None, :]
+    return np.asarray(points_3d) @ np.swapaxes(R, -1, -2) + np.asarray(tvec)[..., None, :]
 
 
 def project_camera(K: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
@@ -112,7 +112,7 @@ def min_depths(points_3d, valid, rvec, tvec) -> np.ndarray:
     points_3d (B, N, 3) mm, valid (B, N) bool or None (all), rvec, tvec (B, 3) -> (B,); <= 0
     when a point lies behind the camera."""
     R = rotation_matrices(np.asarray(rvec, dtype=np.float64).reshape(-1, 3))
-    z = np.einsum("bj,bnj->bn", R[:, 2], points_3d) + np.asarray(tvec, dtype=np.float64).reshape(-1, 3)[:, 2:]
+    z = (np.asarray(points_3d) @ R[:, 2, :, None])[..., 0] + np.asarray(tvec, dtype=np.float64).reshape(-1, 3)[:, 2:]
     return np.min(z, axis=1, where=True if valid is None else valid, initial=np.inf)
 
 

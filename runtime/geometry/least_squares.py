@@ -39,7 +39,7 @@ class FitResult:
 def residuals(points_2d, points_3d, sqrt_w, kp, R, t):
     """Weighted residuals (B, N, 2) px of pi(kp, R X + t) - x, and X_C (B, N, 3) mm, its depth z
     (clamped at MIN_DEPTH_MM) and normalised coordinates xn, yn (B, N) for ``jacobian``."""
-    Xc = np.einsum("bij,bnj->bni", R, points_3d) + t[:, None, :]
+    Xc = points_3d @ R.transpose(0, 2, 1) + t[:, None, :]
     z = np.maximum(Xc[..., 2], MIN_DEPTH_MM)
     xn, yn = Xc[..., 0] / z, Xc[..., 1] / z
     u = kp[:, None, 0] * xn + kp[:, None, 2]
@@ -72,6 +72,21 @@ def jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
     return np.concatenate(cols, axis=-1) * sqrt_w[..., None, None]
 
 
+def damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(B, n) the solutions of B damped normal equations H (B, n, n) x = g (B, n); 0 for a frame whose H is
+    singular (its LM step then fails and its damping grows, as for a step that raises the cost)."""
+    try:
+        return np.linalg.solve(H, g[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        x = np.zeros_like(g)
+        for b in range(len(H)):
+            try:
+                x[b] = np.linalg.solve(H[b], g[b])
+            except np.linalg.LinAlgError:
+                continue
+        return x
+
+
 def fit(
     points_2d, points_3d, weights, K, rvec, tvec, *, fit_k: bool, max_iterations: int = 50, tolerance: float = 1e-12
 ) -> FitResult:
@@ -98,11 +113,12 @@ def fit(
     it = 0
     for it in range(1, max_iterations + 1):  # noqa: B007 (it is the count reported)
         J = jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
-        H = np.einsum("bki,bkj->bij", J, J)
-        g = np.einsum("bki,bk->bi", J, r.reshape(B, -1))
-        diag = np.einsum("bii->bi", H)
+        Jt = J.transpose(0, 2, 1)
+        H = Jt @ J
+        g = (Jt @ r.reshape(B, -1, 1))[..., 0]
+        diag = np.diagonal(H, axis1=1, axis2=2)
         Hd = H + (lam[:, None] * np.maximum(diag, 1e-12))[..., None] * np.eye(n_par)
-        step = -np.linalg.solve(Hd, g[..., None])[..., 0]
+        step = -damped_solve(Hd, g)
         step[~active] = 0.0
         R_new = rvec_to_matrix(step[:, :3]) @ R
         t_new = t + step[:, 3:6]

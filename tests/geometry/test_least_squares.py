@@ -59,3 +59,15 @@ def test_map_normal_equations_are_the_lm_cores_jacobian_in_the_left_pose_paramet
     np.testing.assert_allclose(Jr, J_left.T @ r.reshape(-1), rtol=1e-9, atol=1e-9 * np.abs(Jr).max())
     assert abs(rss - (r**2).sum()) <= 1e-9 * rss
     np.testing.assert_allclose(residuals.T, r[0], atol=1e-9)
+
+
+def test_damped_solve_gives_a_singular_frame_no_step_and_solves_the_others():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 10, 10))
+    H = A @ A.transpose(0, 2, 1) + np.eye(10)
+    H[1] = np.outer(A[1, 0], A[1, 0])  # rank 1: LAPACK's solve raises for the whole batch
+    g = rng.normal(size=(3, 10))
+    x = ls.damped_solve(H, g)
+    np.testing.assert_array_equal(x[1], 0.0)
+    for b in (0, 2):
+        np.testing.assert_allclose(H[b] @ x[b], g[b], atol=1e-9)
