@@ -21,8 +21,9 @@ SEED_WIDTH_PX wide, which returns any grid at least that large (one board of a r
 at folds, where the other modes find none).
 
 Once the photo's camera is known, ``search_predicted`` looks for every board that camera shows in
-view but that was not found: every step on a crop around where the board should be (the boards kept
-masked out), reduced so that its squares are about CROP_SPACING_PX.
+view but that was not found: first where the camera puts it (``look``, no detector), then, unless it
+was kept there, every step on a crop around it (the boards kept masked out), reduced so that its
+squares are about CROP_SPACING_PX; only the first step when the look found the board partly hidden.
 
 ChArUco boards (``Board.aruco`` set) are found by their markers (``cv2.aruco.CharucoDetector``
 on a copy about CHARUCO_WIDTH_PX wide, markers detected once per dictionary; its corners are refined at
@@ -50,6 +51,7 @@ from dimenet.runtime.ingest.refine import (
     SUBPIX_WINDOW_PX,
     checker_contrast,
     checker_phase,
+    colouring,
     grow,
     quadrant_means,
     refine,
@@ -266,27 +268,47 @@ def settle(
     )
 
 
-def confirm(
+@dataclass(frozen=True)
+class Look:
+    """A plain board looked for where a camera puts its corners (``look``): each corner (n, 2) px refined from
+    there, whether it is ``confirmed`` (n,) (refined within PLACE_TOLERANCE of the spacing of where it was put, a
+    checker corner at least GROW_CONTRAST times the reference contrast clear) and whether it is ``hidden`` (n,)
+    (its four squares there do not separate into the checker's two colours: no corner of this board's pattern)."""
+
+    corners_px: np.ndarray
+    confirmed: np.ndarray
+    hidden: np.ndarray
+
+
+def look(
     gray: np.ndarray, predicted_px: np.ndarray, pattern: tuple[int, int], k: tuple[float, float], contrast: float
-) -> Optional[np.ndarray]:
-    """A plain board looked for where a camera puts its corners (``predicted_px`` (nx·ny, 2) native px; the lens
-    ``k`` of a board model, (k1, k2)), with no detector: its corners (nx·ny, 2) px, each refined from there
-    (``refine.subpix``), when every one lies within PLACE_TOLERANCE of the spacing of where it was put and is a checker
-    corner at least GROW_CONTRAST times ``contrast`` (grey levels) clear; else None. (Not yet judged: ``settle``.)
-    The ``cv2.cornerSubPix`` half-window is that tolerance, wider than ``refine``'s (at most SUBPIX_WINDOW_PX[1]):
-    a corner put 15 px off at 12 MP must lie inside it, or it does not move and is kept where it was put."""
+) -> Look:
+    """A plain board looked for, with no detector, where a camera puts its corners (``predicted_px`` (nx·ny, 2)
+    native px; ``k`` the lens (k1, k2) of a board model; ``contrast`` the reference, grey levels): see ``Look``.
+    Each corner is refined from there (``refine.subpix``) with a ``cv2.cornerSubPix`` half-window of that
+    tolerance, wider than ``refine``'s (at most SUBPIX_WINDOW_PX[1]): a corner put 15 px off at 12 MP must lie
+    inside it, or it does not move and is kept where it was put. The squares are sampled about the board model
+    of the corners refined within the tolerance (the others where they were put)."""
     reach = PLACE_TOLERANCE * corner_spacing(predicted_px, pattern)
     refined = subpix(gray, predicted_px, max(SUBPIX_WINDOW_PX[0], int(np.ceil(reach))))  # the window holds the corner
-    moved = np.linalg.norm(refined - predicted_px, axis=1)
-    if not np.all(moved <= reach):
-        return None
-    model = fit_model(refined, pattern, (gray.shape[1], gray.shape[0]), k)
+    moved = np.linalg.norm(refined - predicted_px, axis=1) <= reach
+    model = fit_model(np.where(moved[:, None], refined, predicted_px), pattern, (gray.shape[1], gray.shape[0]), k)
+    n = len(predicted_px)
     if model is None:
-        return None
+        return Look(refined, np.zeros(n, bool), np.zeros(n, bool))
     own = grid_points(pattern)
     means = quadrant_means(gray, model, own)
     clear = checker_contrast(means, own, checker_phase(means, own))
-    return refined if np.all(clear >= GROW_CONTRAST * contrast) else None
+    return Look(refined, moved & (clear >= GROW_CONTRAST * contrast), clear <= 0)
+
+
+def confirm(
+    gray: np.ndarray, predicted_px: np.ndarray, pattern: tuple[int, int], k: tuple[float, float], contrast: float
+) -> Optional[np.ndarray]:
+    """The corners (nx·ny, 2) px of a plain board looked for where a camera puts them (``look``) when every one is
+    confirmed; else None. (Not yet judged: ``settle``.)"""
+    seen = look(gray, predicted_px, pattern, k, contrast)
+    return seen.corners_px if seen.confirmed.all() else None
 
 
 def plain_patterns(rig: Rig) -> dict[tuple[int, int], int]:
@@ -422,30 +444,62 @@ def crop_box(predicted_px: np.ndarray, pattern: tuple[int, int], size: tuple[int
     return max(0, lo[0]), max(0, lo[1]), min(w, hi[0]), min(h, hi[1])
 
 
+def on_kept(points_px: np.ndarray, kept: tuple[Detection, ...], size: tuple[int, int]) -> bool:
+    """Whether any point (n, 2) px lies on a board kept (inside its grid's outline, ``outline``) in the
+    (width, height) image."""
+    for d in kept:
+        quad = outline(d.corners_px, d.grid_shape, 0.0, size, d.k)
+        edges, to_point = np.roll(quad, -1, axis=0) - quad, points_px[:, None, :] - quad[None]
+        cross = edges[None, :, 0] * to_point[..., 1] - edges[None, :, 1] * to_point[..., 0]  # (n, 4)
+        if np.any(np.all(cross >= 0, axis=1) | np.all(cross <= 0, axis=1)):
+            return True
+    return False
+
+
 def search_predicted(
     gray: np.ndarray, rig: Rig, kept: tuple[Detection, ...], predicted: dict[int, np.ndarray]
 ) -> BoardSearch:
     """Plain boards looked for where the photo's camera puts them: ``predicted`` (nx·ny, 2) native px by rig
-    board index, of boards in view but not found. Every step, for every plain pattern of the rig (the
-    camera may come from a labelling that is still wrong: what lies there may be another board), on a crop
-    around each (``crop_box``) with the boards found masked out, reduced so that its corner spacing is about
-    CROP_SPACING_PX; at most one board per crop. Returns the boards found there (not yet identified;
-    ``found_by`` says where) and those dropped."""
+    board index, of boards in view but not found. Each is first looked at there (``look``, with the lens and
+    contrast of the first plain board kept) unless it lies on a board kept: when every corner is confirmed and
+    the board is kept (``settle``), no detector is called. Otherwise detector steps run on a crop around it
+    (``crop_box``) with the boards found masked out, reduced so that its corner spacing is about
+    CROP_SPACING_PX, for every plain pattern of the rig (the camera may come from a labelling that is still
+    wrong: what lies there may be another board); at most one board per crop. Every step, unless the look
+    found the board partly hidden (some corners confirmed, some no checker corner: no detector finds it
+    whole), when only the first runs (cheap, for a camera off by whole squares). Returns the boards found
+    (not yet identified; ``found_by`` says where) and those dropped."""
     size = (gray.shape[1], gray.shape[0])
     patterns = sorted(plain_patterns(rig))
+    reference = next((d for d in kept if d.board is None), None)
+    model = None if reference is None else fit_model(reference.corners_px, reference.grid_shape, size, reference.k)
+    contrast = float("nan") if model is None else colouring(gray, model, reference.grid_shape).contrast
     found: list[Detection] = []
     dropped: list[Dropped] = []
     for b, px in sorted(predicted.items()):
         board = rig.boards[b]
+        if board.aruco is not None:
+            continue
+        steps = STEPS
+        if np.isfinite(contrast) and not on_kept(px, (*kept, *found), size):
+            seen = look(gray, px, board.inner_corners, reference.k, contrast)
+            if seen.confirmed.all():
+                where = f"refined where the photo's camera puts {board.name!r}"
+                outcome = settle(gray, seen.corners_px, board.inner_corners, where)
+                if isinstance(outcome, Detection):
+                    found.append(outcome)
+                    continue
+            elif seen.hidden.any() and seen.confirmed.any():
+                steps = STEPS[:1]
         x0, y0, x1, y1 = crop_box(px, board.inner_corners, size)
-        if board.aruco is not None or x1 - x0 < 2 * PAD_PX or y1 - y0 < 2 * PAD_PX:
+        if x1 - x0 < 2 * PAD_PX or y1 - y0 < 2 * PAD_PX:
             continue
         factor = max(1, int(corner_spacing(px, board.inner_corners) // CROP_SPACING_PX))
         copy = reduce(np.ascontiguousarray(gray[y0:y1, x0:x1]), factor)
         for d in (*kept, *found):
             mask(copy, factor, d.corners_px, d.grid_shape, size, (x0, y0), d.k)
         outcome = None
-        for step in STEPS:
+        for step in steps:
             for pattern in patterns:
                 found_one = find_one(copy, pattern, step)
                 if found_one is not None:

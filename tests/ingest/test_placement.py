@@ -1,4 +1,5 @@
-"""Placing the rig's boards from the first one found: its one-plane camera, the corners refined where it puts them.
+"""Placing the rig's boards from the first one found: its one-plane camera, the corners refined where it puts them;
+and looking again where the photo's camera puts a board not found (``detection.search_predicted``).
 
 Rendered photos of the paper rig (four identical 10x8 boards) at 1/3 of the Galaxy S8's 4032x3024 px;
 the renderer's truth says where every corner is.
@@ -12,7 +13,8 @@ import pytest
 
 from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.ingest.detection import PLACE_TOLERANCE, confirm, detect_boards
+from dimenet.runtime.ingest import detection
+from dimenet.runtime.ingest.detection import PLACE_TOLERANCE, STEPS, confirm, detect_boards, search_predicted
 from dimenet.runtime.ingest.grid import corner_spacing, fit_model
 from dimenet.runtime.ingest.outcome import IDENTIFIED
 from dimenet.runtime.ingest.pipeline import ingest
@@ -120,3 +122,59 @@ def test_confirm_reaches_a_corner_put_beyond_refines_window_at_12_mp(photo):
     contrast = colouring(big, fit_model(seed_px, seed.grid_shape, size), seed.grid_shape).contrast
     found = confirm(big, true_px + 0.2 * spacing * step, (10, 8), (0.0, 0.0), contrast)
     assert found is not None and np.abs(found - true_px).max() < 0.5
+
+
+@pytest.fixture
+def steps_called(monkeypatch):
+    """The detector steps ``find_one`` is called with, in order."""
+    called = []
+    find_one = detection.find_one
+    monkeypatch.setattr(
+        detection, "find_one", lambda copy, pattern, step: called.append(step) or find_one(copy, pattern, step)
+    )
+    return called
+
+
+def other_board(photo) -> tuple[int, np.ndarray]:
+    """A board other than the seed: its rig index and true corners (80, 2) px."""
+    _, truth_boards, _, seed = photo
+    b = (truth_board(seed.corners_px, truth_boards) + 1) % 4
+    return b, truth_boards[b]
+
+
+def test_search_predicted_keeps_a_board_where_the_camera_puts_it_with_no_detector_call(photo, steps_called):
+    gray, _, _, seed = photo
+    b, true_px = other_board(photo)
+    spacing = corner_spacing(true_px, (10, 8))
+    found = search_predicted(gray, paper_rig(), (seed,), {b: true_px + 0.1 * spacing})
+    assert len(found.detections) == 1 and not found.dropped and steps_called == []
+    assert np.abs(found.detections[0].corners_px - true_px).max() < 0.15
+    assert "where the photo's camera puts" in found.detections[0].found_by
+
+
+def test_search_predicted_runs_only_the_first_step_on_a_partly_hidden_board(photo, steps_called):
+    gray, _, _, seed = photo
+    b, true_px = other_board(photo)
+    covered = gray.copy()
+    left = true_px.reshape(8, 10, 2)[:, :5].reshape(-1, 2)  # half its columns under a flat grey card
+    cv2.fillConvexPoly(covered, cv2.convexHull(np.round(left).astype(np.int32)), 128)
+    found = search_predicted(covered, paper_rig(), (seed,), {b: true_px})
+    assert found.detections == () and steps_called and set(steps_called) == {STEPS[0]}
+
+
+def test_search_predicted_runs_every_step_where_no_corner_of_the_board_shows(photo, steps_called):
+    gray, _, _, seed = photo
+    b, true_px = other_board(photo)
+    blank = gray.copy()
+    cv2.fillConvexPoly(blank, cv2.convexHull(np.round(true_px).astype(np.int32)), 128)
+    found = search_predicted(blank, paper_rig(), (seed,), {b: true_px})
+    assert found.detections == () and set(steps_called) == set(STEPS)
+
+
+def test_search_predicted_looks_for_no_board_on_a_board_kept(photo, steps_called):
+    # A camera that puts another board onto the seed (a wrong labelling): its corners are the seed's, which the
+    # look would confirm; the board is looked for only by the detectors, with the seed masked out.
+    gray, _, _, seed = photo
+    b, _ = other_board(photo)
+    found = search_predicted(gray, paper_rig(), (seed,), {b: seed.corners_px[:80]})
+    assert found.detections == () and steps_called
