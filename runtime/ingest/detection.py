@@ -494,7 +494,7 @@ def search_predicted(
         x0, y0, x1, y1 = crop_box(px, board.inner_corners, size)
         if x1 - x0 < 2 * PAD_PX or y1 - y0 < 2 * PAD_PX:
             continue
-        factor = max(1, int(corner_spacing(px, board.inner_corners) // CROP_SPACING_PX))
+        factor = max(1, round(corner_spacing(px, board.inner_corners) / CROP_SPACING_PX))
         copy = reduce(np.ascontiguousarray(gray[y0:y1, x0:x1]), factor)
         for d in (*kept, *found):
             mask(copy, factor, d.corners_px, d.grid_shape, size, (x0, y0), d.k)
