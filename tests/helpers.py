@@ -11,6 +11,7 @@ bundled (generic) model serving the example frames' camera.
 
 from __future__ import annotations
 
+import os
 from importlib import import_module, resources
 from pathlib import Path
 
@@ -111,3 +112,14 @@ def constant_uncertainty(sigma_px: float) -> Uncertainty:
 
 def point_thickness(points_3d: np.ndarray) -> float:
     return thickness(*covariance_invariants(np.ascontiguousarray(points_3d, dtype=np.float64)))
+
+
+def pid_slow_here(seconds: float) -> int:
+    """This process's id, after ``seconds`` of sleep when it is not a child process (a job ``workers.run_shared``
+    runs here takes that long, one a helper runs none)."""
+    import multiprocessing
+    import time
+
+    if multiprocessing.parent_process() is None:
+        time.sleep(seconds)
+    return os.getpid()

@@ -1,6 +1,7 @@
 """Photos of the rig (and of a natural object with labelled points) -> a ``dimenet-dataset/1`` dataset.
 
-Per photo (``ingest_photo``; in worker processes when ``workers`` > 1, results in the photos' order):
+Per photo (``ingest_photo``; by this process and ``workers`` − 1 helpers when ``workers`` > 1,
+``workers.run_shared``, results in the photos' order):
 decode it (``photo.read_photo``), find the boards (``detection.detect_boards``; with a rig of several
 boards the first one kept places the others, ``placement.place``), tell them apart and
 fit the photo's single-frame K (``identity``); when that camera shows a board in view that was not
@@ -24,9 +25,7 @@ undistorted by the lens) and the dataset carries the lens. Specified in models_s
 from __future__ import annotations
 
 import hashlib
-import multiprocessing
 from collections.abc import Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -47,6 +46,7 @@ from dimenet.runtime.ingest.identity import Identification, check_unambiguous, l
 from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 from dimenet.runtime.ingest.placement import boards_in_view, place
+from dimenet.runtime.ingest.workers import run_shared
 from dimenet.runtime.rectify.camera import Camera
 
 GENERATOR = "dimenet.ingest"
@@ -232,16 +232,6 @@ def frame_split(result: PhotoResult, split: str) -> str:
     return "test" if result.labels is not None else auto_split(result.name)
 
 
-def worker_context() -> multiprocessing.context.BaseContext:
-    """How worker processes start: from a fork server that has imported this module (0.15 s for two workers,
-    no OpenCV thread forked; POSIX), else spawned (0.5 s, each importing it on its first photo)."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([__name__])
-    return context
-
-
 def _results(
     paths: list[Path],
     rig: Rig,
@@ -254,14 +244,11 @@ def _results(
 ) -> Iterator[PhotoResult]:
     object_points = np.empty((0, 3)) if obj is None else obj.points_mm
     point_ids = () if obj is None else obj.point_ids
-    jobs = ([p, rig, labels.get(p.name), object_points, max_megapixels, point_ids, min_boards, camera] for p in paths)
+    jobs = [[p, rig, labels.get(p.name), object_points, max_megapixels, point_ids, min_boards, camera] for p in paths]
     if workers == 1:
         yield from (ingest_photo(*job) for job in jobs)
         return
-    with ProcessPoolExecutor(
-        workers, mp_context=worker_context(), initializer=cv2.setNumThreads, initargs=(1,)
-    ) as pool:
-        yield from pool.map(ingest_photo, *zip(*jobs))
+    yield from run_shared(ingest_photo, jobs, workers)
 
 
 def check_object(obj: NaturalObject, source: str = "OBJECT.csv") -> None:
