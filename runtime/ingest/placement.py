@@ -2,7 +2,8 @@
 
 One board found is one plane: with square pixels and the principal point at the image centre, its
 homography gives the focal length (``geometry.planar_focal``, within a few % on real photos), and a
-PnP of it, as each rig board it may be (``identity.candidates``), a camera that puts every other
+PnP of it, as each rig board it may be (``identity.candidates``; the largest first: a grid larger than
+its pattern is likelier a board and a fold row than a smaller board and two), a camera that puts every other
 board within about a quarter of a square (models_spec/ingest.md, "Placing"). Where that camera shows
 plain boards in view, their corners are refined from there with no detector call
 (``detection.confirm``); the first hypothesis under which every one of them is confirmed and kept
@@ -83,7 +84,7 @@ def place(gray: np.ndarray, rig: Rig, seed: Detection) -> tuple[Detection, ...]:
         board = rig.boards[b]
         return confirm(gray, project(board.points(), K, rvec, tvec), board.inner_corners, seed.k, contrast)
 
-    for c in candidates(seed, rig):
+    for c in sorted(candidates(seed, rig), key=lambda c: -len(c.rig_index)):  # the largest boards first
         try:
             rvec, tvec = solve_pnp_start(c.corners_px, points[c.rig_index], K)
         except InputError:
