@@ -18,7 +18,7 @@ them the search ends there. For that first board, SEED_STEPS come before STEPS: 
 detector without its adaptive threshold (it fails in tens of ms where the adaptive one takes
 hundreds) and the SB detector with ``LARGER``, asked for the shorter side squared on a copy about
 SEED_WIDTH_PX wide, which returns any grid at least that large (one board of a rig whose boards meet
-at folds, where the other modes find none).
+at folds, where the other modes find none); ``LARGER`` first on a rig whose boards meet (``seed_steps``).
 
 Once the photo's camera is known, ``search_predicted`` looks for every board that camera shows in
 view but that was not found: first where the camera puts it (``look``, no detector), then, unless it
@@ -115,6 +115,7 @@ SEED_STEPS = (  # before STEPS when a first board can place the others (models_s
     Step("classic", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK),
     Step("sb", cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_LARGER, SEED_WIDTH_PX),
 )
+MEET_SQUARES = 2.0  # two boards meet when inner corners of theirs lie this many squares apart or less
 
 
 @dataclass(frozen=True)
@@ -418,6 +419,25 @@ def find_charuco(gray: np.ndarray, rig: Rig) -> dict[int, np.ndarray]:
     return found
 
 
+def boards_meet(rig: Rig) -> bool:
+    """Whether two plain boards of the rig meet: inner corners of theirs at most MEET_SQUARES squares (of the
+    larger) apart in {W}, so their printed squares touch with no white margin between (at a fold, say)."""
+    plain = [b for b in rig.boards if b.aruco is None]
+    for k, a in enumerate(plain):
+        for b in plain[k + 1 :]:
+            gap = np.linalg.norm(a.points()[:, None] - b.points()[None], axis=2).min()
+            if gap <= MEET_SQUARES * max(a.square_mm, b.square_mm) * (1 + 1e-9):
+                return True
+    return False
+
+
+def seed_steps(rig: Rig) -> tuple[Step, ...]:
+    """SEED_STEPS, the SB ``LARGER`` step first for a rig whose boards meet (``boards_meet``): there the classic
+    detector, which needs a margin around a board, fails in tens of ms for each pattern where ``LARGER`` finds
+    a board with its fold row."""
+    return SEED_STEPS[::-1] if boards_meet(rig) else SEED_STEPS
+
+
 def detect_boards(gray: np.ndarray, rig: Rig, place: Optional[Placer] = None) -> BoardSearch:
     """Every board found in the native grey image (see the module doc): ChArUco ones identified (maybe
     partly), plain ones whole, canonical and grown, until SEARCH_UNTIL boards are kept; the plain ones
@@ -428,7 +448,7 @@ def detect_boards(gray: np.ndarray, rig: Rig, place: Optional[Placer] = None) ->
     if not patterns:
         return BoardSearch(tuple(detections))
     place = None if detections else place
-    steps = STEPS if place is None else SEED_STEPS + STEPS
+    steps = STEPS if place is None else seed_steps(rig) + STEPS
     until = SEARCH_UNTIL - len(detections)
     kept, dropped = search_plain(gray, patterns, steps, until, place, tuple(detections))
     return BoardSearch(tuple(detections + kept), tuple(dropped))

@@ -11,10 +11,19 @@ import cv2
 import numpy as np
 import pytest
 
-from dimenet.runtime.formats.rig import paper_rig
+from dimenet.runtime.formats.rig import Board, Rig, paper_rig
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.ingest import detection
-from dimenet.runtime.ingest.detection import PLACE_TOLERANCE, STEPS, confirm, detect_boards, search_predicted
+from dimenet.runtime.ingest.detection import (
+    PLACE_TOLERANCE,
+    SEED_STEPS,
+    STEPS,
+    boards_meet,
+    confirm,
+    detect_boards,
+    search_predicted,
+    seed_steps,
+)
 from dimenet.runtime.ingest.grid import corner_spacing, fit_model
 from dimenet.runtime.ingest.outcome import IDENTIFIED
 from dimenet.runtime.ingest.pipeline import ingest
@@ -178,3 +187,14 @@ def test_search_predicted_looks_for_no_board_on_a_board_kept(photo, steps_called
     b, _ = other_board(photo)
     found = search_predicted(gray, paper_rig(), (seed,), {b: seed.corners_px[:80]})
     assert found.detections == () and steps_called
+
+
+def test_the_seed_asks_larger_first_only_on_a_rig_whose_boards_meet():
+    # The real three-plane rig's floor and a wall: their inner corners 1.41 squares apart across the fold.
+    floor = Board("floor", (6, 7), 28.0, (2.221441469079183, 2.221441469079183, 0.0), (28.0, 28.0, 0.0))
+    wall = Board("wall", (8, 6), 28.0, (1.5707963267948966, 0.0, 0.0), (28.0, 0.0, 28.0))
+    assert boards_meet(Rig((floor, wall))) and seed_steps(Rig((floor, wall))) == SEED_STEPS[::-1]
+    assert seed_steps(Rig((floor, wall)))[0].flags & cv2.CALIB_CB_LARGER
+    away = Board("wall", (8, 6), 28.0, wall.rvec, (28.0, -28.0, 28.0))  # a square further off: 2.24 squares
+    assert not boards_meet(Rig((floor, away))) and seed_steps(Rig((floor, away))) == SEED_STEPS
+    assert not boards_meet(paper_rig()) and seed_steps(paper_rig())[0].detector == "classic"
