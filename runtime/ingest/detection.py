@@ -152,10 +152,12 @@ class Dropped:
 
 @dataclass(frozen=True)
 class BoardSearch:
-    """The boards kept (ChArUco first, then plain ones in the order found) and those dropped."""
+    """The boards kept (ChArUco first, then plain ones in the order found) and those dropped; ``hidden``: rig
+    boards looked for where the photo's camera puts them and not found, with what the look saw there."""
 
     detections: tuple[Detection, ...]
     dropped: tuple[Dropped, ...] = ()
+    hidden: tuple[tuple[int, str], ...] = ()
 
 
 def charuco_board(board: Board) -> cv2.aruco.CharucoBoard:
@@ -476,6 +478,35 @@ def on_kept(points_px: np.ndarray, kept: tuple[Detection, ...], size: tuple[int,
     return False
 
 
+def crop_search(
+    gray: np.ndarray,
+    predicted_px: np.ndarray,
+    board: Board,
+    patterns: list[tuple[int, int]],
+    steps: tuple[Step, ...],
+    known: tuple[Detection, ...],
+):
+    """A plain board of any of ``patterns`` found by ``steps`` in turn on the crop around where a camera puts
+    ``board``'s corners (``predicted_px`` (nx·ny, 2) native px; ``crop_box``), the ``known`` boards masked out,
+    reduced so that its corner spacing is about CROP_SPACING_PX: settled (a Detection or a Dropped), or None
+    (nothing found, or the crop too small)."""
+    size = (gray.shape[1], gray.shape[0])
+    x0, y0, x1, y1 = crop_box(predicted_px, board.inner_corners, size)
+    if x1 - x0 < 2 * PAD_PX or y1 - y0 < 2 * PAD_PX:
+        return None
+    factor = max(1, round(corner_spacing(predicted_px, board.inner_corners) / CROP_SPACING_PX))
+    copy = reduce(np.ascontiguousarray(gray[y0:y1, x0:x1]), factor)
+    for d in known:
+        mask(copy, factor, d.corners_px, d.grid_shape, size, (x0, y0), d.k)
+    for step in steps:
+        for pattern in patterns:
+            found_one = find_one(copy, pattern, step)
+            if found_one is not None:
+                where = f"{step.describe(factor)} in a crop around where {board.name!r} should be"
+                return settle(gray, to_native(found_one[0], factor) + [x0, y0], pattern, where, found_one[1])
+    return None
+
+
 def search_predicted(
     gray: np.ndarray, rig: Rig, kept: tuple[Detection, ...], predicted: dict[int, np.ndarray]
 ) -> BoardSearch:
@@ -488,7 +519,8 @@ def search_predicted(
     wrong: what lies there may be another board); at most one board per crop. Every step, unless the look
     found the board partly hidden (some corners confirmed, some no checker corner: no detector finds it
     whole), when only the first runs (cheap, for a camera off by whole squares). Returns the boards found
-    (not yet identified; ``found_by`` says where) and those dropped."""
+    (not yet identified; ``found_by`` says where), those dropped, and those not found where the look saw
+    corners hidden (``BoardSearch.hidden``: how many)."""
     size = (gray.shape[1], gray.shape[0])
     patterns = sorted(plain_patterns(rig))
     reference = next((d for d in kept if d.board is None), None)
@@ -496,11 +528,12 @@ def search_predicted(
     contrast = float("nan") if model is None else colouring(gray, model, reference.grid_shape).contrast
     found: list[Detection] = []
     dropped: list[Dropped] = []
+    hidden: list[tuple[int, str]] = []
     for b, px in sorted(predicted.items()):
         board = rig.boards[b]
         if board.aruco is not None:
             continue
-        steps = STEPS
+        steps, seen = STEPS, None
         if np.isfinite(contrast) and not on_kept(px, (*kept, *found), size):
             seen = look(gray, px, board.inner_corners, reference.k, contrast)
             if seen.confirmed.all():
@@ -511,22 +544,9 @@ def search_predicted(
                     continue
             elif seen.hidden.any() and seen.confirmed.any():
                 steps = STEPS[:1]
-        x0, y0, x1, y1 = crop_box(px, board.inner_corners, size)
-        if x1 - x0 < 2 * PAD_PX or y1 - y0 < 2 * PAD_PX:
-            continue
-        factor = max(1, round(corner_spacing(px, board.inner_corners) / CROP_SPACING_PX))
-        copy = reduce(np.ascontiguousarray(gray[y0:y1, x0:x1]), factor)
-        for d in (*kept, *found):
-            mask(copy, factor, d.corners_px, d.grid_shape, size, (x0, y0), d.k)
-        outcome = None
-        for step in steps:
-            for pattern in patterns:
-                found_one = find_one(copy, pattern, step)
-                if found_one is not None:
-                    where = f"{step.describe(factor)} in a crop around where {board.name!r} should be"
-                    outcome = settle(gray, to_native(found_one[0], factor) + [x0, y0], pattern, where, found_one[1])
-                    break
-            if outcome is not None:
-                (dropped if isinstance(outcome, Dropped) else found).append(outcome)
-                break
-    return BoardSearch(tuple(found), tuple(dropped))
+        outcome = crop_search(gray, px, board, patterns, steps, (*kept, *found))
+        if outcome is not None:
+            (dropped if isinstance(outcome, Dropped) else found).append(outcome)
+        elif seen is not None and seen.hidden.any():
+            hidden.append((b, f"hidden: {int(seen.hidden.sum())} of {len(px)} corners are no checker corner there"))
+    return BoardSearch(tuple(found), tuple(dropped), tuple(hidden))

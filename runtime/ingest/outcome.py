@@ -3,7 +3,8 @@
 Every board a detector found is a line: ``identified`` (kept and labelled with its rig board), ``found``
 (kept, the photo skipped before or while its boards were told apart) or ``dropped`` (the refinement
 refused it: why, with its largest corner residual and the tolerance, px). Every rig board not found is a
-line ``not found``: by name once the photo's camera is known (in view or not), else by pattern.
+line ``not found``: by name once the photo's camera is known (in view or not; in view and hidden where that
+camera puts it, how many corners are no checker corner there), else by pattern.
 Specified in models_spec/ingest.md ("Report").
 """
 
@@ -55,11 +56,12 @@ def board_lines(
         BoardLine(DROPPED, x.pattern, None, x.found_by, x.residual_px, x.tolerance_px, x.reason) for x in search.dropped
     ]
     if boards is not None:
+        hidden = dict(search.hidden)
         for b, board in enumerate(rig.boards):
             if b not in boards:
                 seen = in_view is not None and bool(in_view[b])
-                why = "in view of the photo's camera, found by no detector step" if seen else "not in view"
-                lines.append(BoardLine(NOT_FOUND, board.inner_corners, b, why=why))
+                why = f"in view of the photo's camera, {hidden.get(b, 'found by no detector step')}"
+                lines.append(BoardLine(NOT_FOUND, board.inner_corners, b, why=why if seen else "not in view"))
         return tuple(lines)
     known = {d.board for d in search.detections if d.board is not None}
     plain = [d.pattern for d in search.detections if d.board is None]

@@ -127,7 +127,8 @@ def find_and_label(gray: np.ndarray, rig: Rig, fixed_2d: np.ndarray, fixed_3d: n
     """The labelling of the boards found (``identity.label``), after looking again, where its camera puts them,
     for the boards it shows in view but that were not found (``detection.search_predicted``; the camera of
     the best labelling is good enough to say where, even before it is known to be unambiguous), labelled again
-    when any is found. Returns the final labelling, the search with the boards found again, and which rig
+    when any is found. Returns the final labelling, the search with the boards found again (and those hidden
+    where the camera puts them, unless the new labelling tells the boards apart otherwise), and which rig
     boards are in view (B,)."""
     h, w = gray.shape
     found = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d)
@@ -137,10 +138,13 @@ def find_and_label(gray: np.ndarray, rig: Rig, fixed_2d: np.ndarray, fixed_3d: n
         return found, search, in_view
     predicted = {int(b): project(rig.boards[b].points(), found.K, found.rvec, found.tvec) for b in missing}
     again = search_predicted(gray, rig, search.detections, predicted)
-    search = BoardSearch(search.detections + again.detections, search.dropped + again.dropped)
+    search = BoardSearch(search.detections + again.detections, search.dropped + again.dropped, again.hidden)
     if not again.detections:
         return found, search, in_view
+    before = found.boards
     found = label(list(search.detections), rig, rough_k((w, h)), fixed_2d, fixed_3d)
+    if found.boards[: len(before)] != before:  # told apart otherwise: what was hidden was another board
+        search = replace(search, hidden=())
     return found, search, boards_in_view(rig, found.K, found.rvec, found.tvec, (w, h))
 
 

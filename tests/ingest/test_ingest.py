@@ -22,6 +22,7 @@ from dimenet.runtime.formats.rig import Aruco, Board, Rig, paper_rig
 from dimenet.runtime.geometry import k_params, matrix_to_rvec, project, rvec_to_matrix
 from dimenet.runtime.ingest.detection import Detection, detect_boards
 from dimenet.runtime.ingest.identity import identify, rough_k
+from dimenet.runtime.ingest.outcome import NOT_FOUND
 from dimenet.runtime.ingest.photo import exif_orientation, read_photo
 from dimenet.runtime.ingest.pipeline import auto_split, ingest, report
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
@@ -88,6 +89,15 @@ def test_upside_down_and_covered_photos_keep_their_identities(rendered, ingested
         assert board_rms(ds.points_2d[frame, sl], truth.corners_px[photo, sl]) < 0.3  # right board, right way round
     if truth.covered_board[photo] >= 0:
         assert not valid[truth.covered_board[photo]].any()
+
+
+@pytest.mark.parametrize("photo", [3, 8])
+def test_the_report_says_a_covered_board_is_hidden_where_the_camera_puts_it(rendered, ingested, photo):
+    _, truth = rendered
+    result = next(r for r in ingested.results if r.name == truth.frame_id[photo])
+    line = next(line for line in result.board_lines if line.board == truth.covered_board[photo])
+    assert line.status == NOT_FOUND and line.why.startswith("in view of the photo's camera, hidden: ")
+    assert 0 < int(line.why.split("hidden: ")[1].split(" of ")[0]) <= 80
 
 
 def test_worker_processes_give_the_same_results_in_the_photos_order(rendered, ingested):

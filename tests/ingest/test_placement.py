@@ -169,6 +169,8 @@ def test_search_predicted_runs_only_the_first_step_on_a_partly_hidden_board(phot
     cv2.fillConvexPoly(covered, cv2.convexHull(np.round(left).astype(np.int32)), 128)
     found = search_predicted(covered, paper_rig(), (seed,), {b: true_px})
     assert found.detections == () and steps_called and set(steps_called) == {STEPS[0]}
+    ((board, why),) = found.hidden
+    assert board == b and why.startswith("hidden: ") and 0 < int(why.split()[1]) <= 40  # of the 40 covered
 
 
 def test_search_predicted_runs_every_step_where_no_corner_of_the_board_shows(photo, steps_called):
@@ -177,7 +179,7 @@ def test_search_predicted_runs_every_step_where_no_corner_of_the_board_shows(pho
     blank = gray.copy()
     cv2.fillConvexPoly(blank, cv2.convexHull(np.round(true_px).astype(np.int32)), 128)
     found = search_predicted(blank, paper_rig(), (seed,), {b: true_px})
-    assert found.detections == () and set(steps_called) == set(STEPS)
+    assert found.detections == () and set(steps_called) == set(STEPS) and [k for k, _ in found.hidden] == [b]
 
 
 def test_search_predicted_looks_for_no_board_on_a_board_kept(photo, steps_called):
