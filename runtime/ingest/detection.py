@@ -421,14 +421,31 @@ def find_charuco(gray: np.ndarray, rig: Rig) -> dict[int, np.ndarray]:
     return found
 
 
+def outer_corners(board: Board) -> np.ndarray:
+    """(m, 3) mm the board's outermost inner corners in {W}: the first and last row and column of its grid."""
+    nx, ny = board.inner_corners
+    grid = board.points().reshape(ny, nx, 3)
+    return np.concatenate([grid[0], grid[-1], grid[1:-1, 0], grid[1:-1, -1]])
+
+
+def nearest_mm(a: np.ndarray, b: np.ndarray, rows: int = 256) -> float:
+    """The smallest distance (mm) between points a (n, 3) and b (m, 3), ``rows`` of a at a time (bounded memory)."""
+    return min(float(np.linalg.norm(a[k : k + rows, None] - b[None], axis=2).min()) for k in range(0, len(a), rows))
+
+
 def boards_meet(rig: Rig) -> bool:
-    """Whether two plain boards of the rig meet: inner corners of theirs at most MEET_SQUARES squares (of the
-    larger) apart in {W}, so their printed squares touch with no white margin between (at a fold, say)."""
+    """Whether two plain boards of the rig meet: outermost inner corners of theirs at most MEET_SQUARES squares
+    (of the larger) apart in {W}, so their printed squares touch with no white margin between (at a fold, say).
+    Only pairs whose corners' bounding boxes come that near are measured."""
     plain = [b for b in rig.boards if b.aruco is None]
-    for k, a in enumerate(plain):
-        for b in plain[k + 1 :]:
-            gap = np.linalg.norm(a.points()[:, None] - b.points()[None], axis=2).min()
-            if gap <= MEET_SQUARES * max(a.square_mm, b.square_mm) * (1 + 1e-9):
+    edges = [outer_corners(b) for b in plain]
+    reach = np.array([MEET_SQUARES * b.square_mm for b in plain]) * (1 + 1e-9)
+    lo, hi = np.array([e.min(0) for e in edges]).reshape(-1, 3), np.array([e.max(0) for e in edges]).reshape(-1, 3)
+    for i in range(len(plain) - 1):
+        r = np.maximum(reach[i], reach[i + 1 :])[:, None]
+        near = np.all((lo[i + 1 :] - r <= hi[i]) & (lo[i] - r <= hi[i + 1 :]), axis=1)
+        for j in i + 1 + np.flatnonzero(near):
+            if nearest_mm(edges[i], edges[j]) <= max(reach[i], reach[j]):
                 return True
     return False
 
@@ -485,7 +502,7 @@ def crop_search(
     patterns: list[tuple[int, int]],
     steps: tuple[Step, ...],
     known: tuple[Detection, ...],
-):
+) -> Optional[Detection | Dropped]:
     """A plain board of any of ``patterns`` found by ``steps`` in turn on the crop around where a camera puts
     ``board``'s corners (``predicted_px`` (nx·ny, 2) native px; ``crop_box``), the ``known`` boards masked out,
     reduced so that its corner spacing is about CROP_SPACING_PX: settled (a Detection or a Dropped), or None

@@ -200,3 +200,11 @@ def test_the_seed_asks_larger_first_only_on_a_rig_whose_boards_meet():
     away = Board("wall", (8, 6), 28.0, wall.rvec, (28.0, -28.0, 28.0))  # a square further off: 2.24 squares
     assert not boards_meet(Rig((floor, away))) and seed_steps(Rig((floor, away))) == SEED_STEPS
     assert not boards_meet(paper_rig()) and seed_steps(paper_rig())[0].detector == "classic"
+
+
+@pytest.mark.parametrize(("gap_mm", "meet"), [(20.0, True), (25.0, False)])
+def test_boards_meet_measures_large_boards_side_by_side_in_bounded_memory(gap_mm, meet):
+    # Two 1000 x 40 boards (40,000 corners each: all pairs of them would take 38 GB), side by side in one plane.
+    a = Board("a", (1000, 40), 10.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    b = Board("b", (1000, 40), 10.0, (0.0, 0.0, 0.0), (0.0, 390.0 + gap_mm, 0.0))
+    assert boards_meet(Rig((a, b))) == meet  # 2 squares between inner corners: no white margin between them
