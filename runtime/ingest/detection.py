@@ -49,11 +49,9 @@ from dimenet.runtime.ingest.refine import (
     GROW_CONTRAST,
     SUBPIX_WINDOW_FRACTION,
     SUBPIX_WINDOW_PX,
-    checker_contrast,
-    checker_phase,
     colouring,
     grow,
-    quadrant_means,
+    own_contrast,
     refine,
     refine_plain,
     subpix,
@@ -299,9 +297,7 @@ def look(
     n = len(predicted_px)
     if model is None:
         return Look(refined, np.zeros(n, bool), np.zeros(n, bool))
-    own = grid_points(pattern)
-    means = quadrant_means(gray, model, own)
-    clear = checker_contrast(means, own, checker_phase(means, own))
+    _, clear = own_contrast(gray, model, pattern)
     return Look(refined, moved & (clear >= GROW_CONTRAST * contrast), clear <= 0)
 
 

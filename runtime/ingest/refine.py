@@ -246,12 +246,19 @@ class Colouring:
     contrast: float
 
 
-def colouring(gray: np.ndarray, model: BoardModel, grid_shape: tuple[int, int]) -> Colouring:
-    """The colouring of the board whose corners the model maps, over its (mx, my) grid."""
+def own_contrast(gray: np.ndarray, model: BoardModel, grid_shape: tuple[int, int]) -> tuple[float, np.ndarray]:
+    """The board's colouring phase (``checker_phase``) and the checker contrast (mx·my,) of each of its own corners
+    under it (grey levels, ``checker_contrast``), the board model mapping its (mx, my) grid."""
     own = grid_points(grid_shape)
     means = quadrant_means(gray, model, own)
     phase = checker_phase(means, own)
-    return Colouring(phase, float(np.nanmedian(checker_contrast(means, own, phase))))
+    return phase, checker_contrast(means, own, phase)
+
+
+def colouring(gray: np.ndarray, model: BoardModel, grid_shape: tuple[int, int]) -> Colouring:
+    """The colouring of the board whose corners the model maps, over its (mx, my) grid."""
+    phase, clear = own_contrast(gray, model, grid_shape)
+    return Colouring(phase, float(np.nanmedian(clear)))
 
 
 def grow_once(
