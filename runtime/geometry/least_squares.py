@@ -22,7 +22,7 @@ import numpy as np
 from dimenet.runtime.errors import CalibrationError
 from dimenet.runtime.geometry.camera import MIN_DEPTH_MM, k_matrix, k_params
 from dimenet.runtime.geometry.pnp import dlt_camera, solve_pnp_start
-from dimenet.runtime.geometry.rotation import matrix_to_rvec, rvec_to_matrix
+from dimenet.runtime.geometry.rotation import matrix_to_rvec, rotation_matrices, rvec_to_matrix
 
 
 @dataclass(frozen=True)
@@ -49,27 +49,23 @@ def residuals(points_2d, points_3d, sqrt_w, kp, R, t):
 
 
 def jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
-    """(B, N, 2, 6 or 10) Jacobian of the weighted residuals: [rotation, translation, (K)]."""
+    """(B, N, 2, 6 or 10) Jacobian of the weighted residuals: [rotation, translation, (K)].
+
+    Written out element by element: d pi / d X_C = [[fx, 0, -fx xn], [0, fy, -fy yn]] / z, times
+    d(exp(d) a)/dd = -skew(a) at d = 0 (a = R X) for the rotation, the identity for the translation."""
     B, N = z.shape
-    fx, fy = kp[:, None, 0], kp[:, None, 1]
-    dp_dX = np.zeros((B, N, 2, 3))
-    dp_dX[..., 0, 0] = fx / z
-    dp_dX[..., 0, 2] = -fx * xn / z
-    dp_dX[..., 1, 1] = fy / z
-    dp_dX[..., 1, 2] = -fy * yn / z
+    fz, gz = kp[:, None, 0] / z, kp[:, None, 1] / z
     a = Xc - t[:, None, :]  # R X, the rotated point before translation
-    # d(exp(d) a)/dd at d=0 is -skew(a): columns are e_k x a negated.
-    dX_dd = np.zeros((B, N, 3, 3))
-    dX_dd[..., 0, 1], dX_dd[..., 0, 2] = a[..., 2], -a[..., 1]
-    dX_dd[..., 1, 0], dX_dd[..., 1, 2] = -a[..., 2], a[..., 0]
-    dX_dd[..., 2, 0], dX_dd[..., 2, 1] = a[..., 1], -a[..., 0]
-    cols = [dp_dX @ dX_dd, dp_dX]
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    J = np.zeros((B, N, 2, 10 if fit_k else 6))
+    J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = -fz * xn * a1, fz * (a2 + xn * a0), -fz * a1
+    J[..., 1, 0], J[..., 1, 1], J[..., 1, 2] = -gz * (a2 + yn * a1), gz * yn * a0, gz * a0
+    J[..., 0, 3], J[..., 0, 5] = fz, -fz * xn
+    J[..., 1, 4], J[..., 1, 5] = gz, -gz * yn
     if fit_k:
-        dk = np.zeros((B, N, 2, 4))
-        dk[..., 0, 0], dk[..., 0, 2] = xn, 1.0
-        dk[..., 1, 1], dk[..., 1, 3] = yn, 1.0
-        cols.append(dk)
-    return np.concatenate(cols, axis=-1) * sqrt_w[..., None, None]
+        J[..., 0, 6], J[..., 0, 8] = xn, 1.0
+        J[..., 1, 7], J[..., 1, 9] = yn, 1.0
+    return J * sqrt_w[..., None, None]
 
 
 def damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -111,21 +107,24 @@ def fit(
     cost = (r**2).sum((1, 2))
     active = np.ones(B, bool)
     it = 0
+    moved = True  # the normal equations are formed again only when a frame has moved
     for it in range(1, max_iterations + 1):  # noqa: B007 (it is the count reported)
-        J = jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
-        Jt = J.transpose(0, 2, 1)
-        H = Jt @ J
-        g = (Jt @ r.reshape(B, -1, 1))[..., 0]
-        diag = np.diagonal(H, axis1=1, axis2=2)
+        if moved:
+            J = jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k).reshape(B, -1, n_par)
+            Jt = J.transpose(0, 2, 1)
+            H = Jt @ J
+            g = (Jt @ r.reshape(B, -1, 1))[..., 0]
+            diag = np.diagonal(H, axis1=1, axis2=2)
         Hd = H + (lam[:, None] * np.maximum(diag, 1e-12))[..., None] * np.eye(n_par)
         step = -damped_solve(Hd, g)
         step[~active] = 0.0
-        R_new = rvec_to_matrix(step[:, :3]) @ R
+        R_new = rotation_matrices(step[:, :3]) @ R
         t_new = t + step[:, 3:6]
         kp_new = kp + step[:, 6:10] if fit_k else kp
         r_new, Xc_new, z_new, xn_new, yn_new = residuals(p2, p3, sqrt_w, kp_new, R_new, t_new)
         cost_new = (r_new**2).sum((1, 2))
         better = (cost_new < cost) & active
+        moved = bool(better.any())
         rel_gain = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
         R[better], t[better], kp[better] = R_new[better], t_new[better], kp_new[better]
         r[better], Xc[better], z[better] = r_new[better], Xc_new[better], z_new[better]
