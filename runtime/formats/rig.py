@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Optional
 
@@ -34,6 +35,12 @@ MAX_LENGTH_MM = 1e6  # square_mm, marker_mm, |tvec_mm| components: 1 km (more is
 MAX_ROTATION_RAD = 2 * math.pi  # |rvec|: every rotation has an axis-angle of at most pi
 MAX_INNER_CORNERS = 1000  # per board side
 MAX_RIG_POINTS = 100_000  # corners over all boards (P of every dataset ingested with the rig)
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """``array``, made read-only: a rig's corners are computed once and shared."""
+    array.setflags(write=False)
+    return array
 
 
 @dataclass(frozen=True)
@@ -67,16 +74,24 @@ class Board:
         return np.stack([i.ravel() * self.square_mm, j.ravel() * self.square_mm, np.zeros(nx * ny)], axis=1)
 
     def rotation(self) -> np.ndarray:
-        """(3, 3) rotation board -> {W}."""
-        return rvec_to_matrix(np.asarray(self.rvec, dtype=np.float64))
+        """(3, 3) rotation board -> {W} (read-only)."""
+        return self._rotation
 
     def points(self) -> np.ndarray:
-        """(nx·ny, 3) inner corners in {W} (mm)."""
-        return self.local_points() @ self.rotation().T + np.asarray(self.tvec_mm)
+        """(nx·ny, 3) inner corners in {W} (mm; read-only)."""
+        return self._points
 
     def normal(self) -> np.ndarray:
         """(3,) unit board z axis (x × y) in {W}; the printed side faces -normal."""
-        return self.rotation()[:, 2]
+        return self._rotation[:, 2]
+
+    @cached_property
+    def _rotation(self) -> np.ndarray:  # computed once: detection asks for a board's corners tens of times a photo
+        return _read_only(rvec_to_matrix(np.asarray(self.rvec, dtype=np.float64)))
+
+    @cached_property
+    def _points(self) -> np.ndarray:
+        return _read_only(self.local_points() @ self._rotation.T + np.asarray(self.tvec_mm))
 
 
 @dataclass(frozen=True)
@@ -90,8 +105,12 @@ class Rig:
         return sum(b.n_points for b in self.boards)
 
     def points(self) -> np.ndarray:
-        """(P, 3) every board's inner corners in {W} (mm), board by board in rig order."""
-        return np.concatenate([b.points() for b in self.boards])
+        """(P, 3) every board's inner corners in {W} (mm), board by board in rig order (read-only)."""
+        return self._points
+
+    @cached_property
+    def _points(self) -> np.ndarray:
+        return _read_only(np.concatenate([b.points() for b in self.boards]))
 
     @property
     def board_of_point(self) -> np.ndarray:
