@@ -1,6 +1,6 @@
 """Photos of the rig (and of a natural object with labelled points) -> a ``dimenet-dataset/1`` dataset.
 
-Per photo (``ingest_photo``; by this process and ``workers`` − 1 helpers when ``workers`` > 1,
+Per photo (``ingest_photo``; by ``workers`` threads and helper processes when ``workers`` > 1,
 ``workers.run_shared``, results in the photos' order):
 decode it (``photo.read_photo``), find the boards (``detection.detect_boards``; with a rig of several
 boards the first one kept places the others, ``placement.place``), tell them apart and

@@ -1,11 +1,17 @@
-"""Jobs worked on by this process and helper processes at once, the results in the jobs' order.
+"""Jobs worked on by threads of this process and by helper processes at once, the results in the jobs' order.
 
-``run_shared`` with N workers: this process and N − 1 helper processes (a ``concurrent.futures`` process pool
-started from a fork server that has imported the pipeline, or spawned where the platform has no fork
-server) take the next job whenever they are free; OpenCV runs on one thread in each (in this one while
-it works). A helper is handed its first job only once it has started, so no job waits for a helper's
-start-up (0.3-0.6 s for the fork server to import numpy, OpenCV and the pipeline) while this process
-could run it: a handful of photos is done by the time a pool alone would have begun.
+``run_shared`` with N workers: LOCAL_THREADS (2) threads of this process, or N when fewer, take the next job whenever
+they are free, from the start; with more workers, N − 2 helper processes (a ``concurrent.futures`` process pool
+started from a fork server that has imported the pipeline, or spawned where the platform has no fork server) join as
+they come up. Threads start at once but share Python's lock: OpenCV, most of a photo's work, lets go of it while it
+runs, so two threads keep two cores busy (1.5x one thread on 1.9 MP photos, 1.8x at 12 MP), but the photo's Python
+part (about 40 % of it) runs on one core at a time, so more threads would add little. A helper process costs 0.3-0.6 s
+of a core before its first job (the fork server's imports of numpy, OpenCV and the pipeline): with two workers on two
+cores, four real photos took 0.48-0.53 s with a helper beside this process and take 0.32 s with two threads
+(models_spec/ingest.md, "Measured"). OpenCV runs on one thread in each worker (in this process while it works).
+
+This process does not wait for helpers still coming up when every job is done: the thread that started them shuts
+the pool down once they are up (the interpreter waits for it at exit).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from typing import Any, Callable
 import cv2
 
 PRELOAD = "dimenet.runtime.ingest.pipeline"  # what the fork server imports before it forks a helper
+LOCAL_THREADS = 2  # threads of this process that work on jobs (fewer when there are fewer workers)
 
 
 def worker_context() -> multiprocessing.context.BaseContext:
@@ -36,64 +43,93 @@ def _ready() -> None:
 
 
 def run_shared(fn: Callable[..., Any], jobs: Sequence[Sequence[Any]], workers: int) -> Iterator[Any]:
-    """``fn(*job)`` for every job, yielded in the jobs' order, by this process and ``workers`` − 1 helpers (see
-    the module doc); ``fn`` and the jobs must be picklable. An exception of ``fn`` propagates (the jobs not yet
-    started are dropped)."""
+    """``fn(*job)`` for every job, yielded in the jobs' order, by ``workers`` workers: threads of this process and
+    helper processes (see the module doc); ``fn`` must be thread-safe, and with helpers ``fn`` and the jobs picklable.
+    An exception of ``fn`` propagates (the jobs not yet started are dropped)."""
     n = len(jobs)
-    lock = threading.Lock()
-    state = {"taken": 0, "stopping": False}
-    handed: dict[int, Future] = {}
-    local: dict[int, Any] = {}
+    cond = threading.Condition()
+    state = {"taken": 0, "stopping": False, "starting": True, "closed": False}
+    results: dict[int, tuple[bool, Any]] = {}  # job index -> (done without error, its result or exception)
 
     def take() -> int:
-        """The next job's index (under the lock), or -1 when none is left."""
-        if state["stopping"] or state["taken"] >= n:
-            return -1
-        state["taken"] += 1
-        return state["taken"] - 1
+        """The next job's index, or -1 when none is left."""
+        with cond:
+            if state["stopping"] or state["taken"] >= n:
+                return -1
+            state["taken"] += 1
+            return state["taken"] - 1
 
-    def hand(pool: ProcessPoolExecutor, _done: Future) -> None:  # a helper is free: it gets the next job
-        with lock:
-            i = take()
-            if i < 0:
-                return
+    def put(i: int, ok: bool, value: Any) -> None:
+        with cond:
+            results[i] = (ok, value)
+            state["stopping"] |= not ok
+            cond.notify_all()
+
+    def work() -> None:  # a thread of this process
+        while (i := take()) >= 0:
             try:
-                handed[i] = pool.submit(fn, *jobs[i])
-            except Exception as exc:  # a broken pool: the job's result is that error
-                handed[i] = Future()
-                handed[i].set_exception(exc)
-                return
-        handed[i].add_done_callback(lambda done: hand(pool, done))
+                put(i, True, fn(*jobs[i]))
+            except Exception as exc:
+                put(i, False, exc)
+
+    def next_job(pool: ProcessPoolExecutor) -> None:  # a helper is free: it gets the next job
+        i = take()
+        if i < 0:
+            return
+        try:
+            pool.submit(fn, *jobs[i]).add_done_callback(lambda done: finished(pool, i, done))
+        except Exception as exc:  # a broken pool: the job's result is that error
+            put(i, False, exc)
+
+    def finished(pool: ProcessPoolExecutor, i: int, done: Future) -> None:  # a helper's job is done
+        if done.cancelled():  # the pool is shut down
+            return
+        exc = done.exception()
+        put(i, exc is None, exc if exc is not None else done.result())
+        next_job(pool)
+
+    def came_up(pool: ProcessPoolExecutor, up: Future) -> None:  # a helper has started, or could not
+        if not up.cancelled() and up.exception() is None:  # else the threads do its share
+            next_job(pool)
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
-    pool = ProcessPoolExecutor(workers - 1, mp_context=worker_context(), initializer=cv2.setNumThreads, initargs=(1,))
+    helpers = workers - min(workers, LOCAL_THREADS)
+    pool = None
+    if helpers:
+        pool = ProcessPoolExecutor(helpers, mp_context=worker_context(), initializer=cv2.setNumThreads, initargs=(1,))
 
     def start() -> None:  # the first submit starts the helpers, and waits for the fork server's imports
-        for _ in range(workers - 1):
-            try:
-                pool.submit(_ready).add_done_callback(lambda done: hand(pool, done))
-            except Exception:  # the pool is shut down already (this process did every job) or broken
-                return
+        try:
+            for _ in range(helpers):
+                pool.submit(_ready).add_done_callback(lambda up: came_up(pool, up))
+        except (RuntimeError, OSError):  # a broken pool, or no process could start: the threads do every job
+            pass
+        with cond:
+            state["starting"] = False
+            closed = state["closed"]
+        if closed:  # the jobs were over before the helpers were up
+            pool.shutdown(cancel_futures=True)
 
-    starter = threading.Thread(target=start, name="dimenet-helpers", daemon=True)
-    starter.start()
+    if pool is not None:
+        threading.Thread(target=start, name="dimenet-helpers").start()
+    team = [threading.Thread(target=work, name=f"dimenet-worker-{k}", daemon=True) for k in range(workers - helpers)]
+    for t in team:
+        t.start()
     try:
-        out = 0
-        while True:
-            while out in local or (out in handed and handed[out].done()):
-                yield local.pop(out) if out in local else handed.pop(out).result()
-                out += 1
-            with lock:
-                i = take()
-            if i < 0:
-                break
-            local[i] = fn(*jobs[i])
-        for k in range(out, n):  # every job is taken: each is here or with a helper
-            yield local.pop(k) if k in local else handed.pop(k).result()
+        for k in range(n):
+            with cond:
+                cond.wait_for(lambda: k in results)  # noqa: B023 (waited for here, at once)
+                ok, value = results.pop(k)
+            if not ok:
+                raise value
+            yield value
     finally:
-        with lock:
-            state["stopping"] = True
-        starter.join()
-        pool.shutdown(cancel_futures=True)
+        with cond:
+            state["stopping"] = state["closed"] = True
+            starting = state["starting"]
+        for t in team:
+            t.join()
         cv2.setNumThreads(threads)
+        if pool is not None and not starting:  # else the starter shuts the pool down once the helpers are up
+            pool.shutdown(cancel_futures=True)

@@ -100,13 +100,14 @@ def test_the_report_says_a_covered_board_is_hidden_where_the_camera_puts_it(rend
     assert 0 < int(line.why.split("hidden: ")[1].split(" of ")[0]) <= 80
 
 
-def test_worker_processes_give_the_same_results_in_the_photos_order(rendered, ingested):
+@pytest.mark.parametrize("workers", [2, 3])  # two threads; and a helper process
+def test_workers_give_the_same_results_in_the_photos_order(rendered, workers):
     folder, truth = rendered
     photos = [folder / str(f) for f in truth.frame_id[:4]][::-1]  # not in file order
-    one, two = ingest(photos, paper_rig(), workers=1), ingest(photos, paper_rig(), workers=2)
-    assert [r.name for r in two.results] == [p.name for p in photos]
-    assert report(one, paper_rig()) == report(two, paper_rig())
-    np.testing.assert_array_equal(one.dataset.points_2d, two.dataset.points_2d)
+    one, more = ingest(photos, paper_rig(), workers=1), ingest(photos, paper_rig(), workers=workers)
+    assert [r.name for r in more.results] == [p.name for p in photos]
+    assert report(one, paper_rig()) == report(more, paper_rig())
+    np.testing.assert_array_equal(one.dataset.points_2d, more.dataset.points_2d)
 
 
 def test_k_star_of_the_ingested_dataset_is_the_renderers_k(rendered, ingested):

@@ -100,7 +100,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     ingest.add_argument("--n", type=integer_in(1, MAX_PHOTOS), help=f"photos to render (default {INGEST['n']})")
     ingest.add_argument("--seed", type=seed, help=f"render seed (default {INGEST['seed']})")
     ingest.add_argument("--profile", choices=sorted(PROFILES), help=f"device profile (default {INGEST['profile']})")
-    ingest.add_argument("--workers", type=parallelism, help=f"ingest worker processes (default {INGEST['workers']})")
+    ingest.add_argument(
+        "--workers", type=parallelism, help=f"ingest workers: two threads, then processes (default {INGEST['workers']})"
+    )
     bpnp = p.add_argument_group(
         "BPnP bench (--bpnp; needs the train extra)",
         "forward + backward of the training's BPnP layer on B frames x N points (--frames, --points), "

@@ -47,7 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--workers",
         type=parallelism,
         default=1,
-        help="photos processed in parallel (processes; results in the photos' order whatever N; default 1)",
+        help="photos processed in parallel (two threads, then processes beyond two; results in the photos' order "
+        "whatever N; default 1)",
     )
     p.add_argument(
         "--min-boards",
