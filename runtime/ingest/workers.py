@@ -6,9 +6,9 @@ started from a fork server that has imported the pipeline, or spawned where the 
 they come up. Threads start at once but share Python's lock: OpenCV, most of a photo's work, lets go of it while it
 runs, so two threads keep two cores busy (1.5x one thread on 1.9 MP photos, 1.8x at 12 MP), but the photo's Python
 part (about 40 % of it) runs on one core at a time, so more threads would add little. A helper process costs 0.3-0.6 s
-of a core before its first job (the fork server's imports of numpy, OpenCV and the pipeline): with two workers on two
-cores, four real photos took 0.48-0.53 s with a helper beside this process and take 0.32 s with two threads
-(models_spec/ingest.md, "Measured"). OpenCV runs on one thread in each worker (in this process while it works).
+of a core before its first job (the fork server's imports of numpy, OpenCV and the pipeline), most of a run of a
+handful of photos (models_spec/ingest.md, "Measured"). OpenCV runs on one thread in each worker (in this process
+while it works).
 
 This process does not wait for helpers still coming up when every job is done: the thread that started them shuts
 the pool down once they are up (the interpreter waits for it at exit).
