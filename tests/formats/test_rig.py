@@ -70,6 +70,16 @@ def test_board_pose_rotates_then_translates():
     np.testing.assert_allclose(board.normal(), [0.0, 0.0, 1.0], atol=1e-12)
 
 
+def test_corners_are_computed_once_and_shared_read_only():
+    rig = paper_rig()
+    for points in (rig.points(), rig.boards[0].points(), rig.boards[0].rotation()):
+        assert not points.flags.writeable
+        with pytest.raises(ValueError, match="read-only"):
+            points[0] = 0.0
+    assert rig.points() is rig.points() and rig.boards[0].points() is rig.boards[0].points()
+    np.testing.assert_array_equal(rig.points()[: rig.boards[0].n_points], rig.boards[0].points())
+
+
 def test_round_trip_dict_and_json_file(tmp_path):
     rig = paper_rig()
     d = rig_to_dict(rig)

@@ -16,6 +16,17 @@ def test_rodrigues_matches_opencv_and_round_trips():
     np.testing.assert_allclose(g.rvec_to_matrix(g.matrix_to_rvec(R)), R, atol=1e-9)
 
 
+@pytest.mark.parametrize("n", [None, 1, 4, 20])  # one rvec (3,), OpenCV pose by pose (<= FEW_POSES), vectorised
+def test_rotation_matrices_are_rvec_to_matrix_for_any_number_of_poses(n):
+    rng = np.random.default_rng(1)
+    rvecs = rng.normal(0, 1, (3,) if n is None else (n, 3))
+    if n is not None:
+        rvecs[0] = [1e-10, 0, 0]  # the small-angle branch too
+    R = g.rotation_matrices(rvecs)
+    assert R.shape == rvecs.shape + (3,)
+    np.testing.assert_allclose(R, g.rvec_to_matrix(rvecs), atol=1e-14)
+
+
 def test_project_matches_opencv():
     rng = np.random.default_rng(1)
     x, X, K, rvec, tvec = random_frames(rng, frames=1)
