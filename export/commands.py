@@ -6,7 +6,8 @@ import argparse
 import hashlib
 from pathlib import Path
 
-from dimenet.runtime.cli.main import Command, integer_in, nonempty_path
+from dimenet.runtime.cli.arguments import integer_in, nonempty_path
+from dimenet.runtime.cli.main import Command
 
 DEFAULT_OPSET = 17
 # Erf (exact GELU) needs opset 9; 20 is the TorchScript exporter's newest.

@@ -8,7 +8,8 @@ import shlex
 import sys
 from pathlib import Path
 
-from dimenet.runtime.cli.main import Command, finite_float_in, grid_size, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.main import Command
 
 from .config import ReproduceConfig, TrainConfig
 

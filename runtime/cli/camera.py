@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Optional
 
-from dimenet.runtime.cli.main import CliError, nonempty_path
+from dimenet.runtime.cli.arguments import nonempty_path
+from dimenet.runtime.cli.main import CliError
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import Dataset

@@ -108,7 +108,7 @@ def _ray(address: str):
 
 def add_address_argument(p, what: str) -> None:
     """The ``--address`` and ``--cpus-per-job`` options of a command whose jobs are ``what``."""
-    from dimenet.runtime.cli.main import integer_in
+    from dimenet.runtime.cli.arguments import integer_in
 
     p.add_argument(
         "--address",

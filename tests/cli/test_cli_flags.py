@@ -16,7 +16,8 @@ import sys
 import pytest
 
 from dimenet.runtime.cli import main as cli
-from dimenet.runtime.cli.main import MAX_GRID, MAX_NOISE, MAX_PARALLEL, MAX_SEED, build_parser, main
+from dimenet.runtime.cli.arguments import MAX_GRID, MAX_NOISE, MAX_PARALLEL, MAX_SEED
+from dimenet.runtime.cli.main import build_parser, main
 
 BIG = str(2**40)  # 1099511627776
 BASE = {

@@ -12,8 +12,9 @@ from __future__ import annotations
 import argparse
 import json
 
+from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism, seed
 from dimenet.runtime.cli.commands.render import MAX_PHOTOS
-from dimenet.runtime.cli.main import CliError, Command, finite_float_in, integer_in, nonempty_path, parallelism, seed
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.evaluation.latency import format_report, run_bench
 from dimenet.runtime.geometry.pnp import MIN_POINTS
 from dimenet.runtime.sim.simulator import PROFILES

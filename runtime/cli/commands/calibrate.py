@@ -7,7 +7,8 @@ from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.cli.main import CliError, Command, nonempty_path
+from dimenet.runtime.cli.arguments import nonempty_path
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, write_calibration
 from dimenet.runtime.evaluation.multiview import DISTORTION_MODELS
 from dimenet.runtime.formats.camera import FORMATS, SUFFIX_FORMATS, format_for_suffix, write_camera

@@ -10,17 +10,9 @@ import json
 
 import numpy as np
 
+from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, noise_sigma, nonempty_path, seed
 from dimenet.runtime.cli.camera import add_camera_argument, served_camera
-from dimenet.runtime.cli.main import (
-    CliError,
-    Command,
-    finite_float_in,
-    grid_size,
-    integer_in,
-    noise_sigma,
-    nonempty_path,
-    seed,
-)
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells

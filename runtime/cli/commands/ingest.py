@@ -7,7 +7,8 @@ import json
 import time
 from pathlib import Path
 
-from dimenet.runtime.cli.main import CliError, Command, finite_float_in, integer_in, nonempty_path, parallelism
+from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text

@@ -20,8 +20,9 @@ from importlib import resources
 import numpy as np
 
 from dimenet.runtime.assets import asset
+from dimenet.runtime.cli.arguments import nonempty_path
 from dimenet.runtime.cli.camera import add_camera_argument, served_camera
-from dimenet.runtime.cli.main import CliError, Command, nonempty_path
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.atomic import atomic_write

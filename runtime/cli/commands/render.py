@@ -6,8 +6,9 @@ import argparse
 
 import numpy as np
 
+from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.commands.simulate import dist_coeffs
-from dimenet.runtime.cli.main import Command, finite_float_in, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.formats.rig import rig_from_argument
 from dimenet.runtime.sim.render import FORMATS, TRUTH_FILE, scaled_profile, write_render

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from dimenet.runtime.cli.arguments import integer_in, nonempty_path, seed
 from dimenet.runtime.cli.engine import add_address_argument, run_all
-from dimenet.runtime.cli.main import CliError, Command, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.sim.family import MAX_FAMILY, family_member, family_profiles, hfov_deg
