@@ -35,43 +35,27 @@ import torch
 from dimenet.runtime import __version__
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DatasetError
-from dimenet.runtime.evaluation.calibration import calibrate_dataset
-from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
-from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
-from dimenet.runtime.geometry import MIN_POINTS, k_params, project
-from dimenet.runtime.rectify.camera import Camera, generic_pixel_map
+from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
-from dimenet.runtime.rectify.map_fit import map_rectify
 from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
-from dimenet.runtime.rectify.uncertainty import Uncertainty
 
 from . import bpnp
 from .config import TrainConfig
 from .init_weights import InitialWeights
 from .model import DimeNet
-from .predictor import torch_predictor
 from .run_dir import write_run
+from .uncertainty import uncertainty_fields
+from .units import Unit, augment, first_train_frames, k_bounds, parameter_bounds, resynthesise, training_unit
 
 # Training clamps Delta K to +-this (px) inside the loss; OIS moves K by tens of px.
 DELTA_K_LIMIT_PX = 300.0
-# Plausible K: the train frames' K* range widened by this many times its span on each side.
-K_BOUNDS_MARGIN = 1.0
-# The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames,
-# re-imaged, under as many augmentation draws as it takes (at least 8), plus a third as many
-# draws each clean, at 64 points and of one plane, and as many two-object draws.
-UNCERTAINTY_SAMPLES = 240
-# Fewer early-stopping frames than this fit no uncertainty model of their own when fine-tuning:
-# the init's is kept (training/METHOD.md, "Fine-tuning").
-MIN_UNCERTAINTY_FRAMES = 20
 # A generic model's canonical camera: fx (px) and scene depth (mm) of the features; the paper's
 # phones' f and rig distance, so the device models' constants (noise, scales, limits) carry over.
 GENERIC_FOCAL_PX = 3000.0
 GENERIC_DEPTH_MM = 500.0
-# Per-axis std range (px) of the label noise on the two-object draws: hand labels of natural
-# features are a few px off (the paper's LEGO test; the simulator's natural scene: 4.9 px).
-OBJECT_LABEL_NOISE_PX = (2.0, 8.0)
 
 
 @dataclass(frozen=True)
@@ -81,240 +65,6 @@ class TrainResult:
     best_val_e: float  # px, mean over val frames (clean and reduced) at the best epoch
     seconds: float
     history: list = field(default_factory=list)
-
-
-def split_train_val(dataset: Dataset, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of the fitting frames and of the early-stopping frames (the val split, else a
-    seeded part of train)."""
-    train = dataset.frames_in("train")
-    if train.sum() < 2:
-        raise DatasetError("split: training needs at least 2 train frames")
-    val = dataset.frames_in("val")
-    if val.any():
-        return np.flatnonzero(train), np.flatnonzero(val)
-    idx = np.flatnonzero(train)
-    rng = np.random.default_rng(config.seed)
-    n_val = max(1, int(round(config.val_fraction * len(idx))))
-    held = np.sort(rng.choice(idx, n_val, replace=False))
-    return np.setdiff1d(idx, held), held
-
-
-def k_bounds(K_star: np.ndarray) -> np.ndarray:
-    """(4, 2) px plausible range of (fx, fy, cx, cy): the K* range widened by its span."""
-    return parameter_bounds(k_params(K_star))
-
-
-def parameter_bounds(p: np.ndarray) -> np.ndarray:
-    """(4, 2) plausible range of (F, 4) parameters (px): their range widened by its span."""
-    lo, hi = p.min(0), p.max(0)
-    span = np.maximum(hi - lo, 1.0)
-    return np.stack([lo - K_BOUNDS_MARGIN * span, hi + K_BOUNDS_MARGIN * span], -1)
-
-
-@dataclass(frozen=True)
-class FrameTruth:
-    """Per-frame calibration of the train frames: K* (F, 3, 3) px, pose* {W}->{C}, and the
-    residuals x - pi(K*, pose*) (F, P, 2) px that the calibration leaves (the frame's noise)."""
-
-    K_star: np.ndarray
-    rvec: np.ndarray
-    tvec: np.ndarray
-    residual: np.ndarray
-
-
-def frame_truth(frames: Dataset, cal_K, cal_rvec, cal_tvec) -> FrameTruth:
-    residual = frames.points_2d - project(frames.points_3d, cal_K, cal_rvec, cal_tvec)
-    return FrameTruth(cal_K, cal_rvec, cal_tvec, np.where(frames.valid[..., None], residual, 0.0))
-
-
-def resynthesise(
-    frames: Dataset, truth: FrameTruth, rng: np.random.Generator, share: float
-) -> tuple[Dataset, np.ndarray]:
-    """K-resynthesis augmentation: frame i re-imaged under the principal point of a random
-    frame j of ``frames`` (its own focal length kept, so focus breathing stays tied to
-    distance): x' = pi(K', pose*_i) + residual_i. The OIS state is independent of the
-    hand-held pose, so this is a draw from the same joint distribution, with frame i's real
-    noise. A random ``share`` of the frames is re-imaged; the others stay as captured.
-    Returns the frames and the K' (F, 3, 3) px each is now imaged under (K*_i if not re-imaged)."""
-    j = rng.integers(0, frames.n_frames, frames.n_frames)
-    j = np.where(rng.random(frames.n_frames) < share, j, np.arange(frames.n_frames))
-    K_new = truth.K_star.copy()
-    K_new[:, :2, 2] = truth.K_star[j, :2, 2]
-    x_new = project(frames.points_3d, K_new, truth.rvec, truth.tvec) + truth.residual
-    return replace(frames, points_2d=np.where(frames.valid[..., None], x_new, np.nan)), K_new
-
-
-def cluster_inference_points(
-    frames: Dataset,
-    candidates: np.ndarray,
-    share: float,
-    n_points: tuple,
-    max_noise_px: float,
-    rng: np.random.Generator,
-) -> Dataset:
-    """Natural-object-like inference points in a random ``share`` of the frames: only the
-    n ~ U(n_points) ``candidates`` ((F, P) bool, e.g. the frame's own inference points) nearest
-    (px) to one or two random candidates stay inference points, and they get hand-labelling
-    noise, std ~ U(0, max_noise_px) per image axis (px). The other valid points keep their
-    values and still count in the loss, as the boards do in the paper's LEGO test."""
-    picked = np.flatnonzero(rng.random(frames.n_frames) < share)
-    infer, points_2d = frames.infer_mask.copy(), frames.points_2d.copy()
-    for f in picked:
-        idx = np.flatnonzero(candidates[f])
-        centres = points_2d[f, rng.choice(idx, rng.integers(1, 3), replace=False)]
-        dist = np.linalg.norm(points_2d[f, idx, None] - centres, axis=-1).min(1)
-        keep = idx[np.argsort(dist)[: rng.integers(n_points[0], n_points[1] + 1)]]
-        infer[f] = False
-        infer[f, keep] = True
-        points_2d[f, keep] += rng.normal(0.0, rng.uniform(0.0, max_noise_px), (len(keep), 2))
-    return replace(frames, infer_mask=infer, points_2d=points_2d)
-
-
-def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> Dataset:
-    """Each frame with random extra 2D noise, a random inference-point count and a random share
-    of emptied cells, except a ``full_share`` of the frames that keep all their points and
-    cells; a share of the frames with clustered, noisily labelled inference points."""
-    n_infer = frames.infer_mask.sum(1)
-    low = np.minimum(max(config.min_points, MIN_POINTS), n_infer)
-    n = rng.integers(low, n_infer + 1)
-    eta = rng.uniform(0.0, config.max_eta, frames.n_frames)
-    # Full frames, as the rig's at test time: without them the net sees 320 points too rarely.
-    full = rng.random(frames.n_frames) < config.full_share
-    n, eta = np.where(full, n_infer, n), np.where(full, 0.0, eta)
-    noisy = add_noise(frames, rng.uniform(0.0, config.max_noise_px, frames.n_frames), 0.0, rng)
-    dropped = drop_inference_points(noisy, n, rng)
-    emptied = empty_cells(dropped, eta, grid, rng)
-    # A frame the emptying left with too few points keeps its points (the runtime would fall back).
-    too_few = emptied.infer_mask.sum(1) < MIN_POINTS
-    kept = replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
-    return cluster_inference_points(
-        kept, frames.infer_mask, config.cluster_share, config.cluster_points, config.max_label_noise_px, rng
-    )
-
-
-def fit_network_uncertainty(
-    model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, rng: np.random.Generator
-) -> tuple[Uncertainty, dict]:
-    """The uncertainty model of the trained network's K - K' on the early-stopping frames of
-    ``units`` (each camera's ``val``, ``val_truth`` their calibration; in model px), each
-    draw on the frames re-imaged by ``resynthesise``
-    (every frame under another's principal point; K' the K it is then imaged under): so the
-    fit sees many pairings of pose and OIS state, not only the few frames' own. The draws:
-    clean, at 64 points and with the points of one plane (a third as many each as there are
-    augmentation draws; a single view of a plane leaves K partly unobservable, and only such
-    inputs teach the model how little the network then knows), under ``augment``'s test-like
-    conditions, and with the points of two objects under label noise (as many: hand-labelled
-    natural features, whose sparse and noisy spread the augmentation's compact clusters do not
-    show). Its data correlation is fitted on the MAP estimates of the draws with added noise
-    (the augmentation's and the two-object ones: their K' does not know that noise, while the
-    other draws' K' was fitted to the very points MAP reads). Returns the model and its
-    1-sigma coverage there."""
-    draws = max(8, -(-UNCERTAINTY_SAMPLES // sum(unit.val.n_frames for unit in units)))
-    few = -(-draws // 3)
-    conditions = [(False, lambda ds: ds)] * few
-    conditions += [(False, lambda ds: drop_inference_points(ds, config.min_points, rng))] * few
-    conditions += [(True, lambda ds: augment(ds, config, spec.features.grid, rng))] * draws
-    conditions += [(False, lambda ds: one_plane(ds, rng))] * few
-    conditions += [
-        (True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0, rng))
-    ] * draws
-    residuals, stats, noisy = [], [], []
-    for unit in units:
-        predictor = torch_predictor(model, spec, "training").for_camera(unit.camera)
-        for added_noise, condition in conditions:
-            reimaged, K_reimaged = resynthesise(unit.val, unit.val_truth, rng, 1.0)
-            drawn = condition(reimaged)
-            pred = predictor.predict(drawn)
-            residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
-            stats.append(pred.stats[pred.predicted])
-            if added_noise:
-                noisy.append((drawn, pred, K_reimaged, predictor))
-    residuals, stats = np.concatenate(residuals), np.concatenate(stats)
-    uncertainty = fit_uncertainty(residuals, stats)
-    uncertainty = replace(uncertainty, data_correlation=fit_data_correlation(*_map_errors(noisy, uncertainty)))
-    return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
-
-
-def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
-    """Over the frames of ``draws`` [(frames, prediction, K' (F, 3, 3), predictor)] that MAP
-    rectifies under ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4) px, its
-    posterior standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames'
-    2D noise (F,) px."""
-    errors, sigma, ratio, noise = [], [], [], []
-    for frames, pred, K_ref, predictor in draws:
-        K_cov = uncertainty.covariance(pred.stats)
-        for f in np.flatnonzero(pred.predicted):
-            m = frames.infer_mask[f]
-            fit, _ = map_rectify(
-                frames.points_2d[f][m],
-                frames.points_3d[f][m],
-                k_params(pred.K[f]),
-                K_cov[f],
-                predictor.K_bounds,
-                predictor.K_c,
-            )
-            if fit is not None:
-                errors.append(fit.k - k_params(K_ref[f]))
-                sigma.append(np.sqrt(np.diag(fit.K_cov)))
-                ratio.append(np.diag(fit.K_cov) / np.diag(K_cov[f]))
-                noise.append(fit.noise_px)
-    return tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio)) + (np.array(noise),)
-
-
-@dataclass(frozen=True)
-class Unit:
-    """One camera's training frames, in the model's pixels (a generic model's canonical camera,
-    ``rectify.camera``): fit and val the fitting and early-stopping frames, truth and
-    val_truth their calibration, camera the camera the predictor serves (K_c, its prior, and
-    the image size, in the model's pixels), train_K_star (T, 3, 3) px every train frame's K*."""
-
-    name: str
-    fit: Dataset
-    val: Dataset
-    truth: FrameTruth
-    val_truth: FrameTruth
-    camera: Camera
-    train_K_star: np.ndarray
-
-
-def first_train_frames(dataset: Dataset, n: int) -> Dataset:
-    """The dataset with only its first ``n`` train frames in file order (the other splits kept)."""
-    train = dataset.frames_in("train")
-    if train.sum() < n:
-        raise DatasetError(f"split: --train-frames {n} asks for more than the {int(train.sum())} train frames")
-    return dataset.select(~train | (np.cumsum(train) <= n))
-
-
-def training_unit(dataset: Dataset, config: TrainConfig, focal_px: Optional[float], name: str) -> Unit:
-    """A dataset as a Unit: its train split calibrated as ``calibrate`` does, then (for a generic
-    model, ``focal_px`` its canonical fx) every 2D point and K mapped onto the canonical camera;
-    the image size rounds to whole canonical pixels (<= 0.5 px of a ~4000 px image). A dataset
-    with a lens trains on its undistorted points; every train frame must give K* (the target)."""
-    dataset = dataset.undistorted()
-    cal = calibrate_dataset(dataset)
-    for b in np.flatnonzero(dataset.frames_in("train")):
-        if cal.reasons[b] is not None:
-            name = dataset.frame_id[b] if dataset.frame_id is not None else f"frame {b}"
-            raise DatasetError(f"{name}: a train frame must give K* (the training target): {cal.reasons[b]}")
-    K_c, K_star, frames = cal.K_c, cal.K_star, dataset
-    if focal_px is not None:
-        pixels = generic_pixel_map(Camera(K_c, tuple(int(v) for v in dataset.image_size)), focal_px)
-        K_c, K_star = pixels.K_to_model(K_c), pixels.K_to_model(K_star)
-        frames = replace(
-            dataset,
-            points_2d=pixels.points_to_model(dataset.points_2d),
-            image_size=np.round(dataset.image_size * pixels.scale).astype(np.int64),
-        )
-    fit_idx, val_idx = split_train_val(frames, config)
-    return Unit(
-        name=name,
-        fit=frames.select(fit_idx),
-        val=frames.select(val_idx),
-        truth=frame_truth(frames.select(fit_idx), K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx]),
-        val_truth=frame_truth(frames.select(val_idx), K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx]),
-        camera=Camera(K_c, tuple(int(v) for v in frames.image_size)),
-        train_K_star=K_star[frames.frames_in("train")],
-    )
 
 
 def _tensors(frames: Dataset):
@@ -413,28 +163,6 @@ def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec) -> tuple:
     return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c)
 
 
-def _uncertainty_fields(model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, init) -> dict:
-    """The spec's uncertainty model and its provenance: fitted on the early-stopping frames; a
-    fine-tuned model keeps its init's when they are fewer than MIN_UNCERTAINTY_FRAMES or the fit
-    breaks the spec's sigma range rule (a few frames cannot fit five slopes per parameter). A
-    fit that breaks the rule with nothing to keep is a DatasetError: the model would not load."""
-    inherited = init.spec.uncertainty if init is not None else None
-    n_val = sum(u.val.n_frames for u in units)
-    if inherited is not None and n_val < MIN_UNCERTAINTY_FRAMES:
-        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
-    rng = np.random.default_rng(config.seed + 2)
-    uncertainty, val_coverage = fit_network_uncertainty(model, spec, units, config, rng)
-    try:
-        Uncertainty.from_dict(uncertainty.to_dict(), spec.features.grid.n_cells)
-    except ValueError as exc:
-        if inherited is None:
-            raise DatasetError(
-                f"split: {n_val} early-stopping frames fit no usable uncertainty model ({exc})"
-            ) from None
-        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
-    return {"uncertainty": uncertainty, "provenance": {**spec.provenance, "uncertainty_val_coverage": val_coverage}}
-
-
 def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command: str, init) -> TrainResult:
     start = time.monotonic()
     torch.manual_seed(config.seed)
@@ -523,7 +251,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         u = units[0]
         camera = {"K_c": u.camera.K, "image_size": u.camera.image_size, "K_bounds": k_bounds(u.train_K_star)}
     spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
-    spec = replace(spec, **_uncertainty_fields(model, spec, units, config, init))
+    spec = replace(spec, **uncertainty_fields(model, spec, units, config, init))
     run_dir = write_run(run_dir, model, spec, history)
     return TrainResult(
         run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0], seconds=time.monotonic() - start, history=history

@@ -19,7 +19,8 @@ from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.config import TrainConfig
 from dimenet.training.init_weights import initial_weights
 from dimenet.training.run_dir import load_run
-from dimenet.training.trainer import first_train_frames, train
+from dimenet.training.trainer import train
+from dimenet.training.units import first_train_frames
 
 
 @pytest.fixture(scope="module")

@@ -20,16 +20,8 @@ from dimenet.runtime.geometry import k_params
 from dimenet.runtime.sim.simulator import PROFILES, simulate
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
-from dimenet.training.trainer import (
-    TrainConfig,
-    cluster_inference_points,
-    focal_loss,
-    frame_truth,
-    resynthesise,
-    split_train_val,
-    train,
-    training_unit,
-)
+from dimenet.training.trainer import TrainConfig, focal_loss, train
+from dimenet.training.units import cluster_inference_points, frame_truth, resynthesise, split_train_val, training_unit
 
 SMALL = dataclasses.replace(PROFILES["galaxy-s8"], name="small-s8", n_train=30, n_test=8)
 
@@ -111,11 +103,11 @@ def fitting(small, tmp_path_factory):
 def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
     """As many two-object draws (hand-labelled natural features) as augmentation draws, each
     of all the early-stopping frames, with a 2-8 px label noise on each."""
-    from dimenet.training import trainer
+    from dimenet.training import uncertainty as network_uncertainty
 
     _, model, spec, val, unit = fitting
     drawn, noise = [], {}  # the two-object draws; the 2D noise std added to each dataset, by id
-    two_objects, add_noise = trainer.two_objects, trainer.add_noise
+    two_objects, add_noise = network_uncertainty.two_objects, network_uncertainty.add_noise
 
     def drawing(ds, rng):
         drawn.append(two_objects(ds, rng))
@@ -125,10 +117,10 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
         noise[id(ds)] = sigma_2d_px
         return add_noise(ds, sigma_2d_px, sigma_3d_mm, rng)
 
-    monkeypatch.setattr(trainer, "two_objects", drawing)
-    monkeypatch.setattr(trainer, "add_noise", noising)
-    trainer.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
-    assert len(drawn) == max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
+    monkeypatch.setattr(network_uncertainty, "two_objects", drawing)
+    monkeypatch.setattr(network_uncertainty, "add_noise", noising)
+    network_uncertainty.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
+    assert len(drawn) == max(8, -(-network_uncertainty.UNCERTAINTY_SAMPLES // val.n_frames))
     for ds in drawn:
         assert ds.n_frames == val.n_frames and np.all(ds.infer_mask.sum(1) <= 100)
         assert np.all((2.0 <= noise[id(ds)]) & (noise[id(ds)] <= 8.0))
@@ -137,7 +129,7 @@ def test_uncertainty_is_fitted_on_two_object_draws_too(fitting, monkeypatch):
 def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(fitting, monkeypatch):
     """Only the augmentation and two-object draws, whose added noise their reference K' does
     not know, enter the fit; its result is what the model carries."""
-    from dimenet.training import trainer
+    from dimenet.training import uncertainty as network_uncertainty
 
     _, model, spec, val, unit = fitting
     seen = {}
@@ -146,10 +138,12 @@ def test_data_correlation_is_fitted_on_the_map_estimates_of_the_noisy_draws(fitt
         seen.update(errors=errors, sigma=sigma, ratio=ratio, noise=noise)
         return np.array([0.0, 0.1, 0.2, 0.3])
 
-    monkeypatch.setattr(trainer, "fit_data_correlation", spy)
-    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
+    monkeypatch.setattr(network_uncertainty, "fit_data_correlation", spy)
+    uncertainty, _ = network_uncertainty.fit_network_uncertainty(
+        model, spec, [unit], TrainConfig(), np.random.default_rng(0)
+    )
     np.testing.assert_array_equal(uncertainty.data_correlation, [0.0, 0.1, 0.2, 0.3])
-    draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
+    draws = max(8, -(-network_uncertainty.UNCERTAINTY_SAMPLES // val.n_frames))
     assert 0.9 * 2 * draws * val.n_frames <= len(seen["noise"]) <= 2 * draws * val.n_frames
     # The clean frames' noise is the corners' 0.36 px; the noisy draws add 0-3 and 2-8 px.
     assert np.median(seen["noise"]) > 1.5
@@ -179,7 +173,7 @@ def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(fitting, 
     """Every draw is made on the early-stopping frames re-imaged under other principal points,
     and its residuals are taken against the K each frame is then imaged under: a re-imaging
     whose K is off by 1000 px in cx makes the fitted sigma of cx about that large."""
-    from dimenet.training import trainer
+    from dimenet.training import uncertainty as network_uncertainty
 
     run, model, spec, val, unit = fitting
     calls = []
@@ -191,9 +185,11 @@ def test_uncertainty_is_fitted_on_re_imaged_frames_against_their_new_k(fitting, 
         K[:, 0, 2] += 1000.0
         return reimaged, K
 
-    monkeypatch.setattr(trainer, "resynthesise", shifted)
-    uncertainty, _ = trainer.fit_network_uncertainty(model, spec, [unit], TrainConfig(), np.random.default_rng(0))
-    draws = max(8, -(-trainer.UNCERTAINTY_SAMPLES // val.n_frames))
+    monkeypatch.setattr(network_uncertainty, "resynthesise", shifted)
+    uncertainty, _ = network_uncertainty.fit_network_uncertainty(
+        model, spec, [unit], TrainConfig(), np.random.default_rng(0)
+    )
+    draws = max(8, -(-network_uncertainty.UNCERTAINTY_SAMPLES // val.n_frames))
     assert calls == [1.0] * (2 * draws + 3 * -(-draws // 3))  # one re-imaging of all frames per draw
     pred = load_predictor(str(run)).predict(val)
     sigma = uncertainty.sigma(pred.stats[pred.predicted])

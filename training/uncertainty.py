@@ -1,0 +1,128 @@
+"""The uncertainty model of a trained network's Delta K (``rectify.uncertainty``; the fit is
+``evaluation.uncertainty_fit``'s), fitted on the early-stopping frames under many draws of
+test-like conditions, and the rule for when a fine-tuned model keeps its init's."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, one_plane, two_objects
+from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.rectify.map_fit import map_rectify
+from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.uncertainty import Uncertainty
+
+from .config import TrainConfig
+from .model import DimeNet
+from .predictor import torch_predictor
+from .units import augment, resynthesise
+
+# The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames,
+# re-imaged, under as many augmentation draws as it takes (at least 8), plus a third as many
+# draws each clean, at 64 points and of one plane, and as many two-object draws.
+UNCERTAINTY_SAMPLES = 240
+
+
+# Fewer early-stopping frames than this fit no uncertainty model of their own when fine-tuning:
+# the init's is kept (training/METHOD.md, "Fine-tuning").
+MIN_UNCERTAINTY_FRAMES = 20
+
+
+# Per-axis std range (px) of the label noise on the two-object draws: hand labels of natural
+# features are a few px off (the paper's LEGO test; the simulator's natural scene: 4.9 px).
+OBJECT_LABEL_NOISE_PX = (2.0, 8.0)
+
+
+def fit_network_uncertainty(
+    model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, rng: np.random.Generator
+) -> tuple[Uncertainty, dict]:
+    """The uncertainty model of the trained network's K - K' on the early-stopping frames of
+    ``units`` (each camera's ``val``, ``val_truth`` their calibration; in model px), each
+    draw on the frames re-imaged by ``resynthesise``
+    (every frame under another's principal point; K' the K it is then imaged under): so the
+    fit sees many pairings of pose and OIS state, not only the few frames' own. The draws:
+    clean, at 64 points and with the points of one plane (a third as many each as there are
+    augmentation draws; a single view of a plane leaves K partly unobservable, and only such
+    inputs teach the model how little the network then knows), under ``augment``'s test-like
+    conditions, and with the points of two objects under label noise (as many: hand-labelled
+    natural features, whose sparse and noisy spread the augmentation's compact clusters do not
+    show). Its data correlation is fitted on the MAP estimates of the draws with added noise
+    (the augmentation's and the two-object ones: their K' does not know that noise, while the
+    other draws' K' was fitted to the very points MAP reads). Returns the model and its
+    1-sigma coverage there."""
+    draws = max(8, -(-UNCERTAINTY_SAMPLES // sum(unit.val.n_frames for unit in units)))
+    few = -(-draws // 3)
+    conditions = [(False, lambda ds: ds)] * few
+    conditions += [(False, lambda ds: drop_inference_points(ds, config.min_points, rng))] * few
+    conditions += [(True, lambda ds: augment(ds, config, spec.features.grid, rng))] * draws
+    conditions += [(False, lambda ds: one_plane(ds, rng))] * few
+    conditions += [
+        (True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0, rng))
+    ] * draws
+    residuals, stats, noisy = [], [], []
+    for unit in units:
+        predictor = torch_predictor(model, spec, "training").for_camera(unit.camera)
+        for added_noise, condition in conditions:
+            reimaged, K_reimaged = resynthesise(unit.val, unit.val_truth, rng, 1.0)
+            drawn = condition(reimaged)
+            pred = predictor.predict(drawn)
+            residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
+            stats.append(pred.stats[pred.predicted])
+            if added_noise:
+                noisy.append((drawn, pred, K_reimaged, predictor))
+    residuals, stats = np.concatenate(residuals), np.concatenate(stats)
+    uncertainty = fit_uncertainty(residuals, stats)
+    uncertainty = replace(uncertainty, data_correlation=fit_data_correlation(*_map_errors(noisy, uncertainty)))
+    return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
+
+
+def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
+    """Over the frames of ``draws`` [(frames, prediction, K' (F, 3, 3), predictor)] that MAP
+    rectifies under ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4) px, its
+    posterior standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames'
+    2D noise (F,) px."""
+    errors, sigma, ratio, noise = [], [], [], []
+    for frames, pred, K_ref, predictor in draws:
+        K_cov = uncertainty.covariance(pred.stats)
+        for f in np.flatnonzero(pred.predicted):
+            m = frames.infer_mask[f]
+            fit, _ = map_rectify(
+                frames.points_2d[f][m],
+                frames.points_3d[f][m],
+                k_params(pred.K[f]),
+                K_cov[f],
+                predictor.K_bounds,
+                predictor.K_c,
+            )
+            if fit is not None:
+                errors.append(fit.k - k_params(K_ref[f]))
+                sigma.append(np.sqrt(np.diag(fit.K_cov)))
+                ratio.append(np.diag(fit.K_cov) / np.diag(K_cov[f]))
+                noise.append(fit.noise_px)
+    return tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio)) + (np.array(noise),)
+
+
+def uncertainty_fields(model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, init) -> dict:
+    """The spec's uncertainty model and its provenance: fitted on the early-stopping frames; a
+    fine-tuned model keeps its init's when they are fewer than MIN_UNCERTAINTY_FRAMES or the fit
+    breaks the spec's sigma range rule (a few frames cannot fit five slopes per parameter). A
+    fit that breaks the rule with nothing to keep is a DatasetError: the model would not load."""
+    inherited = init.spec.uncertainty if init is not None else None
+    n_val = sum(u.val.n_frames for u in units)
+    if inherited is not None and n_val < MIN_UNCERTAINTY_FRAMES:
+        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
+    rng = np.random.default_rng(config.seed + 2)
+    uncertainty, val_coverage = fit_network_uncertainty(model, spec, units, config, rng)
+    try:
+        Uncertainty.from_dict(uncertainty.to_dict(), spec.features.grid.n_cells)
+    except ValueError as exc:
+        if inherited is None:
+            raise DatasetError(
+                f"split: {n_val} early-stopping frames fit no usable uncertainty model ({exc})"
+            ) from None
+        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
+    return {"uncertainty": uncertainty, "provenance": {**spec.provenance, "uncertainty_val_coverage": val_coverage}}
