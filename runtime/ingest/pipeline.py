@@ -5,7 +5,7 @@ Per photo (``ingest_photo``; by ``workers`` threads and helper processes when ``
 decode it (``photo.read_photo``), find the boards (``detection.detect_boards``; with a rig of several
 boards the first one kept places the others, ``placement.place``), tell them apart and
 fit the photo's single-frame K (``identity``); when that camera shows a board in view that was not
-found, it is looked for again where the camera puts it (``detection.search_predicted``). A photo
+found, it is looked for again where the camera puts it (``predicted.search_predicted``). A photo
 without labels needs ``min_boards`` boards (``default_min_boards``: MIN_BOARDS, or 1 for a one-board
 rig; a photo of one board is a planar frame without K); a labelled one (scene ``natural``, as the
 paper's LEGO test) needs MIN_BOARDS_NATURAL, its labels giving the rest. Each board's outcome (kept,
@@ -41,11 +41,12 @@ from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, N
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project
 from dimenet.runtime.geometry.distortion import undistort_points
-from dimenet.runtime.ingest.detection import BoardSearch, detect_boards, search_predicted
+from dimenet.runtime.ingest.detection import BoardSearch, detect_boards
 from dimenet.runtime.ingest.identity import Identification, check_unambiguous, label, label_planar, refit, rough_k
 from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 from dimenet.runtime.ingest.placement import boards_in_view, place
+from dimenet.runtime.ingest.predicted import search_predicted
 from dimenet.runtime.ingest.workers import run_shared
 from dimenet.runtime.rectify.camera import Camera
 
@@ -125,7 +126,7 @@ def default_min_boards(rig: Rig) -> int:
 
 def find_and_label(gray: np.ndarray, rig: Rig, fixed_2d: np.ndarray, fixed_3d: np.ndarray, search: BoardSearch):
     """The labelling of the boards found (``identity.label``), after looking again, where its camera puts them,
-    for the boards it shows in view but that were not found (``detection.search_predicted``; the camera of
+    for the boards it shows in view but that were not found (``predicted.search_predicted``; the camera of
     the best labelling is good enough to say where, even before it is known to be unambiguous), labelled again
     when any is found. Returns the final labelling, the search with the boards found again (and those hidden
     where the camera puts them, unless the new labelling tells the boards apart otherwise), and which rig

@@ -1,5 +1,5 @@
 """Placing the rig's boards from the first one found: its one-plane camera, the corners refined where it puts them;
-and looking again where the photo's camera puts a board not found (``detection.search_predicted``).
+and looking again where the photo's camera puts a board not found (``predicted.search_predicted``).
 
 Rendered photos of the paper rig (four identical 10x8 boards) at 1/3 of the Galaxy S8's 4032x3024 px;
 the renderer's truth says where every corner is.
@@ -13,7 +13,7 @@ import pytest
 
 from dimenet.runtime.formats.rig import Board, Rig, paper_rig
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.ingest import detection
+from dimenet.runtime.ingest import detection, predicted
 from dimenet.runtime.ingest.detection import (
     PLACE_TOLERANCE,
     SEED_STEPS,
@@ -21,13 +21,13 @@ from dimenet.runtime.ingest.detection import (
     boards_meet,
     confirm,
     detect_boards,
-    search_predicted,
     seed_steps,
 )
 from dimenet.runtime.ingest.grid import corner_spacing, fit_model
 from dimenet.runtime.ingest.outcome import IDENTIFIED
 from dimenet.runtime.ingest.pipeline import ingest
 from dimenet.runtime.ingest.placement import one_plane_k, place
+from dimenet.runtime.ingest.predicted import search_predicted
 from dimenet.runtime.ingest.refine import SUBPIX_WINDOW_PX, colouring
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
 from dimenet.runtime.sim.render_truth import read_truth
@@ -138,9 +138,10 @@ def steps_called(monkeypatch):
     """The detector steps ``find_one`` is called with, in order."""
     called = []
     find_one = detection.find_one
-    monkeypatch.setattr(
-        detection, "find_one", lambda copy, pattern, step: called.append(step) or find_one(copy, pattern, step)
-    )
+    for module in (detection, predicted):  # the first search and the search again
+        monkeypatch.setattr(
+            module, "find_one", lambda copy, pattern, step: called.append(step) or find_one(copy, pattern, step)
+        )
     return called
 
 
