@@ -34,6 +34,8 @@ class FitResult:
     tvec: np.ndarray  # (B, 3) mm, {W}->{C}
     cost: np.ndarray  # (B,) weighted sum of squared residuals, px^2
     iterations: int
+    # ``calibrate(partial=True)``: per frame None, or why it gives no K (its K, pose and cost are NaN)
+    reasons: tuple = ()
 
 
 def residuals(points_2d, points_3d, sqrt_w, kp, R, t):
@@ -154,7 +156,7 @@ def solve_pnp(points_2d, points_3d, weights, K) -> FitResult:
     return fit(points_2d, points_3d, weights, K, rvec, tvec, fit_k=False)
 
 
-def dlt_starts(points_2d, points_3d, weights) -> list:
+def _dlt_starts(points_2d, points_3d, weights) -> list:
     """Per frame of B, the closed-form (K, rvec, tvec) start from its weighted points (DLT + RQ),
     or the CalibrationError saying why K is not observable from that frame."""
     starts = []
@@ -166,16 +168,29 @@ def dlt_starts(points_2d, points_3d, weights) -> list:
     return starts
 
 
-def calibrate(points_2d, points_3d, weights) -> FitResult:
-    """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames.
+def calibrate(points_2d, points_3d, weights, *, partial: bool = False) -> FitResult:
+    """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames: the one
+    per-frame calibration (K*, the self-calibration baseline).
 
     Start: DLT + RQ per frame (closed form, needs non-coplanar points); then batched LM
-    over the 10 parameters. Raises CalibrationError naming the frame when K is not
-    observable from it.
+    over the 10 parameters of the frames that have a start. A frame whose K is not observable
+    raises CalibrationError naming it, or with ``partial`` gets NaN K, pose and cost and its
+    reason in ``FitResult.reasons``.
     """
-    starts = dlt_starts(points_2d, points_3d, weights)
-    for b, start in enumerate(starts):
-        if isinstance(start, CalibrationError):
-            raise CalibrationError(f"frame {b}: {start}")
-    K0, rvec, tvec = (np.array(a) for a in zip(*starts))
-    return fit(points_2d, points_3d, weights, K0, rvec, tvec, fit_k=True)
+    weights = np.asarray(weights)
+    starts = _dlt_starts(points_2d, points_3d, weights)
+    reasons = tuple(str(s) if isinstance(s, CalibrationError) else None for s in starts)
+    if not partial:
+        for b, reason in enumerate(reasons):
+            if reason is not None:
+                raise CalibrationError(f"frame {b}: {reason}")
+    B = len(starts)
+    K, rvec, tvec = np.full((B, 3, 3), np.nan), np.full((B, 3), np.nan), np.full((B, 3), np.nan)
+    cost = np.full(B, np.nan)
+    ok = np.array([r is None for r in reasons], bool)
+    iterations = 0
+    if ok.any():
+        K0, r0, t0 = (np.array(a) for a in zip(*(s for s, good in zip(starts, ok) if good)))
+        res = fit(points_2d[ok], points_3d[ok], weights[ok], K0, r0, t0, fit_k=True)
+        K[ok], rvec[ok], tvec[ok], cost[ok], iterations = res.K, res.rvec, res.tvec, res.cost, res.iterations
+    return FitResult(K=K, rvec=rvec, tvec=tvec, cost=cost, iterations=iterations, reasons=reasons)
