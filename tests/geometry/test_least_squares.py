@@ -91,3 +91,17 @@ def test_partial_calibration_gives_nan_and_the_reason_for_a_planar_frame_and_fit
     np.testing.assert_array_equal(res.tvec[[0, 2]], alone.tvec)
     with pytest.raises(CalibrationError, match="frame 1: .*coplanar"):
         ls.calibrate(x, X, w)
+
+
+def test_the_shared_lm_step_and_damping_rule_by_hand():
+    """H = diag(4, 1e-13) (the second below DIAGONAL_FLOOR), g = (2, 1), damping 0.5: the damped system is
+    diag(4 + 0.5 * 4, 1e-13 + 0.5 * 1e-12) and the step -(2 / 6, 1 / 6e-13); a batch of two steps alike, the
+    one with a singular damped system (damping 0 on a zero H) takes none; the damping falls tenfold after
+    a step that lowers the cost and grows tenfold after one that does not."""
+    H = np.diag([4.0, 1e-13])
+    np.testing.assert_allclose(ls.damped(H, 0.5), np.diag([6.0, 1e-13 + 0.5e-12]), rtol=1e-15)
+    np.testing.assert_allclose(ls.lm_step(H, np.array([2.0, 1.0]), 0.5), [-2.0 / 6.0, -1.0 / 6e-13], rtol=1e-12)
+    batch = ls.lm_step(np.stack([H, np.zeros((2, 2))]), np.array([[2.0, 1.0], [1.0, 1.0]]), np.array([0.5, 0.0]))
+    np.testing.assert_allclose(batch[0], [-2.0 / 6.0, -1.0 / 6e-13], rtol=1e-12)
+    np.testing.assert_array_equal(batch[1], 0.0)
+    np.testing.assert_allclose(ls.next_damping(np.array([1e-3, 1e-3]), np.array([True, False])), [1e-4, 1e-2])
