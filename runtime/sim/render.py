@@ -35,7 +35,7 @@ from dimenet.runtime import __version__
 from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.rig import Board, Rig, rig_to_dict
-from dimenet.runtime.geometry import matrix_to_rvec, project, rvec_to_matrix, to_camera
+from dimenet.runtime.geometry import matrix_to_rvec, project, rescaled_px, rvec_to_matrix, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
 from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
@@ -349,9 +349,8 @@ def draw_board(
     t = board.square_mm / tps
     texel_to_board = np.array([[t, 0.0, x0 + 0.5 * t], [0.0, t, y0 + 0.5 * t], [0.0, 0.0, 1.0]])
     ss = SUPERSAMPLE
-    sample_to_image = np.array(
-        [[1 / ss, 0.0, lo[0] + 0.5 / ss - 0.5], [0.0, 1 / ss, lo[1] + 0.5 / ss - 0.5], [0.0, 0.0, 1.0]]
-    )
+    shift = lo + rescaled_px(0.0, 1 / ss)  # a sample's px in the image: rescaled by 1 / ss, then shifted to lo
+    sample_to_image = np.array([[1 / ss, 0.0, shift[0]], [0.0, 1 / ss, shift[1]], [0.0, 0.0, 1.0]])
     M = np.linalg.inv(sample_to_image) @ H @ texel_to_board
     src = np.dstack([pattern, np.full_like(pattern, 255)])
     warped = cv2.warpPerspective(
