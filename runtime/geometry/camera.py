@@ -80,8 +80,7 @@ def reprojection_residuals(
     (..., 3, 3) and tvec (..., 3) mm -> (..., 2, N) px (the u row, then the v row).
 
     The one residual of the runtime's batched code (``project`` gives the pixels themselves);
-    coordinate-major, a batch of 64 frames x 320 points costs 0.6 ms against 2.7 ms through
-    ``project``."""
+    coordinate-major, as it is faster than through ``project`` (models_spec/BENCHMARKS.md)."""
     K = np.asarray(K, dtype=np.float64)
     Xc = np.matmul(R, np.swapaxes(points_3d, -1, -2))  # (..., 3, N)
     Xc += np.asarray(tvec, dtype=np.float64)[..., :, None]
