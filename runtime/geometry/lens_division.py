@@ -1,10 +1,10 @@
 """The division model of radial lens distortion (Fitzgibbon 2001) and its fit: the board model's lens.
 
-A native pixel d (px) is the undistorted pixel u of
+A native pixel d (px, as the image holds it) undistorts to the pixel u (px) of
 
     u - c = (d - c) / (1 + k1·r_d² + k2·r_d⁴),   r_d = |d - c| / s,
 
-c the image centre and s half the image's longer side. One term (k2 = 0) inverts in closed form, two by
+c (px) the image centre and s (px) half the image's longer side. One term (k2 = 0) inverts in closed form, two by
 Newton's method. Unlike OpenCV's model (``distortion``, stated about a camera's K), it needs no K: ingest
 fits it per board with a homography (``ingest.grid``) to absorb a lens's barrel or pincushion distortion,
 which a homography alone cannot (models_spec/ingest.md, "Acceptance"). ``fit_coefficients`` fits it to a
