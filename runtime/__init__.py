@@ -1,7 +1,8 @@
 """dimenet.runtime: the torch-free foundation of DIME-Net.
 
 ``from dimenet.runtime import Rectifier`` is all an app needs (see README). The rectifier and
-its results load on first use, so ``import dimenet.runtime`` (the CLI, the errors) stays light.
+its results load on first use, so ``import dimenet.runtime`` (the CLI, the errors) stays light;
+``__version__`` too: it is the installed distribution's (pyproject.toml holds the one version).
 """
 
 from dimenet.runtime.errors import (
@@ -18,7 +19,6 @@ from dimenet.runtime.errors import (
     RigError,
 )
 
-__version__ = "0.1.0"
 _RECTIFY = ("Rectifier", "Rectification", "BatchRectification")
 __all__ = [
     "CalibrationError",
@@ -42,4 +42,8 @@ def __getattr__(name: str):
         from dimenet.runtime.rectify import rectifier
 
         return getattr(rectifier, name)
+    if name == "__version__":
+        from importlib.metadata import version
+
+        return version("dimenet-runtime")
     raise AttributeError(f"module 'dimenet.runtime' has no attribute {name!r}")

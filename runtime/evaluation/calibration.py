@@ -1,7 +1,7 @@
 """Per-frame oracle calibration K* and the prior K_c a user gets from ordinary calibration.
 
 K*: for each frame, the joint maximum-likelihood (K, pose) over all its valid points
-(DLT start, then LM; see least_squares.calibrate). A rig view is non-planar, so one frame
+(DLT start, then LM; ``geometry.least_squares.calibrate``). A rig view is non-planar, so one frame
 suffices. e* is that fit's mean Euclidean reprojection error (px). A frame whose points lie in
 one plane (a single board) does not give K: its K*, pose and e* are NaN and
 ``Calibration.reasons`` says why.
@@ -35,7 +35,7 @@ from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry.distortion import undistort_points
-from dimenet.runtime.geometry.least_squares import dlt_starts, fit
+from dimenet.runtime.geometry.least_squares import calibrate
 from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
 from dimenet.runtime.rectify.camera import Camera, checked_camera, checked_dist_coeffs
 
@@ -70,22 +70,14 @@ class Calibration:
 def oracle_fit(points_2d, points_3d, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple]:
     """K*, rvec, tvec and e* (px) of each frame from all its valid points, NaN for the frames
     that give no K, and per frame the reason (None where it gives K)."""
-    starts = dlt_starts(points_2d, points_3d, valid)
-    reasons = tuple(str(s) if isinstance(s, CalibrationError) else None for s in starts)
-    F = len(points_2d)
-    K, rvec, tvec, e_star = (
-        np.full((F, 3, 3), np.nan),
-        np.full((F, 3), np.nan),
-        np.full((F, 3), np.nan),
-        np.full(F, np.nan),
-    )
-    ok = np.array([r is None for r in reasons], bool)
+    res = calibrate(points_2d, points_3d, valid, partial=True)
+    e_star = np.full(len(points_2d), np.nan)
+    ok = np.array([r is None for r in res.reasons], bool)
     if ok.any():
-        K0, r0, t0 = (np.array(a) for a in zip(*(s for s in starts if not isinstance(s, CalibrationError))))
-        res = fit(points_2d[ok], points_3d[ok], valid[ok], K0, r0, t0, fit_k=True)
-        K[ok], rvec[ok], tvec[ok] = res.K, res.rvec, res.tvec
-        e_star[ok] = mean_reprojection_error(points_2d[ok], points_3d[ok], valid[ok], res.K, res.rvec, res.tvec)
-    return K, rvec, tvec, e_star, reasons
+        e_star[ok] = mean_reprojection_error(
+            points_2d[ok], points_3d[ok], valid[ok], res.K[ok], res.rvec[ok], res.tvec[ok]
+        )
+    return res.K, res.rvec, res.tvec, e_star, res.reasons
 
 
 def prior_k(K_star: np.ndarray) -> np.ndarray:

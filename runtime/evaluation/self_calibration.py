@@ -1,7 +1,7 @@
 """The ``self`` baseline: each frame's K from its own inference points alone (joint K + pose).
 
 What a user could do without any model: per-frame calibration (DLT start, then LM over
-(fx, fy, cx, cy) and the pose; least_squares.calibrate) on the points K is inferred from.
+(fx, fy, cx, cy) and the pose; ``geometry.least_squares.calibrate``) on the points K is inferred from.
 Where K is not observable from the frame, it says so and falls back to K_c instead of
 returning garbage: fewer than 6 inference points, (nearly) coplanar 3D points (one planar
 view cannot fix K), a fit that fails, or a K that is not a camera of this image (focal
@@ -14,10 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dimenet.runtime.errors import CalibrationError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_params
-from dimenet.runtime.geometry.least_squares import dlt_starts, fit
+from dimenet.runtime.geometry.least_squares import calibrate
 
 
 @dataclass(frozen=True)
@@ -48,17 +47,9 @@ def self_calibrate(frames: Dataset, K_c: np.ndarray) -> SelfCalibration:
     for f in np.flatnonzero(~enough):
         reasons[f] = f"{int(counts[f])} inference points: K from one frame needs >= {MIN_POINTS}"
     idx = np.flatnonzero(enough)
-    starts = dlt_starts(frames.points_2d[idx], frames.points_3d[idx], frames.infer_mask[idx])
-    ok = [i for i, s in enumerate(starts) if not isinstance(s, CalibrationError)]
-    for i, s in enumerate(starts):
-        if isinstance(s, CalibrationError):
-            reasons[idx[i]] = f"ill-posed: {s}"
-    if ok:
-        sub = idx[ok]
-        K0, rvec, tvec = (np.array(a) for a in zip(*(starts[i] for i in ok)))
-        res = fit(frames.points_2d[sub], frames.points_3d[sub], frames.infer_mask[sub], K0, rvec, tvec, fit_k=True)
-        for f, K_f in zip(sub, res.K):
-            reasons[f] = _implausible(K_f, frames.image_size)
-            if reasons[f] is None:
-                K[f] = K_f
+    res = calibrate(frames.points_2d[idx], frames.points_3d[idx], frames.infer_mask[idx], partial=True)
+    for f, K_f, reason in zip(idx, res.K, res.reasons):
+        reasons[f] = f"ill-posed: {reason}" if reason is not None else _implausible(K_f, frames.image_size)
+        if reasons[f] is None:
+            K[f] = K_f
     return SelfCalibration(K=K, fallback=tuple(reasons))

@@ -23,14 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.formats.points import (
-    PointsFrame,
-    counted,
-    json_lines,
-    read_points,
-    rectified_records,
-    run_record,
-)
+from dimenet.runtime.formats.points import PointsFrame, counted, json_lines, read_points, rectified_records, run_record
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
 

@@ -20,6 +20,8 @@ from dimenet.runtime.geometry.camera import (
     project_camera,
     reprojection_errors,
     reprojection_residuals,
+    rescaled_k,
+    rescaled_px,
     residual_norms,
     to_camera,
 )
@@ -53,6 +55,8 @@ __all__ = [
     "MIN_DEPTH_MM",
     "k_params",
     "k_matrix",
+    "rescaled_px",
+    "rescaled_k",
     "to_camera",
     "project_camera",
     "project",

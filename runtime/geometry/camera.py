@@ -28,6 +28,20 @@ def k_matrix(params: np.ndarray) -> np.ndarray:
     return K
 
 
+def rescaled_px(px: np.ndarray, scale: float) -> np.ndarray:
+    """Pixel coordinates (points (..., 2), principal points, or one coordinate) -> the same places in
+    the image resized ``scale`` times per side: scale * (x + 0.5) - 0.5, a scale about the top-left
+    pixel's corner (pixel centres at integers), so a resize is exact. The one home of the rescale;
+    focal lengths scale by ``scale`` alone (``rescaled_k``)."""
+    return scale * (np.asarray(px, dtype=np.float64) + 0.5) - 0.5
+
+
+def rescaled_k(k: np.ndarray, scale: float) -> np.ndarray:
+    """(..., 4) (fx, fy, cx, cy) px -> the same camera's in the image resized ``scale`` times per side."""
+    k = np.asarray(k, dtype=np.float64)
+    return np.concatenate([scale * k[..., :2], rescaled_px(k[..., 2:], scale)], axis=-1)
+
+
 def to_camera(points_3d: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """{W} points (..., N, 3) in mm -> {C} points (..., N, 3) in mm for poses (..., 3)."""
     R = rvec_to_matrix(rvec)
@@ -66,8 +80,7 @@ def reprojection_residuals(
     (..., 3, 3) and tvec (..., 3) mm -> (..., 2, N) px (the u row, then the v row).
 
     The one residual of the runtime's batched code (``project`` gives the pixels themselves);
-    coordinate-major, a batch of 64 frames x 320 points costs 0.6 ms against 2.7 ms through
-    ``project``."""
+    coordinate-major, as it is faster than through ``project`` (models_spec/BENCHMARKS.md)."""
     K = np.asarray(K, dtype=np.float64)
     Xc = np.matmul(R, np.swapaxes(points_3d, -1, -2))  # (..., 3, N)
     Xc += np.asarray(tvec, dtype=np.float64)[..., :, None]

@@ -9,6 +9,10 @@ coupled by the lens's coefficients and so stepped together (a Schur complement).
 together with analytic Jacobians and batched 6x6 or 10x10 normal equations; each frame
 keeps its own damping. Points with weight 0 have no effect (their values are ignored).
 
+The damping rule and the damped step (``damped``, ``next_damping``, ``lm_step``) are every fit's:
+this core's, the lens bundle's (which solves its damped system by a Schur complement) and the
+division lens's (``lens_division.gauss_newton``).
+
 Parameters: rotation as a left perturbation R <- exp(d) R, translation in mm, and K as
 (fx, fy, cx, cy) in px. Cost: sum_i w_i ||pi(K, R X_i + t) - x_i||^2 (px^2).
 """
@@ -34,6 +38,8 @@ class FitResult:
     tvec: np.ndarray  # (B, 3) mm, {W}->{C}
     cost: np.ndarray  # (B,) weighted sum of squared residuals, px^2
     iterations: int
+    # ``calibrate(partial=True)``: per frame None, or why it gives no K (its K, pose and cost are NaN)
+    reasons: tuple = ()
 
 
 def residuals(points_2d, points_3d, sqrt_w, kp, R, t):
@@ -68,14 +74,43 @@ def jacobian(sqrt_w, kp, Xc, t, z, xn, yn, fit_k):
     return J * sqrt_w[..., None, None]
 
 
+# Levenberg-Marquardt damping, the one rule of every fit: relative to the diagonal of the
+# normal equations (floored at DIAGONAL_FLOOR); it starts at DAMPING_START, is divided by
+# DAMPING_FACTOR after a step that lowers the cost and multiplied by it after one that does not;
+# past DAMPING_MAX no step lowers the cost (the fit is as far as it gets).
+DAMPING_START = 1e-3
+DAMPING_FACTOR = 10.0
+DAMPING_MAX = 1e12
+DIAGONAL_FLOOR = 1e-12
+
+
+def damped(H: np.ndarray, damping) -> np.ndarray:
+    """Normal equations H (..., n, n) damped: H + damping (...) * diag(max(diag(H), DIAGONAL_FLOOR))."""
+    diag = np.maximum(np.diagonal(H, axis1=-2, axis2=-1), DIAGONAL_FLOOR)
+    return H + (np.asarray(damping)[..., None] * diag)[..., None] * np.eye(H.shape[-1])
+
+
+def next_damping(damping, better):
+    """The damping (...) after a step: divided by DAMPING_FACTOR where ``better`` (the step lowered the
+    cost), else multiplied by it."""
+    return np.where(better, damping / DAMPING_FACTOR, damping * DAMPING_FACTOR)
+
+
+def lm_step(H: np.ndarray, g: np.ndarray, damping) -> np.ndarray:
+    """(..., n) the damped LM step -damped(H, damping)^-1 g of normal equations H (..., n, n) = J^T J,
+    g (..., n) = J^T r; 0 where the damped system is singular (a step that fails, like one that
+    raises the cost)."""
+    return -damped_solve(damped(H, damping), g)
+
+
 def damped_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """(B, n) the solutions of B damped normal equations H (B, n, n) x = g (B, n); 0 for a frame whose H is
-    singular (its LM step then fails and its damping grows, as for a step that raises the cost)."""
+    """(..., n) the solutions of damped normal equations H (..., n, n) x = g (..., n); 0 for a system
+    that is singular (its LM step then fails and its damping grows, as for a step that raises the cost)."""
     try:
         return np.linalg.solve(H, g[..., None])[..., 0]
     except np.linalg.LinAlgError:
         x = np.zeros_like(g)
-        for b in range(len(H)):
+        for b in np.ndindex(H.shape[:-2]):
             try:
                 x[b] = np.linalg.solve(H[b], g[b])
             except np.linalg.LinAlgError:
@@ -102,7 +137,7 @@ def fit(
     t = np.array(tvec, dtype=np.float64)
     B = len(p2)
     n_par = 10 if fit_k else 6
-    lam = np.full(B, 1e-3)
+    lam = np.full(B, DAMPING_START)
     r, Xc, z, xn, yn = residuals(p2, p3, sqrt_w, kp, R, t)
     cost = (r**2).sum((1, 2))
     active = np.ones(B, bool)
@@ -114,9 +149,7 @@ def fit(
             Jt = J.transpose(0, 2, 1)
             H = Jt @ J
             g = (Jt @ r.reshape(B, -1, 1))[..., 0]
-            diag = np.diagonal(H, axis1=1, axis2=2)
-        Hd = H + (lam[:, None] * np.maximum(diag, 1e-12))[..., None] * np.eye(n_par)
-        step = -damped_solve(Hd, g)
+        step = lm_step(H, g, lam)
         step[~active] = 0.0
         R_new = rotation_matrices(step[:, :3]) @ R
         t_new = t + step[:, 3:6]
@@ -130,8 +163,8 @@ def fit(
         r[better], Xc[better], z[better] = r_new[better], Xc_new[better], z_new[better]
         xn[better], yn[better] = xn_new[better], yn_new[better]
         cost = np.where(better, cost_new, cost)
-        lam = np.where(better, lam / 10.0, lam * 10.0)
-        done = (better & (rel_gain < tolerance)) | (lam > 1e12)
+        lam = next_damping(lam, better)
+        done = (better & (rel_gain < tolerance)) | (lam > DAMPING_MAX)
         active &= ~done
         if not active.any():
             break
@@ -154,7 +187,7 @@ def solve_pnp(points_2d, points_3d, weights, K) -> FitResult:
     return fit(points_2d, points_3d, weights, K, rvec, tvec, fit_k=False)
 
 
-def dlt_starts(points_2d, points_3d, weights) -> list:
+def _dlt_starts(points_2d, points_3d, weights) -> list:
     """Per frame of B, the closed-form (K, rvec, tvec) start from its weighted points (DLT + RQ),
     or the CalibrationError saying why K is not observable from that frame."""
     starts = []
@@ -166,16 +199,29 @@ def dlt_starts(points_2d, points_3d, weights) -> list:
     return starts
 
 
-def calibrate(points_2d, points_3d, weights) -> FitResult:
-    """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames.
+def calibrate(points_2d, points_3d, weights, *, partial: bool = False) -> FitResult:
+    """Maximum-likelihood K (fx, fy, cx, cy; zero skew) and pose of each of B frames: the one
+    per-frame calibration (K*, the self-calibration baseline).
 
     Start: DLT + RQ per frame (closed form, needs non-coplanar points); then batched LM
-    over the 10 parameters. Raises CalibrationError naming the frame when K is not
-    observable from it.
+    over the 10 parameters of the frames that have a start. A frame whose K is not observable
+    raises CalibrationError naming it, or with ``partial`` gets NaN K, pose and cost and its
+    reason in ``FitResult.reasons``.
     """
-    starts = dlt_starts(points_2d, points_3d, weights)
-    for b, start in enumerate(starts):
-        if isinstance(start, CalibrationError):
-            raise CalibrationError(f"frame {b}: {start}")
-    K0, rvec, tvec = (np.array(a) for a in zip(*starts))
-    return fit(points_2d, points_3d, weights, K0, rvec, tvec, fit_k=True)
+    weights = np.asarray(weights)
+    starts = _dlt_starts(points_2d, points_3d, weights)
+    reasons = tuple(str(s) if isinstance(s, CalibrationError) else None for s in starts)
+    if not partial:
+        for b, reason in enumerate(reasons):
+            if reason is not None:
+                raise CalibrationError(f"frame {b}: {reason}")
+    B = len(starts)
+    K, rvec, tvec = np.full((B, 3, 3), np.nan), np.full((B, 3), np.nan), np.full((B, 3), np.nan)
+    cost = np.full(B, np.nan)
+    ok = np.array([r is None for r in reasons], bool)
+    iterations = 0
+    if ok.any():
+        K0, r0, t0 = (np.array(a) for a in zip(*(s for s, good in zip(starts, ok) if good)))
+        res = fit(points_2d[ok], points_3d[ok], weights[ok], K0, r0, t0, fit_k=True)
+        K[ok], rvec[ok], tvec[ok], cost[ok], iterations = res.K, res.rvec, res.tvec, res.cost, res.iterations
+    return FitResult(K=K, rvec=rvec, tvec=tvec, cost=cost, iterations=iterations, reasons=reasons)

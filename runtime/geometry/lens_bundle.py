@@ -7,7 +7,8 @@ as a left perturbation, translation mm, fx, fy, cx, cy px), as in the LM core
 (``least_squares``), whose projection Jacobian is reused; and the n distortion coefficients,
 shared. The frames couple only through the lens, so each LM step solves the 10 x 10 frame blocks
 and a Schur complement over the n coefficients instead of the whole (10 B + n) system. One
-damping for all (the lens couples every frame's cost); a step is kept when the total cost falls.
+damping for all (the lens couples every frame's cost), by the LM core's rule (``least_squares.damped``,
+``next_damping``); a step is kept when the total cost falls.
 Cost: sum_i w_i ||D(pi(K_b, X_i)) - x_i||^2 (px^2).
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from dimenet.runtime.geometry.camera import k_matrix, k_params
 from dimenet.runtime.geometry.distortion import distort_points_with_jacobians
-from dimenet.runtime.geometry.least_squares import jacobian, residuals
+from dimenet.runtime.geometry.least_squares import DAMPING_MAX, DAMPING_START, damped, jacobian, next_damping, residuals
 from dimenet.runtime.geometry.rotation import matrix_to_rvec, rvec_to_matrix
 
 
@@ -75,7 +76,7 @@ def fit_lens_bundle(
     kp, R, t = k_params(K).copy(), rvec_to_matrix(rvec), np.array(tvec, dtype=np.float64)
     dist = np.array(dist_coeffs, dtype=np.float64)
     B = len(p2)
-    lam = 1e-3
+    lam = DAMPING_START
     r, parts = _distorted(p2, p3, sqrt_w, kp, R, t, K_lens, dist)
     cost = (r**2).sum()
     it = 0
@@ -89,8 +90,7 @@ def fit_lens_bundle(
         V = np.einsum("bki,bkj->ij", J_lens, J_lens)
         g_frame = np.einsum("bki,bk->bi", J_frame, res)
         g_lens = np.einsum("bki,bk->i", J_lens, res)
-        U = U + lam * np.einsum("bii->bi", U)[..., None] * np.eye(10)
-        V = V + lam * np.diag(np.maximum(np.diag(V), 1e-12))
+        U, V = damped(U, lam), damped(V, lam)
         # [U W; W^T V] [d_frame; d_lens] = -[g_frame; g_lens], the frames eliminated first.
         U_inv_W = np.linalg.solve(U, W)
         U_inv_g = np.linalg.solve(U, g_frame[..., None])[..., 0]
@@ -101,16 +101,13 @@ def fit_lens_bundle(
         t_new, kp_new, dist_new = t + d_frame[:, 3:6], kp + d_frame[:, 6:10], dist + d_lens
         r_new, parts_new = _distorted(p2, p3, sqrt_w, kp_new, R_new, t_new, K_lens, dist_new)
         cost_new = (r_new**2).sum()
-        if cost_new < cost:
+        better = cost_new < cost
+        if better:
             gain = (cost - cost_new) / max(cost, 1e-300)
             R, t, kp, dist, r, parts, cost = R_new, t_new, kp_new, dist_new, r_new, parts_new, cost_new
-            lam /= 10.0
-            if gain < tolerance:
-                break
-        else:
-            lam *= 10.0
-            if lam > 1e12:
-                break
+        lam = float(next_damping(lam, better))
+        if (better and gain < tolerance) or lam > DAMPING_MAX:
+            break
     return LensBundleResult(
         K=k_matrix(kp), rvec=matrix_to_rvec(R), tvec=t, dist_coeffs=dist, cost=(r**2).sum((1, 2)), iterations=it
     )

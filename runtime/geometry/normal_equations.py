@@ -2,8 +2,8 @@
 
 They are the LM core's (``least_squares``) Jacobian products J^T J and J^T r for the pose
 perturbed on the left of X_C, formed from nine per-point monomials instead of J itself
-(tests/geometry/test_least_squares.py holds them equal to the core's; 36 us against 103 us
-through the core's Jacobian for a 320-point frame, loaded machine)."""
+(tests/geometry/test_least_squares.py holds them equal to the core's; the speed against the core's
+Jacobian: models_spec/BENCHMARKS.md)."""
 
 from __future__ import annotations
 

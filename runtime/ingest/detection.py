@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.formats.rig import Board, Rig
+from dimenet.runtime.geometry import rescaled_px
 from dimenet.runtime.ingest.grid import canonical, corner_spacing, fit_model, grid_points, residuals
 from dimenet.runtime.ingest.refine import (
     GROW_CONTRAST,
@@ -178,12 +179,12 @@ def reduce(gray: np.ndarray, factor: int) -> np.ndarray:
 
 def to_native(points: np.ndarray, factor: int) -> np.ndarray:
     """Points (n, 2) in a padded reduced copy -> native px."""
-    return factor * (np.asarray(points, np.float64).reshape(-1, 2) - PAD_PX + 0.5) - 0.5
+    return rescaled_px(np.asarray(points, np.float64).reshape(-1, 2) - PAD_PX, factor)
 
 
 def to_reduced(points: np.ndarray, factor: int) -> np.ndarray:
     """Native px (n, 2) -> the padded reduced copy's px."""
-    return (np.asarray(points, np.float64) + 0.5) / factor - 0.5 + PAD_PX
+    return rescaled_px(points, 1.0 / factor) + PAD_PX
 
 
 def outline(

@@ -273,16 +273,10 @@ def check_unambiguous(found: Identification) -> None:
         )
 
 
-def identify(
-    detections: list[Detection],
-    rig: Rig,
-    K_rough: np.ndarray,
-    fixed_2d: np.ndarray = _NO_POINTS_2D,
-    fixed_3d: np.ndarray = _NO_POINTS_3D,
-) -> Identification:
-    """``label``, then ``check_unambiguous``: raises IdentificationError when the labelling is ambiguous or
-    gives no pose, CalibrationError when no labelling gives a single-frame K."""
-    found = label(detections, rig, K_rough, fixed_2d, fixed_3d)
+def identify(detections: list[Detection], rig: Rig, K_rough: np.ndarray) -> Identification:
+    """``label`` (no known correspondences), then ``check_unambiguous``: raises IdentificationError when the
+    labelling is ambiguous or gives no pose, CalibrationError when no labelling gives a single-frame K."""
+    found = label(detections, rig, K_rough)
     check_unambiguous(found)
     return found
 

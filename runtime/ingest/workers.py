@@ -4,10 +4,10 @@
 they are free, from the start; with more workers, N − 2 helper processes (a ``concurrent.futures`` process pool
 started from a fork server that has imported the pipeline, or spawned where the platform has no fork server) join as
 they come up. Threads start at once but share Python's lock: OpenCV, most of a photo's work, lets go of it while it
-runs, so two threads keep two cores busy (1.5x one thread on 1.9 MP photos, 1.8x at 12 MP), but the photo's Python
-part (about 40 % of it) runs on one core at a time, so more threads would add little. A helper process costs 0.3-0.6 s
-of a core before its first job (the fork server's imports of numpy, OpenCV and the pipeline), most of a run of a
-handful of photos (models_spec/ingest.md, "Measured"). OpenCV runs on one thread in each worker (in this process
+runs, so two threads keep two cores busy, but the photo's Python part runs on one core at a time, so more threads
+would add little. A helper process costs a fraction of a second of a core before its first job (the fork server's
+imports of numpy, OpenCV and the pipeline), most of a run of a handful of photos (the figures: models_spec/ingest.md,
+"Measured"). OpenCV runs on one thread in each worker (in this process
 while it works).
 
 This process does not wait for helpers still coming up when every job is done: the thread that started them shuts

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import CameraError
-from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.geometry import k_matrix, k_params, rescaled_px
 from dimenet.runtime.json_text import shown
 
 MAX_IMAGE_SIDE_PX = 100_000
@@ -192,7 +192,7 @@ class PixelMap:
     @cached_property
     def _matrix(self) -> np.ndarray:
         """(3, 3) the map as a matrix on homogeneous pixels: K_model = matrix @ K_user."""
-        shift = np.array(self.offset) + 0.5 * self.scale - 0.5
+        shift = np.array(self.offset) + rescaled_px(0.0, self.scale)
         return np.array([[self.scale, 0.0, shift[0]], [0.0, self.scale, shift[1]], [0.0, 0.0, 1.0]])
 
     @cached_property
@@ -252,7 +252,7 @@ def device_pixel_map(k_model: np.ndarray, size_model, camera: Camera, source: st
             f"{source}: K_c's fy / fx = {k[1] / k[0]:.4f} differs from the model's camera "
             f"({k_model[1] / k_model[0]:.4f}): K_c of another lens, or a generic model is needed"
         )
-    offset = k_model[2:] - (scale * (k[2:] + 0.5) - 0.5)
+    offset = k_model[2:] - rescaled_px(k[2:], scale)
     low = offset - 0.5
     high = offset + scale * np.asarray(camera.image_size, dtype=np.float64) - 0.5
     tolerance = WINDOW_TOLERANCE * size_model[0]

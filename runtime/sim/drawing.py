@@ -9,7 +9,7 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.rig import Board
-from dimenet.runtime.geometry import rvec_to_matrix
+from dimenet.runtime.geometry import rescaled_px, rvec_to_matrix
 from dimenet.runtime.ingest.detection import charuco_board
 
 MARGIN_SQUARES = 0.5  # white paper around the printed pattern, in squares
@@ -117,9 +117,8 @@ def draw_board(
     t = board.square_mm / tps
     texel_to_board = np.array([[t, 0.0, x0 + 0.5 * t], [0.0, t, y0 + 0.5 * t], [0.0, 0.0, 1.0]])
     ss = SUPERSAMPLE
-    sample_to_image = np.array(
-        [[1 / ss, 0.0, lo[0] + 0.5 / ss - 0.5], [0.0, 1 / ss, lo[1] + 0.5 / ss - 0.5], [0.0, 0.0, 1.0]]
-    )
+    shift = lo + rescaled_px(0.0, 1 / ss)  # a sample's px in the image: rescaled by 1 / ss, then shifted to lo
+    sample_to_image = np.array([[1 / ss, 0.0, shift[0]], [0.0, 1 / ss, shift[1]], [0.0, 0.0, 1.0]])
     M = np.linalg.inv(sample_to_image) @ H @ texel_to_board
     src = np.dstack([pattern, np.full_like(pattern, 255)])
     warped = cv2.warpPerspective(

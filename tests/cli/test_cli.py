@@ -134,3 +134,20 @@ def test_cli_simulate_writes_a_dataset(tmp_path, capsys):
     assert main(["simulate", "--profile", "pixel-9", "--out", str(out)]) == 2
     assert main(["simulate", "--profile", "ipad-mini-6", "--natural-frames", "-3", "--out", str(out)]) == 2
     assert "natural-frames" in capsys.readouterr().err
+
+
+def test_the_version_has_one_source_and_dimenet_version_shows_it():
+    """pyproject.toml holds the version; dimenet.runtime reads it from the installed distribution and keeps
+    no copy of its own, and ``dimenet --version`` shows it."""
+    import re
+    from importlib import metadata
+    from pathlib import Path
+
+    from dimenet import runtime
+
+    root = Path(__file__).resolve().parents[2]
+    declared = re.search(r'^version = "([^"]+)"', (root / "pyproject.toml").read_text(), re.M).group(1)
+    assert "__version__ =" not in (root / "runtime" / "__init__.py").read_text()
+    assert runtime.__version__ == metadata.version("dimenet-runtime") == declared
+    shown = dimenet("--version")
+    assert shown.returncode == 0 and shown.stdout.strip() == f"dimenet {declared}"

@@ -151,3 +151,16 @@ def test_covariance_invariants_match_numpy():
             np.testing.assert_allclose(
                 batch[:, b], g.covariance_invariants(np.ascontiguousarray(frames[b][mask[b]])), rtol=1e-9
             )
+
+
+def test_the_pixel_rescale_by_hand():
+    """Half resolution (scale 0.5): a half-resolution pixel covers 2x2 full ones, so the full image's
+    top-left corner (-0.5, -0.5) stays, the far corner (1.5, 1.5) of its first 2x2 block is the first half
+    pixel's far corner (0.5, 0.5), and full pixel 0's centre lies at -0.25. K's focal lengths halve and its
+    principal point moves as a point; scale 2 undoes 0.5 exactly."""
+    np.testing.assert_array_equal(
+        g.rescaled_px([[-0.5, -0.5], [1.5, 1.5], [0.0, 3.0]], 0.5), [[-0.5, -0.5], [0.5, 0.5], [-0.25, 1.25]]
+    )
+    k = np.array([3000.0, 3010.0, 2015.5, 1511.5])
+    np.testing.assert_array_equal(g.rescaled_k(k, 0.5), [1500.0, 1505.0, 1007.5, 755.5])
+    np.testing.assert_array_equal(g.rescaled_k(g.rescaled_k(k[None], 0.5), 2.0), k[None])

@@ -1,8 +1,10 @@
 import cv2
 import numpy as np
+import pytest
 from helpers import random_frames
 
 from dimenet.runtime import geometry as g
+from dimenet.runtime.errors import CalibrationError
 from dimenet.runtime.geometry import least_squares as ls
 
 
@@ -71,3 +73,35 @@ def test_damped_solve_gives_a_singular_frame_no_step_and_solves_the_others():
     np.testing.assert_array_equal(x[1], 0.0)
     for b in (0, 2):
         np.testing.assert_allclose(H[b] @ x[b], g[b], atol=1e-9)
+
+
+def test_partial_calibration_gives_nan_and_the_reason_for_a_planar_frame_and_fits_the_others_alone():
+    """calibrate(partial=True), the one per-frame calibration (K*, the self baseline): a frame that gives
+    no K is NaN with its reason and leaves the other frames' fits as they are on their own; without
+    ``partial`` the same frame raises, named."""
+    rng = np.random.default_rng(4)
+    x, X, K, *_ = random_frames(rng, frames=3, points=40, noise_px=0.3)
+    X[1, :, 2] = 0.0  # frame 1 planar: K not observable from it
+    w = np.ones(x.shape[:2])
+    res = ls.calibrate(x, X, w, partial=True)
+    assert res.reasons[0] is None and res.reasons[2] is None and "coplanar" in res.reasons[1]
+    assert np.all(np.isnan(res.K[1])) and np.all(np.isnan(res.rvec[1])) and np.isnan(res.cost[1])
+    alone = ls.calibrate(x[[0, 2]], X[[0, 2]], w[[0, 2]])
+    np.testing.assert_array_equal(res.K[[0, 2]], alone.K)
+    np.testing.assert_array_equal(res.tvec[[0, 2]], alone.tvec)
+    with pytest.raises(CalibrationError, match="frame 1: .*coplanar"):
+        ls.calibrate(x, X, w)
+
+
+def test_the_shared_lm_step_and_damping_rule_by_hand():
+    """H = diag(4, 1e-13) (the second below DIAGONAL_FLOOR), g = (2, 1), damping 0.5: the damped system is
+    diag(4 + 0.5 * 4, 1e-13 + 0.5 * 1e-12) and the step -(2 / 6, 1 / 6e-13); a batch of two steps alike, the
+    one with a singular damped system (damping 0 on a zero H) takes none; the damping falls tenfold after
+    a step that lowers the cost and grows tenfold after one that does not."""
+    H = np.diag([4.0, 1e-13])
+    np.testing.assert_allclose(ls.damped(H, 0.5), np.diag([6.0, 1e-13 + 0.5e-12]), rtol=1e-15)
+    np.testing.assert_allclose(ls.lm_step(H, np.array([2.0, 1.0]), 0.5), [-2.0 / 6.0, -1.0 / 6e-13], rtol=1e-12)
+    batch = ls.lm_step(np.stack([H, np.zeros((2, 2))]), np.array([[2.0, 1.0], [1.0, 1.0]]), np.array([0.5, 0.0]))
+    np.testing.assert_allclose(batch[0], [-2.0 / 6.0, -1.0 / 6e-13], rtol=1e-12)
+    np.testing.assert_array_equal(batch[1], 0.0)
+    np.testing.assert_allclose(ls.next_damping(np.array([1e-3, 1e-3]), np.array([True, False])), [1e-4, 1e-2])

@@ -13,10 +13,7 @@ import pytest
 from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.ingest.detection import BoardSearch, Detection, Dropped
 from dimenet.runtime.ingest.grid import (
-    K_RANGE,
-    K_TOLERANCE,
     BoardModel,
-    brent,
     corner_spacing,
     fit_model,
     grid_points,
@@ -181,19 +178,3 @@ def test_each_board_of_a_skipped_photo_has_its_line_and_the_message_counts_the_d
         (NOT_FOUND, 3),
     ]
     assert identified[3].why == "not in view" and "in view" in identified[2].why
-
-
-def test_brent_finds_the_minimiser_to_the_tolerance_in_fewer_steps_than_golden_section():
-    calls = []
-
-    def f(x: float) -> float:
-        calls.append(x)
-        return (x - 0.237) ** 2 + 3.0 * (x - 0.237) ** 4
-
-    assert brent(f, *K_RANGE, K_TOLERANCE) == pytest.approx(0.237, abs=K_TOLERANCE / 2)
-    assert len(calls) <= 10  # golden section needs 17 to shrink [-0.5, 0.5] to 1e-3
-    calls.clear()
-    assert brent(lambda x: f(x + 1.0), *K_RANGE, K_TOLERANCE) == pytest.approx(K_RANGE[0], abs=K_TOLERANCE / 2)
-    assert brent(lambda x: abs(x - 0.1) if x < 0.3 else np.inf, *K_RANGE, K_TOLERANCE) == pytest.approx(
-        0.1, abs=K_TOLERANCE / 2
-    )

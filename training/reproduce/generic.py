@@ -15,7 +15,7 @@ from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.model import OnnxModel
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
@@ -118,14 +118,14 @@ def invariance(data: dict, model: OnnxModel) -> dict:
     w, h = camera.image_size
     half = Camera(_half_k(camera.K), (w // 2, h // 2))
     p2, p3, valid = frames.points_2d, frames.points_3d, frames.valid
-    p2_half = np.where(valid[..., None], (p2 + 0.5) / 2 - 0.5, 0.0)
+    p2_half = np.where(valid[..., None], rescaled_px(p2, 0.5), 0.0)
     rectifier = Rectifier(model, "dimenet", camera)
     full = rectifier.rectify_batch(p2, p3, valid)
     halved = Rectifier(model, "dimenet", half).rectify_batch(p2_half, p3, valid)
     metres = rectifier.rectify_batch(p2, p3 / 1000.0, valid)
     mismatched = rectifier.rectify_batch(p2_half, p3, valid)
     k_half = k_params(halved.K)
-    k_up = np.concatenate([2 * k_half[:, :2], (k_half[:, 2:] + 0.5) * 2 - 0.5], 1)
+    k_up = rescaled_k(k_half, 2.0)
     return {
         "n_frames": frames.n_frames,
         "half_vs_full_mean_px": float(np.abs(k_up - k_params(full.K)).mean()),
@@ -136,8 +136,7 @@ def invariance(data: dict, model: OnnxModel) -> dict:
 
 
 def _half_k(K: np.ndarray) -> np.ndarray:
-    k = k_params(K)
-    return k_matrix(np.r_[k[:2] / 2, (k[2:] + 0.5) / 2 - 0.5])
+    return k_matrix(rescaled_k(k_params(K), 0.5))
 
 
 def run_generic(data: dict, device: dict, config: ReproduceConfig, model: OnnxModel, jobs: dict) -> dict:
