@@ -8,6 +8,7 @@ from pathlib import Path
 
 from dimenet.runtime.cli.arguments import integer_in, nonempty_path
 from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 
 DEFAULT_OPSET = 17
 # Erf (exact GELU) needs opset 9; 20 is the TorchScript exporter's newest.
@@ -28,8 +29,12 @@ def _add_export(p: argparse.ArgumentParser) -> None:
 
 
 def _run_export(args: argparse.Namespace) -> int:
+    from dimenet.training.run_dir import SPEC, WEIGHTS
+
     from .onnx_export import export_run
 
+    inputs = [("RUN_DIR", Path(args.run_dir) / name) for name in (WEIGHTS, SPEC)]
+    refuse_overwriting_inputs("dimenet export", [("--out", args.out)], inputs)
     out = Path(export_run(args.run_dir, args.out, opset=args.opset))
     blob = out.read_bytes()
     print(

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 
 from .config import ReproduceConfig, TrainConfig
 
@@ -67,9 +68,16 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from .init_weights import initial_weights
+    from .init_weights import DEFAULT_SOURCE, initial_weights
+    from .run_dir import CURVE, HISTORY, SPEC, WEIGHTS
     from .trainer import read_training_data, train
 
+    init_files = [] if args.init in (None, DEFAULT_SOURCE) else [Path(args.init) / name for name in ("", WEIGHTS, SPEC)]
+    refuse_overwriting_inputs(
+        "dimenet train",
+        [("--out", Path(args.out) / name) for name in (WEIGHTS, SPEC, HISTORY, CURVE)],
+        [("DATA", args.data), *(("--init", path) for path in init_files)],
+    )
     datasets, sha256 = read_training_data(args.data)
     init = None if args.init is None else initial_weights(args.init)
     config = TrainConfig(
@@ -178,8 +186,10 @@ def _add_fleet(p: argparse.ArgumentParser) -> None:
 
 
 def _run_fleet(args: argparse.Namespace) -> int:
-    from .fleet import SUMMARY_MD, fleet_train
+    from .fleet import SUMMARY_JSON, SUMMARY_MD, fleet_train
 
+    outputs = [("--out", Path(args.out) / name) for name in (SUMMARY_JSON, SUMMARY_MD)]
+    refuse_overwriting_inputs("dimenet fleet train", outputs, [("MANIFEST", args.manifest)])
     summary = fleet_train(args.manifest, args.out, address=args.address, cpus_per_job=args.cpus_per_job)
     print((Path(args.out) / SUMMARY_MD).read_text(encoding="utf-8"), end="")
     for name in summary["failed"]:

@@ -102,4 +102,6 @@ def nonempty_path(text: str) -> str:
     nothing, or into the current folder; an empty --model would quietly mean the default)."""
     if not text.strip():
         raise argparse.ArgumentTypeError(f"must be a non-empty path, got {text!r}")
+    if "\0" in text:
+        raise argparse.ArgumentTypeError(f"a path cannot hold a NUL character, got {text!r}")
     return text

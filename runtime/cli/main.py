@@ -2,14 +2,19 @@
 
 Each subcommand is a :class:`Command` registered under the ``dimenet.commands`` entry-point
 group (see pyproject.toml), so training and export plug in without the runtime importing
-them. Bad input exits 2 with one line and no traceback. Output to a pipe whose reader has gone
-(``dimenet rectify --points big.csv | head -1``) ends the command quietly with exit 0.
+them. Bad input exits 2 with one line and no traceback; control characters in it (a file name
+holding a newline or an escape code) are printed escaped (``one_line``), so the line stays one
+line and nothing reaches the terminal as a control code. Output to a pipe whose reader has gone
+(``dimenet rectify --points big.csv | head -1``) ends the command quietly with exit 0. A
+character stdout or stderr cannot encode (an ASCII-only terminal, ``PYTHONIOENCODING=ascii``)
+is printed as a backslash escape (``±`` as ``\\xb1``), never a traceback after the work is done.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,6 +47,25 @@ class Command:
 
 class CliError(DimenetError):
     """A command-line usage problem (bad flag value, missing extra, ...)."""
+
+
+# C0 and C1 control characters, DEL, and Unicode's line and paragraph separators
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def one_line(message: str) -> str:
+    """``message`` with its control characters escaped: a newline as ``\\n``, ESC as ``\\x1b``."""
+    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], message)
+
+
+def _escaping_streams() -> None:
+    """Let stdout and stderr print what their encoding cannot hold as backslash escapes."""
+    for stream in (sys.stdout, sys.stderr):
+        if hasattr(stream, "reconfigure"):
+            try:
+                stream.reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):  # a closed or detached stream: nothing to print to anyway
+                pass
 
 
 class _Parser(argparse.ArgumentParser):
@@ -82,6 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    _escaping_streams()
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -95,11 +120,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except (DimenetError, OSError) as exc:
-        print(f"dimenet: error: {exc}", file=sys.stderr)
+        print(f"dimenet: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except ImportError as exc:
         print(
-            f"dimenet: error: {exc.name or exc} is not installed; "
+            f"dimenet: error: {one_line(str(exc.name or exc))} is not installed; "
             f"this command needs an extra: pip install 'dimenet-runtime[train,export]'",
             file=sys.stderr,
         )

@@ -9,6 +9,7 @@ point in front of the camera at its pose. Anything else is a ``crash`` (another 
 
 from __future__ import annotations
 
+import json
 import traceback
 from collections import Counter
 from collections.abc import Iterator
@@ -22,6 +23,8 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import load_rig
 from dimenet.runtime.rectify.model import onnx_model_from_bytes
@@ -187,13 +190,15 @@ def _mutations(rng: np.random.Generator, blob: bytes) -> Iterator[tuple[str, byt
 
 def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
     """``n_cases`` mutated files of each kind, read by their reader: a dataset (the example frames),
-    the bundled model, the paper rig. A reader that returns counts as ok: a mutation may miss
-    what the reader reads (e.g. zip padding)."""
+    the bundled model, the paper rig, the example camera as ROS YAML. A reader that returns counts
+    as ok: a mutation may miss what the reader reads (e.g. zip padding)."""
     folder = Path(folder)
+    camera = json_file.read(json.loads(asset("example_camera.json").read_text(encoding="utf-8")), "camera")
     sources = {
         "dataset file": (asset("example_frames.npz").read_bytes(), "data.npz", read_dataset),
         "model file": (asset("default_model.onnx").read_bytes(), "model.onnx", None),
         "rig file": (asset("paper_rig.json").read_bytes(), "rig.json", load_rig),
+        "camera file": (ros.write(camera, "camera.yaml").encode("utf-8"), "camera.yaml", read_camera),
     }
     for area, (blob, name, reader) in sources.items():
         mutations = _mutations(rng, blob)

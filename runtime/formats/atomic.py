@@ -1,18 +1,29 @@
 """Atomic file writing: a temp file beside the target, then ``os.replace``.
 
-The temp file is ``.NAME.HOST-PID-TOKEN.tmp`` in the target's folder: PID is the writer's
-process id and HOST a hash of where that id means something (machine name, boot, PID
+The temp file is ``.NAME.dimenet-HOST-PID-TOKEN.tmp`` in the target's folder: PID is the
+writer's process id and HOST a hash of where that id means something (machine name, boot, PID
 namespace), so a later write can tell a stale temp file (its writer was killed) from one being
 written. Before each write, temp files of the target's own name are removed when stale:
 
-* ``.NAME.HOST-PID-TOKEN.tmp`` with this HOST whose process PID no longer exists;
-* ``.NAME.XXXXXXXX.tmp`` (tempfile's pattern, left by earlier versions) or one with another HOST
-  (a shared folder, a container, before a reboot), once not modified for ``STALE_AFTER_S`` (an
-  hour): its writer cannot be asked, and no write leaves its temp file untouched for that long.
+* with this HOST, when process PID no longer exists;
+* with another HOST (a shared folder, a container, before a reboot), once not modified for
+  ``STALE_AFTER_S`` (an hour): its writer cannot be asked, and no write leaves its temp file
+  untouched for that long.
 
 So a live writer's temp file is never removed: a PID that exists keeps its file even if it is
-another process by now (the file goes once that one exits). Files of any other name are never
-touched.
+another process by now (the file goes once that one exits). Only names of that pattern, which
+has ``dimenet`` in it, are ever removed: a user's own ``.NAME.bak.tmp`` or ``.NAME.k3j_9x0q.tmp``
+(tempfile's pattern) stays.
+
+What the target is decides how it is written (models_spec/README.md, "Output paths"):
+
+* a regular file, or nothing: temp file and rename, as above;
+* a symbolic link (also one in a chain): the file it resolves to is written so, atomically; the
+  link stays a link;
+* a character device (``/dev/null``, a terminal, ``/dev/full``) or a FIFO, also through a link
+  (``/dev/stdout``): written plainly, in place, never renamed over. A FIFO without a reader is
+  a WriteError at once (never a wait). A full device is a WriteError, errno ENOSPC;
+* anything else (a block device, a socket): refused with a WriteError; a folder: WriteError.
 
 Permissions: a new file gets the ordinary ``0o666 & ~umask`` (the kernel applies the umask, and
 any default ACL, when the temp file is created with mode 0o666: the umask is never read, let
@@ -26,6 +37,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import os
 import re
 import secrets
@@ -36,6 +48,7 @@ from pathlib import Path
 from typing import BinaryIO, Callable, Optional
 
 STALE_AFTER_S = 3600.0  # a temp file of an unknown writer not modified for this long is stale
+TEMP_TAG = "dimenet"  # in every temp file's name: the stale-temp cleanup removes no file without it
 
 
 class WriteError(OSError):
@@ -51,17 +64,26 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
 
     A failure (exception, full disk, kill) leaves any previous file at ``path`` intact and, but
     for a kill, no temp file (a killed writer's is removed by a later write of the same name).
-    Parent folders are created. Returns the path written; raises :class:`WriteError`.
+    Parent folders are created. A symbolic link is followed (the file it resolves to is
+    replaced); a character device or FIFO is written in place (see the module doc). Returns the
+    path written (``path`` as given); raises :class:`WriteError`.
     """
     path = Path(path)
+    kind = _kind(path)
+    if kind == "stream":
+        _write_in_place(path, write)
+        return path
+    if kind is not None:
+        raise WriteError(errno.EINVAL, f"cannot write: {kind}, not a file (no dimenet output goes there)", str(path))
+    target = Path(os.path.realpath(path)) if os.path.islink(path) else path
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        target.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise _error(path, f"cannot create the folder {path.parent}", exc) from exc
-    remove_stale_temps(path)
-    mode = _existing_mode(path)
+        raise _error(path, f"cannot create the folder {target.parent}", exc) from exc
+    remove_stale_temps(target)
+    mode = _existing_mode(target)
     try:
-        fd, tmp = _create_temp(path, 0o666 if mode is None else 0o600)
+        fd, tmp = _create_temp(target, 0o666 if mode is None else 0o600)
     except OSError as exc:
         raise _error(path, "cannot create a temp file beside it", exc) from exc
     try:
@@ -72,7 +94,7 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
                 write(f)
                 f.flush()
                 os.fsync(f.fileno())
-            os.replace(tmp, path)
+            os.replace(tmp, target)
         except BaseException:
             try:
                 os.unlink(tmp)
@@ -86,6 +108,62 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
     return path
 
 
+class _Stream(io.RawIOBase):
+    """A device or FIFO's file descriptor as a write-only stream that cannot seek (``/dev/null``
+    seeks but tells 0 whatever was written, which would corrupt a zip's directory)."""
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, data) -> int:
+        return os.write(self._fd, data)
+
+    def close(self) -> None:
+        if not self.closed:
+            os.close(self._fd)
+        super().close()
+
+
+def _kind(path: Path) -> Optional[str]:
+    """What ``path`` is, following links: None for a regular file, nothing, a folder (the
+    rename names the problem) or a path that cannot be looked at (the write does);
+    ``"stream"`` for a character device or a FIFO; else a few words naming it."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISFIFO(st.st_mode):
+        return "stream"
+    if stat.S_ISBLK(st.st_mode):
+        return "a block device"
+    if stat.S_ISSOCK(st.st_mode):
+        return "a socket"
+    return None
+
+
+def _write_in_place(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """``write(f)`` on the character device or FIFO ``path`` itself, opened without waiting for
+    a FIFO's reader (none: ENXIO, a WriteError)."""
+    try:
+        fd = os.open(path, os.O_WRONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        if exc.errno == errno.ENXIO:
+            raise WriteError(exc.errno, "cannot write: a FIFO with no reader", str(path)) from None
+        raise _error(path, "cannot write", exc) from exc
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)  # the writes wait for a slow reader, as a shell's redirection does
+        with io.BufferedWriter(_Stream(fd)) as f:
+            write(f)
+    except WriteError:
+        raise
+    except OSError as exc:
+        raise _error(path, "cannot write", exc) from exc
+
+
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write UTF-8 text atomically."""
     return atomic_write(path, lambda f: f.write(text.encode("utf-8")))
@@ -93,7 +171,7 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 def temp_name(name: str, pid: Optional[int] = None) -> str:
     """A fresh temp file name for target ``name``, written by process ``pid`` (default: this one)."""
-    return f".{name}.{_HOST}-{os.getpid() if pid is None else pid}-{secrets.token_hex(4)}.tmp"
+    return f".{name}.{TEMP_TAG}-{_HOST}-{os.getpid() if pid is None else pid}-{secrets.token_hex(4)}.tmp"
 
 
 def remove_stale_temps(path: str | Path) -> list[Path]:
@@ -101,9 +179,8 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
 
     Best effort: a folder that cannot be listed, or a file already gone, is skipped."""
     path = Path(path)
-    ours = re.compile(rf"\.{re.escape(path.name)}\.([0-9a-f]{{12}})-(\d+)-[0-9a-f]{{8}}\.tmp")
-    legacy = re.compile(rf"\.{re.escape(path.name)}\.[a-z0-9_]{{8}}\.tmp")
-    prefix = f".{path.name}."
+    ours = re.compile(rf"\.{re.escape(path.name)}\.{TEMP_TAG}-([0-9a-f]{{12}})-([0-9]+)-[0-9a-f]{{8}}\.tmp")
+    prefix = f".{path.name}.{TEMP_TAG}-"
     removed = []
     try:
         entries = [e for e in os.scandir(path.parent) if e.name.startswith(prefix) and e.name.endswith(".tmp")]
@@ -112,13 +189,13 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
     now = time.time()
     for entry in entries:
         m = ours.fullmatch(entry.name)
+        if m is None:
+            continue
         try:
-            if m and m.group(1) == _HOST:
+            if m.group(1) == _HOST:
                 stale = not _alive(int(m.group(2)))
-            elif m or legacy.fullmatch(entry.name):
-                stale = now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER_S
             else:
-                continue
+                stale = now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER_S
             if stale and entry.is_file(follow_symlinks=False):
                 os.unlink(entry.path)
                 removed.append(Path(entry.path))

@@ -97,13 +97,22 @@ def _detect(text: str, source: str) -> tuple[str, Any]:
     )
 
 
+def camera_file(path: str | Path) -> tuple[str, Optional[str]]:
+    """(the file, the camera name or None) of a ``FILE#NAME`` path; a file whose own name has a
+    ``#`` is that file."""
+    if "#" in str(path) and not os.path.exists(path):
+        file, name = str(path).rsplit("#", 1)
+        return file, name
+    return str(path), None
+
+
 def read_camera(path: str | Path, name: Optional[str] = None) -> Camera:
     """The camera of the file ``path`` in any of FORMATS, told from its content (UTF-8, a BOM
     ignored, at most MAX_CAMERA_BYTES). ``name`` chooses one camera of a multi-camera file
     (a COLMAP CAMERA_ID, a Kalibr camN); without it, a ``path`` ending in ``#NAME`` does,
     unless a file of that very name exists. Raises CameraError naming the file and the field."""
-    if name is None and "#" in str(path) and not os.path.exists(path):
-        path, name = str(path).rsplit("#", 1)
+    if name is None:
+        path, name = camera_file(path)
     path = Path(path)
     text = read_text(path, MAX_CAMERA_BYTES, "camera file", CameraError)
     source = str(path)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from dimenet.runtime.errors import LabelsError
-from dimenet.runtime.formats.text import read_text
+from dimenet.runtime.formats.text import decimal, read_text
 
 OBJECT_HEADER = ("point_id", "X_mm", "Y_mm", "Z_mm")
 LABELS_HEADER = ("image", "point_id", "x_px", "y_px")
@@ -29,7 +28,6 @@ MAX_OBJECT_POINTS = 100_000  # rows of OBJECT.csv: a rig's limit too (formats.ri
 MAX_LABEL_ROWS = 1_000_000  # rows of LABELS.csv (the byte limit allows ~500 k anyway)
 MAX_OBJECT_MM = 1e6  # |X_mm|, |Y_mm|, |Z_mm|: 1 km, the rig's limit too (formats.rig.MAX_LENGTH_MM)
 MAX_LABEL_PX = 1e6  # |x_px|, |y_px|: the dataset's largest image side (formats.dataset.MAX_IMAGE_SIDE_PX)
-_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")  # ASCII, no 1_000 / nan / inf
 
 
 @dataclass(frozen=True)
@@ -83,9 +81,9 @@ def _rows(path: Path, header: tuple[str, ...], max_rows: int) -> Iterator[tuple[
 
 
 def _number(text: str, path: Path, line: int, field: str, limit: float) -> float:
-    """A plain decimal number (``-12.5``, ``3e2``) of magnitude at most ``limit``."""
-    value = float(text) if _DECIMAL.fullmatch(text) else math.inf  # 1e400 is inf too
-    if not math.isfinite(value):
+    """A plain decimal number (``-12.5``, ``3e2``; ``formats.text.decimal``) of magnitude at most ``limit``."""
+    value = decimal(text)
+    if value is None or not math.isfinite(value):  # 1e400 is inf
         raise LabelsError(f"{path}:{line}: {field} must be a finite number, got {_shown(text)}")
     if abs(value) > limit:
         raise LabelsError(f"{path}:{line}: {field} must be at most {limit:g} in magnitude, got {_shown(text)}")

@@ -23,6 +23,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from itertools import chain, islice
 from math import isfinite
+from operator import itemgetter
 from pathlib import Path
 from typing import Any, Optional
 
@@ -30,6 +31,7 @@ import numpy as np
 
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import InputError, PointsError
+from dimenet.runtime.formats.text import decimal
 from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
 from dimenet.runtime.rectify.rectifier import Rectification, Rectifier
 
@@ -161,9 +163,11 @@ def _columns(names: list[str], lines: _Lines) -> tuple[int, Optional[int], list[
 
 
 def _t_ns(text: str, lines: _Lines, line: int) -> int:
-    """t_ns: an integer (ns) of magnitude at most MAX_T_NS."""
+    """t_ns: an integer (ns) of magnitude at most MAX_T_NS (ASCII digits; its length is checked
+    before int() reads it, which refuses more than 4300 digits)."""
     text = text.strip()
-    if not _INTEGER.fullmatch(text) or abs(int(text)) > MAX_T_NS:
+    digits = text.lstrip("+-").lstrip("0")
+    if not _INTEGER.fullmatch(text) or len(digits) > len(str(MAX_T_NS)) or abs(int(text)) > MAX_T_NS:
         raise lines.error(f"t_ns must be an integer of nanoseconds (|t_ns| <= 2**63 - 1), got {shown(text)}", line)
     return int(text)
 
@@ -182,14 +186,14 @@ def _csv_points(lines: _Lines) -> Iterator[tuple]:
             if names is None:
                 names = [c.strip() for c in row]
                 i_id, i_t, coords, scale = _columns(names, lines)
+                coordinates = itemgetter(*coords)
                 continue
             if len(row) != len(names):
                 raise lines.error(f"expected {len(names)} fields as the header has, got {len(row)}", line)
-            try:
-                values = [float(row[i]) for i in coords]
-            except ValueError:
-                bad = next(i for i in coords if not _is_float(row[i]))
-                raise lines.error(f"{names[bad]} must be a number, got {shown(row[bad])}", line) from None
+            values = _decimals(coordinates(row))
+            if values is None:
+                bad = next(i for i in coords if decimal(row[i]) is None)
+                raise lines.error(f"{names[bad]} must be a number, got {shown(row[bad])}", line)
             if scale != 1.0:
                 values[2:] = [v * scale for v in values[2:]]
             yield line, row[i_id].strip(), None if i_t is None else row[i_t], values
@@ -199,12 +203,16 @@ def _csv_points(lines: _Lines) -> Iterator[tuple]:
         raise lines.error("no header: the file is empty", 1)
 
 
-def _is_float(text: str) -> bool:
+def _decimals(texts: tuple[str, ...]) -> Optional[list[float]]:
+    """The floats of ``texts`` when each is a ``formats.text.decimal`` (else None): the same test,
+    once over the fields joined, so a row reads as fast as with float() alone."""
+    joined = "".join(texts)
+    if not joined.isascii() or "_" in joined:
+        return None
     try:
-        float(text)
+        return list(map(float, texts))
     except ValueError:
-        return False
-    return True
+        return None
 
 
 def _json_number(d: dict, key: str, lines: _Lines) -> float:

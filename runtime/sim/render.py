@@ -348,6 +348,11 @@ def truth_arrays(
     }
 
 
+def photo_name(k: int, fmt: str) -> str:
+    """The file name of photo ``k`` (from 0) of a render: photo-0000.jpg, ..."""
+    return f"photo-{k:04d}.{fmt}"
+
+
 def write_render(
     out_dir: str | Path,
     rig: Rig,
@@ -372,7 +377,7 @@ def write_render(
     files, shots = [], []
     photos = render_photos(rig, profile, n, seed=seed, dist_coeffs=dist_coeffs)
     for k, (img, shot) in enumerate(progress(photos)):
-        name = f"photo-{k:04d}.{fmt}"
+        name = photo_name(k, fmt)
         data = encode(img, fmt)
         atomic_write(out / name, lambda f, data=data: f.write(data))
         files.append(name)

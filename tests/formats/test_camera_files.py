@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import base64
 import io
+import os
 import re
+import time
 
 import cv2
 import numpy as np
@@ -529,6 +531,9 @@ CV_K = (
     "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
 )
 
+CV_DATA = "   data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\n"
+JSON_K = '{{"K": [[{f!r}, 0, 320], [0, {f!r}, 240], [0, 0, 1]], "image_size": [640, 480]}}'
+
 HOSTILE = [
     ("not UTF-8", b"%YAML:1.0\n\xff\xfe\x00garbage", r":2: not UTF-8 text"),
     ("printable garbage", "\x01\x02 ::: }{ ][ ,,, \x7f", r": not valid YAML"),
@@ -708,6 +713,81 @@ HOSTILE = [
         "{'lensmodel': 'LENSMODEL_PINHOLE',\n 'intrinsics': [1, 2,",
         r": not a Python literal as mrcal writes one",
     ),
+    # Issue 33: integer matrices, octal, YAML 1.1's sexagesimal and 1_000, negative rows,
+    # implausible focal lengths, digits that are not ASCII.
+    (
+        "cv dt u",
+        CV_K.replace("dt: d", "dt: u") + CV_DATA,
+        r": camera_matrix must be a matrix of dt f or d .*got dt 'u'",
+    ),
+    (
+        "cv dt i",
+        CV_K.replace("dt: d", "dt: i") + CV_DATA,
+        r": camera_matrix must be a matrix of dt f or d .*got dt 'i'",
+    ),
+    (
+        "cv dist dt i",
+        CV_K
+        + CV_DATA
+        + "distortion_coefficients: !!opencv-matrix\n   rows: 5\n   cols: 1\n   dt: i\n   data: [0, 0, 0, 0, 1]\n",
+        r": distortion_coefficients must be a matrix of dt f or d",
+    ),
+    (
+        "cv size dt u",
+        "%YAML:1.0\n---\ncameraResolution: !!opencv-matrix\n   rows: 1\n   cols: 2\n   dt: u\n   data: [640, 480]\n"
+        + CV_K.split("---\n")[1].split("camera_matrix")[0].replace("image_width: 640\nimage_height: 480\n", "")
+        + "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        + CV_DATA,
+        r": cameraResolution must be a matrix of dt i or f or d",
+    ),
+    (
+        "cv octal width",
+        CV_K.replace("640", "0640") + CV_DATA,
+        r":3: 0640 has a leading zero, which OpenCV reads as an octal number",
+    ),
+    ("cv octal in data", CV_K + CV_DATA.replace("320", "0320"), r":9: 0320 has a leading zero"),
+    (
+        "xml octal width",
+        '<?xml version="1.0"?>\n<opencv_storage>\n<image_width>0640</image_width></opencv_storage>\n',
+        r":3: 0640 has a leading zero",
+    ),
+    ("cv sexagesimal", CV_K + CV_DATA.replace("500, 0, 320", "8:20, 0, 320"), r": not a valid OpenCV YAML file"),
+    (
+        "ros rows -3",
+        ROS_FILE.replace("rows: 3\n  cols: 3", "rows: -3\n  cols: -3"),
+        r": camera_matrix must have rows, cols >= 1",
+    ),
+    (
+        "ros sexagesimal fx",
+        ROS_FILE.replace("4827.94", "80:27"),
+        r": camera_matrix\.data must hold finite numbers, got '80:27'",
+    ),
+    ("ros 1_000 width", ROS_FILE.replace("2448", "2_448"), r": image_width must be an integer, got '2_448'"),
+    ("ros yes width", ROS_FILE.replace("2448", "yes"), r": image_width must be an integer, got 'yes'"),
+    (
+        "json fx 5e-324",
+        JSON_K.format(f=5e-324),
+        r": K must have fx, fy within 0\.01 to 1000 times the image's larger side",
+    ),
+    (
+        "json fx 1e-300",
+        JSON_K.format(f=1e-300),
+        r": K must have fx, fy within 0\.01 to 1000 times .*\(6\.4 to 640000 px",
+    ),
+    ("json fx 1e300", JSON_K.format(f=1e300), r": K must have fx, fy within"),
+    ("json fx 0.001", JSON_K.format(f=0.001), r": K must have fx, fy within"),
+    ("json fx 6.3", JSON_K.format(f=6.3), r": K must have fx, fy within"),
+    ("json fx 640001", JSON_K.format(f=640001.0), r": K must have fx, fy within"),
+    (
+        "colmap arabic-indic size",
+        "1 PINHOLE \u0666\u0664\u0660 480 500 500 320 240\n",
+        r": not a camera file of a known format",
+    ),
+    (
+        "colmap full-width param",
+        "1 PINHOLE 640 480 \uff15\uff10\uff10 500 320 240\n",
+        r":1: PARAMS must be finite numbers",
+    ),
     # camera.json
     (
         "json dist",
@@ -781,3 +861,48 @@ def test_values_shortest_and_padded():
     assert values.padded(camera(D5), (4, 8), "x", "COLMAP") == [*D5, 0.0, 0.0, 0.0]
     assert values.yaml_number(1e-05) == "1.0e-05" and values.yaml_number(2.5e20) == "2.5e+20"
     assert mrcal.KEY.search("{\n 'lensmodel': 'LENSMODEL_PINHOLE'") and not mrcal.KEY.search('{"K": 1}')
+
+
+def test_yaml_is_read_as_yaml_1_2_core_as_ros_reads_it(tmp_path):
+    """ROS reads camera_info with yaml-cpp (YAML 1.2): 02448 is 2448 (PyYAML's 1.1 rule: octal 1320),
+    0x802 is 2050, 1.97e-3 a float; Kalibr's resolution likewise."""
+    ros = read_camera(write(tmp_path, ROS_FILE.replace("2448", "02448").replace("2050", "0x802"), "ros.yaml"))
+    assert ros.image_size == (2448, 2050)
+    lens = read_camera(write(tmp_path, ROS_FILE.replace("-0.00197", "-1.97e-3").replace("0.00071", "7.1e-4"), "e.yaml"))
+    assert lens.dist_coeffs[2:4].tolist() == [-1.97e-3, 7.1e-4]
+    kalibr = read_camera(write(tmp_path, KALIBR_FILE.replace("[752, 480]", "[0752, 0480]"), "camchain.yaml"), "cam0")
+    assert kalibr.image_size == (752, 480)
+
+
+def test_octal_looking_digits_in_strings_comments_and_floats_are_not_refused(tmp_path):
+    text = (
+        CV_K.replace("640", "640.0")
+        + CV_DATA.replace("500, 0, 320", "0500.0, 0, 320")
+        + 'calibration_time: "Thu 02 May 2024 10:03:07"\nserial: cam_0123\n# frames 007\n'
+    )
+    assert read_camera(write(tmp_path, text)).K[0, 0] == 500.0
+
+
+@pytest.mark.parametrize("selector", ["\u0661", "\uff12", "\u0662", "2\u0660"])
+def test_a_camera_selector_of_non_ascii_digits_names_no_camera(tmp_path, selector):
+    path = write(tmp_path, COLMAP_FILE, "cameras.txt")
+    with pytest.raises(CameraError, match=r"cameras\.txt: no camera '.*' \(it holds 1, 2, 3\)"):
+        read_camera(f"{path}#{selector}")
+
+
+def test_the_focal_bound_is_relative_to_the_larger_side(tmp_path):
+    assert values.FOCAL_PER_SIDE == (0.01, 1000.0)
+    for f in (6.4, 640_000.0):  # 0.01 and 1000 times 640 px: the bounds themselves pass
+        assert read_camera(write(tmp_path, JSON_K.format(f=f), "cam.json")).K[0, 0] == f
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="POSIX FIFOs")
+def test_a_fifo_without_a_writer_is_refused_at_once_not_waited_on(tmp_path):
+    fifo = tmp_path / "cam.yaml"
+    os.mkfifo(fifo)
+    start = time.monotonic()
+    with pytest.raises(CameraError, match=r"cam\.yaml: cannot read the camera file \(a FIFO, not a regular file\)"):
+        read_camera(fifo)
+    with pytest.raises(CameraError, match=r"cannot read the camera file \(a FIFO"):
+        read_camera(f"{fifo}#cam0")
+    assert time.monotonic() - start < 5

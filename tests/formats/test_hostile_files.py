@@ -16,13 +16,15 @@ import numpy as np
 import pytest
 from numpy.lib import format as npy
 
-from dimenet.runtime.errors import DatasetError, LabelsError, RigError
+from dimenet.runtime.errors import DatasetError, LabelsError, PointsError, RigError
 from dimenet.runtime.evaluation.calibration import read_calibration
 from dimenet.runtime.formats import natural_labels
 from dimenet.runtime.formats.dataset import Dataset, read_dataset, validate_arrays
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.npz import MAX_NPZ_BYTES, read_npz
+from dimenet.runtime.formats.points import read_points
 from dimenet.runtime.formats.rig import load_rig, paper_rig, rig_to_dict
+from dimenet.runtime.formats.text import decimal
 from dimenet.runtime.sim.render_truth import read_truth
 
 F, P = 3, 10
@@ -115,7 +117,7 @@ def refused(read, path, *words):
         seconds = time.perf_counter() - t
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-    assert isinstance(exc.value, (DatasetError, RigError, LabelsError)), repr(exc.value)
+    assert isinstance(exc.value, (DatasetError, RigError, LabelsError, PointsError)), repr(exc.value)
     message = str(exc.value)
     assert str(path) in message, message
     for w in words:
@@ -355,3 +357,49 @@ def test_hostile_csv_bytes_sizes_and_labels(tmp_path, monkeypatch):
     labels = tmp_path / "LABELS.csv"
     labels.write_text("image,point_id,x_px,y_px\nIMG_1.jpg,roof-1,1e300,904.0\n")
     refused(lambda p: read_labels(p, obj), labels, ":2: x_px must be at most 1e+06")
+
+
+# Points files (issue 33): what the points CSV reads as a number is what the labels reader reads.
+POINTS_HEADER = "frame_id,t_ns,x_px,y_px,X_mm,Y_mm,Z_mm\n"
+
+
+def read_all_points(path):
+    return list(read_points(path))
+
+
+@pytest.mark.parametrize(
+    "row, words",
+    [
+        (f"a,{'9' * 5000},1,2,3,4,5", ":2: t_ns must be an integer of nanoseconds"),  # int()'s 4300-digit limit
+        (f"a,{'1' * 20},1,2,3,4,5", ":2: t_ns must be an integer of nanoseconds"),
+        ("a,\u0661\u0662,1,2,3,4,5", ":2: t_ns must be an integer"),
+        ("a,1,1_000,2,3,4,5", ":2: x_px must be a number, got '1_000'"),
+        ("a,1,1,\u0661\u0662,3,4,5", ":2: y_px must be a number, got '١٢'"),
+        ("a,1,1,2,\uff11\uff12,4,5", ":2: X_mm must be a number, got '１２'"),
+        ("a,1,1,2,3,\u00a012,5", ":2: Y_mm must be a number"),  # a Unicode space float() would strip
+        ("a,1,1,2,3,4,nan", ":2: coordinates must be finite numbers"),
+    ],
+)
+def test_hostile_points_csv(tmp_path, row, words):
+    path = tmp_path / "rec.csv"
+    path.write_text(POINTS_HEADER + row + "\n", encoding="utf-8")
+    refused(read_all_points, path, words)
+
+
+def test_points_csv_numbers_that_stay_readable(tmp_path):
+    path = tmp_path / "rec.csv"
+    path.write_text(POINTS_HEADER + f"a,{'0' * 24}7, 12.5 ,+2,.5,4.,1e2\n", encoding="utf-8")
+    (frame,) = read_points(path)
+    assert (
+        frame.t_ns == 7
+        and frame.points_2d.tolist() == [[12.5, 2.0]]
+        and frame.points_3d.tolist() == [[0.5, 4.0, 100.0]]
+    )
+    assert decimal(" 12.5 ") == 12.5 and decimal("1_000") is None and decimal("\u0661") is None and decimal("x") is None
+
+
+def test_points_jsonl_t_ns_of_5000_digits(tmp_path):
+    path = tmp_path / "rec.jsonl"
+    point = '"x_px": 1, "y_px": 2, "X_mm": 3, "Y_mm": 4, "Z_mm": 5'
+    path.write_text('{"frame_id": "a", "t_ns": ' + "9" * 5000 + ", " + point + "}\n", encoding="utf-8")
+    refused(read_all_points, path, ":1: not valid JSON")

@@ -9,6 +9,7 @@ import numpy as np
 
 from dimenet.runtime.cli.arguments import nonempty_path
 from dimenet.runtime.cli.main import CliError, Command
+from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, write_calibration
 from dimenet.runtime.evaluation.multiview import DISTORTION_MODELS
 from dimenet.runtime.formats.camera import FORMATS, SUFFIX_FORMATS, format_for_suffix, write_camera
@@ -65,6 +66,8 @@ def _camera_format(args: argparse.Namespace) -> Optional[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    outputs = [("--out", args.out)] + ([] if args.camera_out is None else [("--camera-out", args.camera_out)])
+    refuse_overwriting_inputs("dimenet calibrate", outputs, [("DATA", args.data)])
     camera_format = _camera_format(args)
     ds = read_dataset(args.data)
     cal = calibrate_dataset(ds, args.distortion)

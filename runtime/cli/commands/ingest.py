@@ -9,13 +9,14 @@ from pathlib import Path
 
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism
 from dimenet.runtime.cli.main import CliError, Command
+from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
-from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.camera import camera_file, read_camera
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
-from dimenet.runtime.formats.rig import MAX_RIG_POINTS, rig_from_argument
+from dimenet.runtime.formats.rig import MAX_RIG_POINTS, PAPER_RIG_NAME, rig_from_argument
 from dimenet.runtime.ingest.outcome import DROPPED, IDENTIFIED, NOT_FOUND
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
 from dimenet.runtime.ingest.pipeline import MIN_BOARDS, SPLITS, check_object, ingest, report
@@ -124,6 +125,18 @@ def photo_line(p: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     if (args.labels is None) != (args.object is None):
         raise CliError("dimenet ingest: --labels and --object go together")
+    inputs = [("PHOTO", p) for p in args.photos] + [
+        (flag, path)
+        for flag, path in (
+            ("--rig", None if args.rig == PAPER_RIG_NAME else args.rig),
+            ("--labels", args.labels),
+            ("--object", args.object),
+            ("--camera", None if args.camera is None else camera_file(args.camera)[0]),
+        )
+        if path is not None
+    ]
+    outputs = [("--out", args.out), ("--out's report", report_path(args.out))]
+    refuse_overwriting_inputs("dimenet ingest", outputs, inputs)
     camera = read_camera(args.camera) if args.camera else None
     rig = rig_from_argument(args.rig)
     obj = read_object(args.object) if args.object else None

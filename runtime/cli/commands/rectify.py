@@ -23,10 +23,11 @@ from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.arguments import nonempty_path
 from dimenet.runtime.cli.camera import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command
+from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.camera import camera_file, read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.formats.points import (
     PointsFrame,
@@ -227,7 +228,17 @@ def _run_points(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_out(args: argparse.Namespace) -> None:
+    """--out is none of the inputs (``cli.outputs``)."""
+    if args.out is None:
+        return
+    camera = None if args.camera is None else camera_file(args.camera)[0]
+    inputs = [("DATA", args.data), ("--points", args.points), ("--model", args.model), ("--camera", camera)]
+    refuse_overwriting_inputs("dimenet rectify", [("--out", args.out)], [(n, p) for n, p in inputs if p is not None])
+
+
 def run(args: argparse.Namespace) -> int:
+    _check_out(args)
     if args.points:
         return _run_points(args)
     frames = _frames(args)

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.commands.simulate import dist_coeffs
 from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.cli.progress import progress
-from dimenet.runtime.formats.rig import rig_from_argument
-from dimenet.runtime.sim.render import FORMATS, TRUTH_FILE, scaled_profile, write_render
+from dimenet.runtime.formats.rig import PAPER_RIG_NAME, rig_from_argument
+from dimenet.runtime.sim.render import FORMATS, TRUTH_FILE, photo_name, scaled_profile, write_render
 from dimenet.runtime.sim.simulator import PROFILES, get_profile
 
 MAX_PHOTOS = 10_000  # --n here and in `dimenet bench --ingest`: ~30 GB of full-size JPEGs
@@ -45,6 +47,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    outputs = [("--out", out / photo_name(k, args.format)) for k in range(args.n)] + [("--out", out / TRUTH_FILE)]
+    refuse_overwriting_inputs("dimenet render", outputs, [] if args.rig == PAPER_RIG_NAME else [("--rig", args.rig)])
     profile = scaled_profile(get_profile(args.profile), args.scale)
     rig = rig_from_argument(args.rig)
     truth = write_render(

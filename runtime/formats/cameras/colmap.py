@@ -32,8 +32,9 @@ MODELS = {
 }
 DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 # A data line begins ``CAMERA_ID MODEL WIDTH HEIGHT`` (how the format is told from the content).
-LINE = re.compile(r"(\d{1,12})\s+([A-Za-z_]\w*)\s+(\d{1,12})\s+(\d{1,12})(\s|$)")
-_NUMBER = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
+# ASCII digits only (``\d`` would take Arabic-Indic and full-width digits, which int() reads).
+LINE = re.compile(r"([0-9]{1,12})\s+([A-Za-z_]\w*)\s+([0-9]{1,12})\s+([0-9]{1,12})(\s|$)", re.ASCII)
+_NUMBER = re.compile(r"[-+]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][-+]?[0-9]+)?")
 _HEADER = "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
 
 
@@ -65,7 +66,7 @@ def read(text: str, source: str, name: Optional[str]) -> Camera:
         if camera_id in rows:
             raise CameraError(f"{source}:{i}: CAMERA_ID {camera_id} appears twice")
         rows[camera_id] = (i, line.split())
-    if name is not None and re.fullmatch(r"\d{1,12}", name):
+    if name is not None and re.fullmatch(r"[0-9]{1,12}", name):
         name = str(int(name))  # "02" is camera 2
     camera_id = values.select(list(rows), name, source)
     i, (_, model, width, height, *tokens) = rows[camera_id]

@@ -47,11 +47,9 @@ def read(d: Any, source: str, name: Optional[str]) -> Camera:
     _choice(cam, name, "camera_model", ("pinhole",), source)
     model = _choice(cam, name, "distortion_model", tuple(DISTORTIONS), source)
     fu, fv, pu, pv = values.numbers(
-        values.required(cam, "intrinsics", source, f"{name}."), (4,), source, f"{name}.intrinsics", yaml_text=True
+        values.required(cam, "intrinsics", source, f"{name}."), (4,), source, f"{name}.intrinsics"
     )
-    dist = values.numbers(
-        cam.get("distortion_coeffs", []), DISTORTIONS[model], source, f"{name}.distortion_coeffs", yaml_text=True
-    )
+    dist = values.numbers(cam.get("distortion_coeffs", []), DISTORTIONS[model], source, f"{name}.distortion_coeffs")
     size = values.required(cam, "resolution", source, f"{name}.")
     if not isinstance(size, list) or len(size) != 2:
         raise values.fail(source, f"{name}.resolution", f"must be 2 integers (width, height), got {values.shown(size)}")

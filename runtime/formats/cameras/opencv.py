@@ -10,6 +10,11 @@ opencv-nd-matrix (cv2's 1-D array) or a sequence of numbers. A fisheye calibrati
 (``fisheye_model`` not 0, ``calibrationModel`` not pinhole) is refused. Written: the
 calibration sample's four keys.
 
+Refused because cv2 would read them as no one means them: a matrix of K or the distortion
+whose element type ``dt`` is not a float (``u`` stores 3000 as 255, ``i`` 2015.5 as 2016), an
+image size of a type narrower than ``i``; an integer written with a leading zero (cv2 reads
+``04032`` as octal, 2074), outside quoted strings and comments.
+
 cv2's parsers recurse once per nesting level and overflow the native stack (a segfault, not an
 exception) near 35000 levels, so a text reaches them only with at most MAX_STRUCTURES
 characters that can open a level (YAML: ``[``, ``{``, ``:`` and a ``-`` that starts no number;
@@ -35,6 +40,13 @@ MAX_STRUCTURES = 1000
 MAX_ELEMENTS = 16  # of a matrix read: K 9, a distortion at most 14, an image size 2
 
 _YAML_OPENERS = re.compile(r"[\[{:]|-(?![0-9.])")
+# A number cv2 reads as octal: a leading 0 and more digits, not inside a float, a word or a time.
+_OCTAL = re.compile(r"(?<![\w.:+-])[-+]?0[0-9]+(?![\w.])", re.ASCII)
+# What may hold such digits harmlessly: quoted strings, comments, XML's declaration.
+_YAML_TEXT = re.compile(r"\"[^\"\n]*\"|'[^'\n]*'|#[^\n]*")
+_XML_TEXT = re.compile(r"\"[^\"]*\"|'[^']*'|<!--.*?-->|<\?.*?\?>", re.DOTALL)
+REAL_TYPES = ("f", "d")  # dt of K and the distortion: float, double
+SIZE_TYPES = ("i", "f", "d")  # dt of an image size: also int (u, c, w, s truncate 4032)
 
 
 def _kind(xml: bool) -> str:
@@ -50,12 +62,25 @@ def _reason(exc: Exception) -> str:
     return message[:120]
 
 
+def _check_no_octal(text: str, source: str, xml: bool) -> None:
+    """CameraError naming the line of an integer with a leading zero outside strings and comments."""
+    blanked = (_XML_TEXT if xml else _YAML_TEXT).sub(lambda m: re.sub(r"[^\n]", " ", m.group()), text)
+    m = _OCTAL.search(blanked)
+    if m is not None:
+        line = blanked.count("\n", 0, m.start()) + 1
+        raise CameraError(
+            f"{source}:{line}: {m.group()} has a leading zero, which OpenCV reads as an octal number: "
+            f"write it without the zero"
+        )
+
+
 def _storage(text: str, source: str, xml: bool) -> cv2.FileStorage:
     openers = text.count("<") if xml else len(_YAML_OPENERS.findall(text))
     if openers > MAX_STRUCTURES:
         raise CameraError(
             f"{source}: {openers} nesting characters, more than {MAX_STRUCTURES} for an OpenCV camera file"
         )
+    _check_no_octal(text, source, xml)
     try:
         fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
     except (cv2.error, SystemError) as exc:
@@ -87,10 +112,17 @@ def _integer(node: cv2.FileNode, source: str, field: str) -> int:
     return int(v)
 
 
-def _array(node: cv2.FileNode, source: str, field: str) -> np.ndarray:
+def _array(node: cv2.FileNode, source: str, field: str, types: tuple = REAL_TYPES) -> np.ndarray:
     """An opencv-matrix or opencv-nd-matrix (at most MAX_ELEMENTS, checked before cv2 allocates
-    it) or a sequence of numbers, as float64 values in row order."""
+    it, its element type ``dt`` one of ``types``) or a sequence of numbers, as float64 values in
+    row order."""
     if node.isMap():
+        dt = node.getNode("dt")
+        dt = dt.string() if dt.isString() else None
+        if dt not in types:
+            raise values.fail(
+                source, field, f"must be a matrix of dt {' or '.join(types)} (what cv2 stores it as), got dt {dt!r}"
+            )
         sizes = node.getNode("sizes")  # an opencv-nd-matrix (what cv2 writes for a 1-D array)
         if sizes.empty():
             shape = [_integer(node.getNode(k), source, f"{field}.{k}") for k in ("rows", "cols")]
@@ -120,7 +152,7 @@ def _image_size(fs: cv2.FileStorage, source: str) -> tuple[int, int]:
     key, node = _node(fs, SIZE_KEYS)
     if node is None:
         raise CameraError(f"{source}: no image size (image_width and image_height, or {', '.join(SIZE_KEYS)})")
-    size = _array(node, source, key)
+    size = _array(node, source, key, SIZE_TYPES)
     if size.size != 2 or not np.all(np.isfinite(size)) or np.any(size != np.round(size)):
         raise values.fail(source, key, f"must be 2 integers (width, height), got {size.tolist()}")
     return int(size[0]), int(size[1])

@@ -31,7 +31,9 @@ def _matrix(d: dict, key: str, counts: tuple, source: str) -> list[float]:
     rows, cols = (
         values.whole(values.required(m, k, source, f"{key}."), source, f"{key}.{k}") for k in ("rows", "cols")
     )
-    data = values.numbers(values.required(m, "data", source, f"{key}."), counts, source, f"{key}.data", yaml_text=True)
+    if rows < 1 or cols < 1:
+        raise values.fail(source, key, f"must have rows, cols >= 1, got rows = {rows}, cols = {cols}")
+    data = values.numbers(values.required(m, "data", source, f"{key}."), counts, source, f"{key}.data")
     if rows * cols != len(data):
         raise values.fail(source, key, f"has rows * cols = {rows} * {cols} but {len(data)} data")
     return data

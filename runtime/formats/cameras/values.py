@@ -1,5 +1,7 @@
 """What the camera readers share: checks of values parsed from YAML or a Python literal, the one
-YAML loader, the choice of one camera in a multi-camera file, and the final ``Camera``.
+YAML loader (YAML 1.2's core schema, as ROS's yaml-cpp reads: ``04032`` is 4032, ``3059:36``
+and ``1_000`` are strings, ``yes`` is no boolean), the choice of one camera in a multi-camera
+file, and the final ``Camera`` (with the focal-length bound every camera file keeps).
 
 Every problem is a CameraError ``SOURCE: FIELD PROBLEM`` (SOURCE: the file).
 """
@@ -22,6 +24,10 @@ from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, Camera, checked_ca
 # and a ROS or Kalibr file is ~1 KiB.
 MAX_PARSED_CHARS = 64 << 10
 MAX_LISTED_NAMES = 8  # a multi-camera file's error lists this many of its camera names
+# fx and fy of a camera file lie within these multiples of the image's larger side: a horizontal
+# field of view from 2 * atan(50) = 178.9 deg down to 2 * atan(1 / 2000) = 0.057 deg. Past them
+# a pinhole model means nothing (and 5e-324 px or 1e300 px break the pixel map's inverse).
+FOCAL_PER_SIDE = (0.01, 1000.0)
 
 # A value in a message: parsed YAML may share one list a billion times over ("billion laughs"),
 # so its repr is bounded in depth and length, never the whole.
@@ -39,21 +45,13 @@ def fail(source: str, field: str, problem: str) -> CameraError:
     return CameraError(f"{source}: {field} {problem}")
 
 
-# A float PyYAML's YAML 1.1 resolver leaves a string (no dot: ``1e-05``) but YAML 1.2 and
-# yaml-cpp (ROS) read as a number.
-_YAML_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
-
-
-def numbers(value: Any, counts: Sequence[int], source: str, field: str, *, yaml_text: bool = False) -> list[float]:
-    """``value`` as a list of finite real numbers (no booleans or strings; with ``yaml_text``
-    also an exponent float PyYAML left a string, ``'1e-05'``) of one of ``counts`` lengths."""
+def numbers(value: Any, counts: Sequence[int], source: str, field: str) -> list[float]:
+    """``value`` as a list of finite real numbers (no booleans or strings) of one of ``counts`` lengths."""
     wanted = " or ".join(str(n) for n in counts)
     if not isinstance(value, list) or len(value) not in counts:
         raise fail(source, field, f"must be {wanted} numbers, got {shown(value)}")
     out = []
     for v in value:
-        if yaml_text and isinstance(v, str) and _YAML_EXPONENT.fullmatch(v):
-            v = float(v)
         if not is_number(v):
             raise fail(source, field, f"must hold finite numbers, got {shown(v)}")
         out.append(float(v))
@@ -80,13 +78,48 @@ def required(d: dict, key: str, source: str, where: str = "") -> Any:
     return d[key]
 
 
+class _CoreSchemaLoader(yaml.SafeLoader):
+    """PyYAML's safe loader (no tags beyond YAML's own) with YAML 1.2's core schema for plain
+    scalars instead of YAML 1.1's: integers are decimal (``04032`` is 4032; ``0o`` and ``0x``
+    name octal and hex), and sexagesimal (``3059:36``), ``1_000``, ``0b1``, ``yes``/``no``/``on``/
+    ``off`` are strings; ``1e-05`` is a float (PyYAML's 1.1 rule wants a dot)."""
+
+
+_CORE_TAGS = {f"tag:yaml.org,2002:{name}" for name in ("bool", "int", "float", "null")}
+_CoreSchemaLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in _CORE_TAGS]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+for _tag, _pattern, _first in (
+    ("null", r"~|null|Null|NULL|", ["~", "n", "N", ""]),
+    ("bool", r"true|True|TRUE|false|False|FALSE", list("tTfF")),
+    ("int", r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+", list("-+0123456789")),
+    (
+        "float",
+        r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?|[-+]?\.(inf|Inf|INF)|\.nan|\.NaN|\.NAN",
+        list("-+.0123456789"),
+    ),
+):
+    _CoreSchemaLoader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(f"^(?:{_pattern})$"), _first)
+
+
+def _core_int(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> int:
+    text = loader.construct_scalar(node)
+    base = {"0o": 8, "0x": 16}.get(text[:2], 10)
+    return int(text[2:] if base != 10 else text, base)
+
+
+_CoreSchemaLoader.add_constructor("tag:yaml.org,2002:int", _core_int)
+
+
 def load_yaml(text: str, source: str) -> Any:
-    """The value of the YAML ``text`` by ``yaml.safe_load`` (no tags beyond YAML's own), at most
-    MAX_PARSED_CHARS long. CameraError naming the line when it is not YAML."""
+    """The value of the YAML ``text`` by PyYAML's safe loader under YAML 1.2's core schema
+    (``_CoreSchemaLoader``), at most MAX_PARSED_CHARS long. CameraError naming the line when it is
+    not YAML."""
     if len(text) > MAX_PARSED_CHARS:
         raise CameraError(f"{source}: {len(text)} characters of YAML, more than {MAX_PARSED_CHARS} for a camera file")
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_CoreSchemaLoader)  # noqa: S506 (a SafeLoader)
     except yaml.MarkedYAMLError as exc:
         where = f"line {exc.problem_mark.line + 1}: " if exc.problem_mark is not None else ""
         raise CameraError(f"{source}: not valid YAML ({where}{exc.problem or exc.context})") from None
@@ -125,8 +158,21 @@ def shortest(dist_coeffs: Optional[np.ndarray]) -> Optional[np.ndarray]:
 
 
 def camera(K: Any, image_size: Any, source: str, dist_coeffs: Any = None) -> Camera:
-    """The checked Camera (``rectify.camera.checked_camera``), its distortion in shortest form."""
-    return checked_camera(K, image_size, source, shortest(dist_coeffs))
+    """The checked Camera (``rectify.camera.checked_camera``), its distortion in shortest form,
+    with fx and fy within FOCAL_PER_SIDE of the image's larger side."""
+    checked = checked_camera(K, image_size, source, shortest(dist_coeffs))
+    side = max(checked.image_size)
+    low, high = (side * r for r in FOCAL_PER_SIDE)
+    fx, fy = float(checked.K[0, 0]), float(checked.K[1, 1])
+    if not (low <= fx <= high and low <= fy <= high):
+        raise fail(
+            source,
+            "K",
+            f"must have fx, fy within {FOCAL_PER_SIDE[0]:g} to {FOCAL_PER_SIDE[1]:g} times the image's larger side "
+            f"({low:g} to {high:g} px for {checked.image_size[0]}x{checked.image_size[1]} px), "
+            f"got fx = {fx!r}, fy = {fy!r}",
+        )
+    return checked
 
 
 def padded(camera: Camera, counts: Sequence[int], source: str, form: str) -> list[float]:
