@@ -9,9 +9,7 @@ from pathlib import Path
 from dimenet.runtime.cli.arguments import integer_in, nonempty_path
 from dimenet.runtime.cli.main import Command
 
-DEFAULT_OPSET = 17
-# Erf (exact GELU) needs opset 9; 20 is the TorchScript exporter's newest.
-MIN_OPSET, MAX_OPSET = 9, 20
+from .opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 
 
 def _add_export(p: argparse.ArgumentParser) -> None:
