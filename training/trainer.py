@@ -33,13 +33,13 @@ import numpy as np
 import torch
 
 from dimenet.runtime import __version__
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane, two_objects
 from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project
+from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.camera import Camera, generic_pixel_map
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid

@@ -34,15 +34,14 @@ import numpy as np
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.rig import Board, Rig, rig_to_dict
+from dimenet.runtime.formats.rig import Board, Rig, charuco_board, rig_to_dict
 from dimenet.runtime.geometry import matrix_to_rvec, project, rvec_to_matrix, to_camera
 from dimenet.runtime.geometry.camera import camera_centre, facing
 from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
-from dimenet.runtime.ingest.detection import charuco_board
+from dimenet.runtime.sim.profiles import DeviceProfile
 from dimenet.runtime.sim.simulator import (
     MAX_POSE_ATTEMPTS,
-    DeviceProfile,
     Scene,
     lens_image,
     rig_scene,
@@ -523,7 +522,7 @@ def write_render(
     """Render ``n`` photos into ``out_dir`` as photo-0000.<fmt>, … and write ``truth.npz``; returns its path.
     ``dist_coeffs``: the lens (OpenCV's model about the profile's nominal K), or None (pinhole).
 
-    ``progress`` wraps the photo iterator (e.g. ``dimenet.runtime.cli.progress.progress``).
+    ``progress`` wraps the photo iterator (e.g. ``dimenet.runtime.jobs.progress.progress``).
     """
     if fmt not in FORMATS:
         raise InputError(f"unknown photo format {fmt!r}; choose one of {', '.join(FORMATS)}")

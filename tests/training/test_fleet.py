@@ -1,4 +1,4 @@
-"""`dimenet fleet train` and the engine (runtime/cli/engine.py): a manifest of jobs, each the
+"""`dimenet fleet train` and the engine (runtime/jobs/engine.py): a manifest of jobs, each the
 same `dimenet train`, run here or as Ray jobs; resume, a failing job, and the same results."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ import pytest
 
 pytest.importorskip("torch")
 
-from dimenet.runtime.cli.engine import Engine, EngineError, run_all
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.jobs.engine import Engine, EngineError, run_all
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.fleet import FLEET_FILE, ManifestError, fleet_train, read_manifest
 
@@ -120,7 +120,7 @@ def test_ray_jobs_give_the_same_models_and_the_same_family(manifest, tmp_path):
 
 def test_nothing_imports_ray_until_an_address_asks_for_it():
     code = (
-        "import sys, dimenet.runtime.cli.main, dimenet.runtime.cli.engine, dimenet.training.trainer, "
+        "import sys, dimenet.runtime.cli.main, dimenet.runtime.jobs.engine, dimenet.training.trainer, "
         "dimenet.training.fleet, dimenet.training.commands; print('ray' in sys.modules)"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
