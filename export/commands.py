@@ -10,9 +10,7 @@ from dimenet.runtime.cli.arguments import integer_in, nonempty_path
 from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 
-DEFAULT_OPSET = 17
-# Erf (exact GELU) needs opset 9; 20 is the TorchScript exporter's newest.
-MIN_OPSET, MAX_OPSET = 9, 20
+from .opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 
 
 def _add_export(p: argparse.ArgumentParser) -> None:

@@ -33,7 +33,7 @@ from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_PLACEHOLDE
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 
-from .commands import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
+from .opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 
 # Largest |Delta K| difference allowed between ONNX Runtime and torch on the probe features:
 # PARITY_TOLERANCE_PX plus float32 rounding, PARITY_RELATIVE times the largest |Delta K|.

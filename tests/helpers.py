@@ -115,7 +115,7 @@ def point_thickness(points_3d: np.ndarray) -> float:
 
 
 def pid_slow_here(seconds: float) -> int:
-    """This process's id, after ``seconds`` of sleep when it is not a child process (a job ``workers.run_shared``
+    """This process's id, after ``seconds`` of sleep when it is not a child process (a job ``jobs.workers.run_shared``
     runs here takes that long, one a helper runs none)."""
     import multiprocessing
     import time

@@ -138,7 +138,7 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
         default=d["seed"],
         help=f"seed of simulation, training and conditions (default {d['seed']})",
     )
-    from dimenet.runtime.cli.engine import add_address_argument
+    from dimenet.runtime.cli.arguments import add_address_argument
 
     add_address_argument(p, "trainings and evaluations")
 
@@ -173,7 +173,7 @@ REPRODUCE = Command(
 
 
 def _add_fleet(p: argparse.ArgumentParser) -> None:
-    from dimenet.runtime.cli.engine import add_address_argument
+    from dimenet.runtime.cli.arguments import add_address_argument
 
     p.add_argument("action", choices=("train",), help="train: one `dimenet train` per job of the manifest")
     p.add_argument(

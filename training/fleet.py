@@ -10,7 +10,7 @@ Each job trains into ``DIR/.<name>.partial`` and is renamed to ``DIR/<name>`` wh
 (with ``fleet.json``: its rho and errors on the dataset's test split and its seconds), so a run
 dir is there whole or not at all, and a second run skips the jobs already done (resume). A
 failed job is reported by name; the others finish. The jobs run one after another, or as Ray
-jobs with ``--address`` (``runtime.cli.engine``).
+jobs with ``--address`` (``runtime.jobs.engine``).
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ def read_manifest(path: str | Path) -> list:
 
 
 def run_job(item: tuple) -> dict:
-    """One job (a job of ``runtime.cli.engine.run_all``): item = (FleetJob, out dir). Trains into
+    """One job (a job of ``runtime.jobs.engine.run_all``): item = (FleetJob, out dir). Trains into
     ``.<name>.partial``, evaluates on the dataset's test split, writes fleet.json and renames
     the folder to ``<name>``; a finished job (its fleet.json there) is read, not retrained."""
     from .init_weights import initial_weights
@@ -170,7 +170,7 @@ def _test_errors(run_dir: Path, datasets: list) -> dict:
 def fleet_train(manifest: str | Path, out: str | Path, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
     """Every job of the manifest (``run_job``), then DIR/summary.md and DIR/summary.json: per job
     its rho, errors and seconds, or the error it failed with."""
-    from dimenet.runtime.cli.engine import run_all
+    from dimenet.runtime.jobs.engine import run_all
 
     jobs = read_manifest(manifest)
     out = Path(out)

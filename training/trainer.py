@@ -33,11 +33,11 @@ import numpy as np
 import torch
 
 from dimenet.runtime import __version__
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import k_params
+from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec

@@ -1,1 +1,1 @@
-"""The ``dimenet`` command line: the parser core (main), argument types, progress, commands/."""
+"""The ``dimenet`` command line: the parser core (main), argument types (arguments), the camera argument, commands/."""

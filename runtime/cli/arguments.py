@@ -1,6 +1,7 @@
 """argparse value types of the subcommands' flags, with the caps they enforce: each parses one
 string and raises ``argparse.ArgumentTypeError`` with the reason, which argparse turns into the
-command's one-line error (exit 2)."""
+command's one-line error (exit 2); and the ``--address`` options of the commands whose jobs run on
+``jobs.engine``."""
 
 from __future__ import annotations
 
@@ -105,3 +106,16 @@ def nonempty_path(text: str) -> str:
     if "\0" in text:
         raise argparse.ArgumentTypeError(f"a path cannot hold a NUL character, got {text!r}")
     return text
+
+
+def add_address_argument(p, what: str) -> None:
+    """The ``--address`` and ``--cpus-per-job`` options of a command whose jobs are ``what``."""
+    p.add_argument(
+        "--address",
+        metavar="ADDR",
+        help=f"run the {what} as Ray jobs (the fleet extra): local or local:N (a cluster on this machine, N CPUs), "
+        "auto or ray://host:port (a running one); default: one after another here",
+    )
+    p.add_argument(
+        "--cpus-per-job", type=integer_in(1, 1024), default=1, metavar="N", help="CPUs per Ray job (default 1)"
+    )

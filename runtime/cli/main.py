@@ -18,11 +18,11 @@ import re
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from importlib import metadata
 from typing import Callable, Optional
 
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.plugins import entry_points
 
 # dimenet solves many tiny batched systems: BLAS threads only contend for the cores (a 1 s
 # calibration took 20 s on a busy 2-core machine). Set before numpy is first imported.
@@ -74,10 +74,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _commands() -> list[Command]:
-    eps = metadata.entry_points()
-    group = eps.select(group="dimenet.commands") if hasattr(eps, "select") else eps.get("dimenet.commands", [])
     found = {}
-    for ep in group:
+    for ep in entry_points("dimenet.commands").values():
         cmd = ep.load()
         found[cmd.name] = cmd
     return [found[k] for k in sorted(found)]

@@ -1,2 +1,2 @@
 """Measuring: calibration (K*, K_c), self-calibration, test conditions, the paper's metrics,
-model predictors, the uncertainty fit and the latency benchmark."""
+model predictors, the uncertainty fit and the rectifier over a points file."""

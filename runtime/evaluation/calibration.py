@@ -31,7 +31,7 @@ import numpy as np
 from dimenet.runtime.errors import CalibrationError, CameraError, DatasetError
 from dimenet.runtime.evaluation.multiview import distortion_coefficients, joint_fit
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.formats.dataset import LENS_KEYS, Dataset
 from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry.distortion import undistort_points
@@ -40,8 +40,7 @@ from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
 from dimenet.runtime.rectify.camera import Camera, checked_camera, checked_dist_coeffs
 
 CALIBRATION_KEYS = ("K_c", "K_star", "rvec", "tvec", "e_star")
-# Optional keys: the lens (both or neither) and why a frame has no K* ('' where it has one).
-LENS_KEYS = ("dist_coeffs", "dist_K")
+# Optional keys: the lens (LENS_KEYS, both or neither) and why a frame has no K* ('' where it has one).
 # A train frame is left out of K_c when a K* parameter or its e* lies this many robust standard
 # deviations from the train frames' median (METHOD.md, "Runtime safety": no clean simulated
 # frame comes near it; one wrong point moves a frame's K* by tens of px).

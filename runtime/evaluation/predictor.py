@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
-from importlib import metadata
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -19,6 +18,7 @@ import numpy as np
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
+from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.inference import network_k, network_statistics
 from dimenet.runtime.rectify.model import load_onnx_model
@@ -120,9 +120,7 @@ def load_predictor(path: str | Path) -> Predictor:
     if not path.exists():
         raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")
     kind = "run_dir" if path.is_dir() else path.suffix.lstrip(".").lower()
-    eps = metadata.entry_points()
-    group = eps.select(group="dimenet.predictors") if hasattr(eps, "select") else eps.get("dimenet.predictors", [])
-    loaders = {ep.name: ep for ep in group}
+    loaders = entry_points("dimenet.predictors")
     if kind not in loaders:
         raise ModelError(f"{path}: not a model this installation can load (known kinds: {', '.join(sorted(loaders))})")
     return loaders[kind].load()(path)

@@ -31,7 +31,8 @@ from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
 FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")
 REQUIRED_KEYS = ("format", "image_size", "points_2d", "points_3d", "valid", "infer_mask", "split", "scene", "meta")
-OPTIONAL_KEYS = ("K_true", "frame_id", "K_platform", "dist_coeffs", "dist_K")
+LENS_KEYS = ("dist_coeffs", "dist_K")  # a lens in a dataset, calibration or render truth file: both or neither
+OPTIONAL_KEYS = ("K_true", "frame_id", "K_platform", *LENS_KEYS)
 MAX_IMAGE_SIDE_PX = 1_000_000  # image_size: no camera image is wider (it also keeps int64 maths exact)
 MAX_META_CHARS = 4 << 20  # meta: 4 Mi characters of JSON (the simulator's is ~5 k, ingest's grows with OBJECT.csv)
 

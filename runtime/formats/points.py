@@ -1,5 +1,5 @@
-"""Correspondences recorded by an app, frame by frame: a points CSV or JSON Lines file, and the
-JSON lines of their rectification (`dimenet rectify --points`).
+"""Correspondences recorded by an app, frame by frame: a points CSV or JSON Lines file (`dimenet rectify
+--points`).
 
 Specified in ``models_spec/points-csv.md``. Input: one row (CSV) or one JSON object (JSON
 Lines) per point, with ``frame_id``, optional ``t_ns``, ``x_px``, ``y_px`` (px, OpenCV's pixel
@@ -7,21 +7,17 @@ convention) and ``X_mm``, ``Y_mm``, ``Z_mm`` (or ``X_m``, ``Y_m``, ``Z_m``) in t
 frame {W}; other columns and keys are ignored. The rows of a frame are consecutive.
 ``read_points`` reads the file lazily, one frame at a time (memory: one frame and 8 bytes per
 frame id seen), and yields each frame's points with the 3D points in mm. Every problem of the
-file is a PointsError naming the file and line. Output (``json_lines``): ``run_record`` (the
-camera, model and mode of the run: the first line), then one ``frame_record`` or
-``error_record`` per frame (``rectified_records``; ``counted`` tallies them).
+file is a PointsError naming the file and line. The output, the JSON lines of their rectification, is
+``formats.rectified_points``.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import json
 import re
-from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from itertools import chain, islice
 from math import isfinite
 from operator import itemgetter
 from pathlib import Path
@@ -29,13 +25,10 @@ from typing import Any, Optional
 
 import numpy as np
 
-from dimenet.runtime import __version__
-from dimenet.runtime.errors import InputError, PointsError
+from dimenet.runtime.errors import PointsError
 from dimenet.runtime.formats.text import decimal
 from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
-from dimenet.runtime.rectify.rectifier import Rectification, Rectifier
 
-FORMAT = "dimenet-rectified-points/1"  # the output's first line: {"format": FORMAT, ...}
 MAX_LINE_BYTES = 64 << 10  # one row or object, its line end included (a point's row is ~80 bytes)
 MAX_FRAME_POINTS = 100_000  # rows of one frame: bounds the memory of a frame (~16 MB while read)
 MAX_T_NS = 2**63 - 1  # |t_ns|: a signed 64-bit nanosecond clock
@@ -299,78 +292,3 @@ def read_points(path: str | Path) -> Iterator[PointsFrame]:
             yield from _frames(_jsonl_points(lines), lines, t_as_text=False)
         else:
             yield from _frames(_csv_points(lines), lines, t_as_text=True)
-
-
-# -- output: the JSON lines of `dimenet rectify --points` ----------------------------------------------
-
-
-def run_record(rectifier: Rectifier, *, refine: bool, points: str, camera: Optional[str]) -> dict:
-    """The first output line: which camera (K_c (3, 3) px, image_size (width, height) px,
-    dist_coeffs or None) and model (source, sha256) rectified the points file, in which mode."""
-    dist = rectifier.dist_coeffs
-    return {
-        "format": FORMAT,
-        "dimenet_version": __version__,
-        "points": points,
-        "camera": camera,
-        "model": rectifier.model.source,
-        "model_sha256": rectifier.model.sha256,
-        "mode": rectifier.mode,
-        "refine": refine,
-        "K_c": rectifier.K_c.tolist(),
-        "image_size": [int(v) for v in rectifier.image_size],
-        "dist_coeffs": None if dist is None else dist.tolist(),
-    }
-
-
-def frame_record(frame: PointsFrame, res: Rectification) -> dict:
-    """One rectified frame: K (3, 3) px, rvec rad and tvec mm {W}->{C}, e and e_c px, fallback,
-    K_sigma_px the standard deviations of (fx, fy, cx, cy) px or None (no uncertainty model, or K_c)."""
-    cov = res.K_cov
-    return {
-        "frame_id": frame.frame_id,
-        "t_ns": frame.t_ns,
-        "K": res.K.tolist(),
-        "rvec": res.rvec.tolist(),
-        "tvec": res.tvec.tolist(),
-        "e_px": float(res.reprojection_error_px),
-        "e_c_px": float(res.reprojection_error_kc_px),
-        "fallback": res.fallback,
-        "K_sigma_px": None if cov is None else np.sqrt(np.diag(cov)).tolist(),
-    }
-
-
-def error_record(frame: PointsFrame, exc: InputError) -> dict:
-    """A frame the rectifier refused: why, and no K."""
-    return {"frame_id": frame.frame_id, "t_ns": frame.t_ns, "error": str(exc)}
-
-
-def rectified_records(rectifier: Rectifier, frames: Iterable[PointsFrame], *, refine: bool) -> Iterator[dict]:
-    """``frame_record`` of each frame (``Rectifier.rectify``, the single-frame path), or its
-    ``error_record`` when the rectifier refuses it (InputError); the run goes on."""
-    for frame in frames:
-        try:
-            res = rectifier.rectify(frame.points_2d, frame.points_3d, refine=refine)
-        except InputError as exc:
-            yield error_record(frame, exc)
-        else:
-            yield frame_record(frame, res)
-
-
-def json_lines(header: dict, records: Iterable[dict]) -> Iterator[str]:
-    """The output's lines (JSON, each ending in a newline): ``header`` (the ``run_record``), then
-    the records. The header waits for the first record, so a points file that cannot be read
-    (the error comes before any frame) leaves no output."""
-    records = iter(records)
-    first = list(islice(records, 1))
-    for record in chain([header], first, records):
-        yield json.dumps(record, allow_nan=False) + "\n"
-
-
-def counted(records: Iterable[dict], counts: Counter) -> Iterator[dict]:
-    """The records, counting into ``counts`` the frames, those refused and the fallbacks."""
-    for record in records:
-        counts["frames"] += 1
-        counts["refused"] += "error" in record
-        counts["fallbacks"] += record.get("fallback") is not None
-        yield record

@@ -94,6 +94,17 @@ class Board:
         return _read_only(self.local_points() @ self._rotation.T + np.asarray(self.tvec_mm))
 
 
+def charuco_board(board: Board) -> cv2.aruco.CharucoBoard:
+    """OpenCV's ChArUco board for a rig board with ``aruco`` (corner ids = the rig's corner order)."""
+    a = board.aruco
+    nx, ny = board.inner_corners
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, a.dictionary))
+    n_markers = (nx + 1) * (ny + 1) // 2
+    return cv2.aruco.CharucoBoard(
+        (nx + 1, ny + 1), board.square_mm, a.marker_mm, dictionary, np.arange(a.first_id, a.first_id + n_markers)
+    )
+
+
 @dataclass(frozen=True)
 class Rig:
     """A set of boards in one rig frame {W} (mm)."""

@@ -1,1 +1,1 @@
-"""Photos to a dataset: photo reading, board detection, board identity, the pipeline and its benchmark."""
+"""Photos to a dataset: photo reading, board detection, board identity and the pipeline."""

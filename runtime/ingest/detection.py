@@ -41,7 +41,7 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
-from dimenet.runtime.formats.rig import Board, Rig
+from dimenet.runtime.formats.rig import Board, Rig, charuco_board
 from dimenet.runtime.geometry import rescaled_px
 from dimenet.runtime.ingest.grid import canonical, corner_spacing, fit_model, grid_points, residuals
 from dimenet.runtime.ingest.refine import (
@@ -152,17 +152,6 @@ class BoardSearch:
     detections: tuple[Detection, ...]
     dropped: tuple[Dropped, ...] = ()
     hidden: tuple[tuple[int, str], ...] = ()
-
-
-def charuco_board(board: Board) -> cv2.aruco.CharucoBoard:
-    """OpenCV's ChArUco board for a rig board with ``aruco`` (corner ids = the rig's corner order)."""
-    a = board.aruco
-    nx, ny = board.inner_corners
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, a.dictionary))
-    n_markers = (nx + 1) * (ny + 1) // 2
-    return cv2.aruco.CharucoBoard(
-        (nx + 1, ny + 1), board.square_mm, a.marker_mm, dictionary, np.arange(a.first_id, a.first_id + n_markers)
-    )
 
 
 def reduction(shape: tuple[int, ...], width_px: int) -> int:

@@ -1,7 +1,7 @@
 """Photos of the rig (and of a natural object with labelled points) -> a ``dimenet-dataset/1`` dataset.
 
 Per photo (``ingest_photo``; by ``workers`` threads and helper processes when ``workers`` > 1,
-``workers.run_shared``, results in the photos' order):
+``jobs.workers.run_shared``, results in the photos' order):
 decode it (``photo.read_photo``), find the boards (``detection.detect_boards``; with a rig of several
 boards the first one kept places the others, ``placement.place``), tell them apart and
 fit the photo's single-frame K (``identity``); when that camera shows a board in view that was not
@@ -47,7 +47,7 @@ from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 from dimenet.runtime.ingest.placement import boards_in_view, place
 from dimenet.runtime.ingest.predicted import search_predicted
-from dimenet.runtime.ingest.workers import run_shared
+from dimenet.runtime.jobs.workers import run_shared
 from dimenet.runtime.rectify.camera import Camera
 
 GENERATOR = "dimenet.ingest"
@@ -253,7 +253,12 @@ def _results(
     if workers == 1:
         yield from (ingest_photo(*job) for job in jobs)
         return
-    yield from run_shared(ingest_photo, jobs, workers)
+    yield from run_shared(_ingest_job, jobs, workers)
+
+
+def _ingest_job(job: list) -> PhotoResult:
+    """``ingest_photo`` of one job, its arguments in order (the function ``run_shared`` runs over the jobs)."""
+    return ingest_photo(*job)
 
 
 def check_object(obj: NaturalObject, source: str = "OBJECT.csv") -> None:
@@ -378,7 +383,7 @@ def ingest(
     needs ``min_boards`` boards (``default_min_boards(rig)`` when None: 1 for a one-board rig, else 2).
     ``camera``: the photos' camera with its lens (see the module doc), or None.
 
-    ``progress`` wraps the iterator of per-photo results (e.g. ``dimenet.runtime.cli.progress.progress``).
+    ``progress`` wraps the iterator of per-photo results (e.g. ``dimenet.runtime.jobs.progress.progress``).
     Raises IngestError / LabelsError for bad input (before any photo is read); a photo that cannot be used
     (including one over ``max_megapixels``, see ``photo.check_size``) is skipped with a reason.
     """

@@ -1,1 +1,1 @@
-"""The OIS camera simulator (models_spec/simulator.md), its photo renderer and the render truth."""
+"""The OIS camera simulator (models_spec/simulator.md), its device profiles and its photo renderer."""

@@ -8,9 +8,8 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.formats.rig import Board
+from dimenet.runtime.formats.rig import Board, charuco_board
 from dimenet.runtime.geometry import rescaled_px, rvec_to_matrix
-from dimenet.runtime.ingest.detection import charuco_board
 
 MARGIN_SQUARES = 0.5  # white paper around the printed pattern, in squares
 

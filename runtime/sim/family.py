@@ -20,7 +20,8 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.sim.simulator import PROFILES, DeviceProfile, simulate
+from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
+from dimenet.runtime.sim.simulator import simulate
 
 # Image sizes (width, height) px: 16:9 and 4:3 stream and photo sizes, 1280 to 8000 px wide.
 # fmt: off

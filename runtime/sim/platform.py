@@ -19,12 +19,9 @@ every other simulated array as it was.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-if TYPE_CHECKING:  # the simulator imports this module
-    from dimenet.runtime.sim.simulator import DeviceProfile
+from dimenet.runtime.sim.profiles import DeviceProfile
 
 # Hall-sensor lens position error, 1 sigma per axis (um at the lens): "an accuracy of
 # micrometers" in every axis (EP 3964800 A1, Hall sensor IC for a camera's triaxial lens

@@ -40,9 +40,9 @@ from dimenet.runtime.geometry.camera import camera_centre, facing
 from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
 from dimenet.runtime.sim.drawing import clutter, draw_board, paper_rect_mm, sensor
+from dimenet.runtime.sim.profiles import DeviceProfile
 from dimenet.runtime.sim.simulator import (
     MAX_POSE_ATTEMPTS,
-    DeviceProfile,
     Scene,
     lens_image,
     rig_scene,
@@ -367,7 +367,7 @@ def write_render(
     """Render ``n`` photos into ``out_dir`` as photo-0000.<fmt>, … and write ``truth.npz``; returns its path.
     ``dist_coeffs``: the lens (OpenCV's model about the profile's nominal K), or None (pinhole).
 
-    ``progress`` wraps the photo iterator (e.g. ``dimenet.runtime.cli.progress.progress``).
+    ``progress`` wraps the photo iterator (e.g. ``dimenet.runtime.jobs.progress.progress``).
     """
     if fmt not in FORMATS:
         raise InputError(f"unknown photo format {fmt!r}; choose one of {', '.join(FORMATS)}")

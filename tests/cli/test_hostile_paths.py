@@ -12,8 +12,8 @@ import sys
 import pytest
 from helpers import example_camera
 
+from dimenet.runtime.bench.streaming import write_points_csv
 from dimenet.runtime.cli.main import main, one_line
-from dimenet.runtime.evaluation.streaming import write_points_csv
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ def test_runtime_and_its_commands_never_import_torch_or_onnx():
     code = (
         "import sys\n"
         "import dimenet.runtime, dimenet.runtime.rectify.rectifier, dimenet.runtime.rectify.model\n"
-        "import dimenet.runtime.evaluation.latency\n"
+        "import dimenet.runtime.bench.latency\n"
         "from dimenet.runtime.cli.main import main\n"
         "for cmd in ('rectify', 'bench'):\n"
         "    try:\n"

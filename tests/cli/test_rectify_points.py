@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 from helpers import DEVICE_MODEL, default_rectifier, example_camera
 
+from dimenet.runtime.bench.streaming import write_points_csv
 from dimenet.runtime.cli.commands import rectify as rectify_command
 from dimenet.runtime.cli.main import main
-from dimenet.runtime.evaluation.streaming import write_points_csv
-from dimenet.runtime.formats.points import FORMAT, read_points
+from dimenet.runtime.formats.points import read_points
+from dimenet.runtime.formats.rectified_points import FORMAT
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,8 @@ from dimenet.runtime.evaluation.predictor import load_onnx_predictor
 from dimenet.runtime.evaluation.uncertainty_fit import coverage
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.sim.simulator import get_profile, simulate
+from dimenet.runtime.sim.profiles import get_profile
+from dimenet.runtime.sim.simulator import simulate
 
 
 def test_coverage_against_k_true_when_the_dataset_has_it(map_model):

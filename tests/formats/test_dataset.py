@@ -7,7 +7,8 @@ from helpers import random_frames
 
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.dataset import Dataset, read_dataset, validate_arrays, write_dataset
-from dimenet.runtime.sim.simulator import get_profile, simulate
+from dimenet.runtime.sim.profiles import get_profile
+from dimenet.runtime.sim.simulator import simulate
 
 
 def make_arrays(frames=3, points=10, seed=0):

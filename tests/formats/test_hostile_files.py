@@ -23,9 +23,9 @@ from dimenet.runtime.formats.dataset import Dataset, read_dataset, validate_arra
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.npz import MAX_NPZ_BYTES, read_npz
 from dimenet.runtime.formats.points import read_points
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import load_rig, paper_rig, rig_to_dict
 from dimenet.runtime.formats.text import decimal
-from dimenet.runtime.sim.render_truth import read_truth
 
 F, P = 3, 10
 

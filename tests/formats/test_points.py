@@ -1,5 +1,6 @@
 """Points files (models_spec/points-csv.md): CSV and JSON Lines, units, header variants, every
-refused case naming its line, lazy reading, and the rectified records."""
+refused case naming its line, lazy reading, and the rectified records (formats.rectified_points, made by
+evaluation.rectify_points)."""
 
 from __future__ import annotations
 
@@ -14,14 +15,10 @@ import pytest
 from helpers import default_rectifier, random_frames
 
 from dimenet.runtime.errors import DimenetError, PointsError
+from dimenet.runtime.evaluation.rectify_points import rectified_records
 from dimenet.runtime.formats import points as points_module
-from dimenet.runtime.formats.points import (
-    FORMAT,
-    json_lines,
-    read_points,
-    rectified_records,
-    run_record,
-)
+from dimenet.runtime.formats.points import read_points
+from dimenet.runtime.formats.rectified_points import FORMAT, json_lines, run_record
 
 HEADER = "frame_id,t_ns,x_px,y_px,X_mm,Y_mm,Z_mm"
 

@@ -14,7 +14,8 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset, oracle_fit
 from dimenet.runtime.evaluation.multiview import joint_fit
 from dimenet.runtime.geometry import k_params, project
 from dimenet.runtime.geometry.distortion import distort_points, distort_points_with_jacobians, undistort_points
-from dimenet.runtime.sim.simulator import get_profile, simulate
+from dimenet.runtime.sim.profiles import get_profile
+from dimenet.runtime.sim.simulator import simulate
 
 LENS = np.array([-0.11, 0.06, 0.0005, -0.0004])
 K_NOMINAL = get_profile("galaxy-s8").nominal_K  # what the simulator states its lens about

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.ingest.detection import BoardSearch, Detection, Dropped
 from dimenet.runtime.ingest.grid import (
@@ -22,9 +23,8 @@ from dimenet.runtime.ingest.grid import (
 )
 from dimenet.runtime.ingest.outcome import DROPPED, FOUND, NOT_FOUND, board_lines, shortfall
 from dimenet.runtime.ingest.refine import ACCEPT_TOLERANCE, grow, judged, refine_plain
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
-from dimenet.runtime.sim.render_truth import read_truth
-from dimenet.runtime.sim.simulator import get_profile
 
 SIZE = (4032, 3024)  # width, height px
 

@@ -13,11 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
+from dimenet.runtime.bench.ingest_score import score
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import IdentificationError, IngestError, LabelsError, PhotoError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, read_calibration
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import Aruco, Board, Rig, paper_rig
 from dimenet.runtime.geometry import k_params, matrix_to_rvec, project, rvec_to_matrix
 from dimenet.runtime.ingest.detection import Detection, detect_boards
@@ -25,9 +27,8 @@ from dimenet.runtime.ingest.identity import identify, rough_k
 from dimenet.runtime.ingest.outcome import NOT_FOUND
 from dimenet.runtime.ingest.photo import exif_orientation, read_photo
 from dimenet.runtime.ingest.pipeline import auto_split, ingest, report
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
-from dimenet.runtime.sim.render_truth import read_truth, score
-from dimenet.runtime.sim.simulator import get_profile
 
 SCALE = 3.0  # 1344 x 1008 px photos
 N_PHOTOS = 10  # photos 1 and 6 upside down, 3 and 8 with a board covered

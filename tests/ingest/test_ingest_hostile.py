@@ -28,8 +28,8 @@ from dimenet.runtime.ingest import pipeline
 from dimenet.runtime.ingest.detection import detect_boards
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, header_size, read_photo
 from dimenet.runtime.ingest.pipeline import ingest, report
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import scaled_profile, write_render
-from dimenet.runtime.sim.simulator import get_profile
 
 SCALE = 3.0  # 1344 x 1008 px
 

@@ -9,17 +9,18 @@ import json
 import numpy as np
 import pytest
 
+from dimenet.runtime.bench.ingest_score import score
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.evaluation.calibration import read_calibration
 from dimenet.runtime.formats.camera import write_camera
 from dimenet.runtime.formats.dataset import read_dataset
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.geometry import k_params, project
 from dimenet.runtime.geometry.distortion import distort_points, undistort_points
 from dimenet.runtime.rectify.camera import checked_camera
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, lens_warp, scaled_profile
-from dimenet.runtime.sim.render_truth import read_truth, score
-from dimenet.runtime.sim.simulator import get_profile
 
 LENS = (-0.11, 0.06, 0.0005, -0.0004)  # up to 40 px at the corners of a 1344 x 1008 photo
 PROFILE = scaled_profile(get_profile("galaxy-s8"), 3.0)

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import Board, Rig, paper_rig
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.ingest import detection, predicted
@@ -29,9 +30,8 @@ from dimenet.runtime.ingest.pipeline import ingest
 from dimenet.runtime.ingest.placement import one_plane_k, place
 from dimenet.runtime.ingest.predicted import search_predicted
 from dimenet.runtime.ingest.refine import SUBPIX_WINDOW_PX, colouring
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
-from dimenet.runtime.sim.render_truth import read_truth
-from dimenet.runtime.sim.simulator import get_profile
 
 SCALE = 3.0  # 1344 x 1008 px
 PHOTO = 0  # upright, no board covered: all four shown

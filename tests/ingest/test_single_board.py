@@ -15,11 +15,11 @@ import pytest
 
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import IngestError
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import load_rig, paper_rig
 from dimenet.runtime.ingest.pipeline import default_min_boards, ingest, report
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
-from dimenet.runtime.sim.render_truth import read_truth
-from dimenet.runtime.sim.simulator import get_profile
 
 SCALE = 3.0  # 1344 x 1008 px
 N_PHOTOS = 7

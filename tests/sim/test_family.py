@@ -23,7 +23,8 @@ from dimenet.runtime.sim.family import (
     near_paper_profile,
     simulate_family,
 )
-from dimenet.runtime.sim.simulator import PROFILES, simulate
+from dimenet.runtime.sim.profiles import PROFILES
+from dimenet.runtime.sim.simulator import simulate
 
 SEEDS = (0, 1, 2, 3, 4)
 

@@ -16,7 +16,8 @@ from dimenet.runtime.geometry import k_params
 from dimenet.runtime.geometry.distortion import undistort_points
 from dimenet.runtime.sim.family import family_member, family_profiles
 from dimenet.runtime.sim.platform import LENS_POSITION_SIGMA_UM, MODEL, platform_sigma_px
-from dimenet.runtime.sim.simulator import get_profile, lens_image, simulate
+from dimenet.runtime.sim.profiles import get_profile
+from dimenet.runtime.sim.simulator import lens_image, simulate
 
 DIST = (0.08, -0.15, 0.0005, -0.0003, 0.05)  # a phone main camera's mild distortion (k1, k2, p1, p2, k3)
 S8 = get_profile("galaxy-s8")

@@ -8,7 +8,8 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
 from dimenet.runtime.formats.dataset import read_dataset, write_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.sim.simulator import PROFILES, focus_breathing_focal_px, get_profile, ois_shift_px, simulate
+from dimenet.runtime.sim.profiles import PROFILES, get_profile
+from dimenet.runtime.sim.simulator import focus_breathing_focal_px, ois_shift_px, simulate
 
 # Paper Table 5 (test split): Avg(e_c), Avg(e*) in px; natural (LEGO) row for the Galaxy S8.
 TABLE_5 = {"galaxy-s8": (3.44, 0.45), "iphone-12-pro": (2.36, 0.46), "ipad-mini-6": (1.61, 0.32)}

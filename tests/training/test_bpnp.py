@@ -262,3 +262,14 @@ def test_project_matches_runtime_geometry_and_is_differentiable():
     out = project(*args)
     np.testing.assert_allclose(out.detach().numpy(), g.project(X, K, rvec, tvec), atol=1e-9)
     assert torch.autograd.gradcheck(project, args, eps=1e-6, atol=1e-6)
+
+
+def test_bench_bpnp_is_the_training_bench_the_runtime_finds_by_its_entry_point(capsys):
+    from dimenet.runtime.cli.main import main
+    from dimenet.runtime.plugins import entry_points
+
+    assert entry_points("dimenet.benches")["bpnp"].value == "dimenet.training.bench_bpnp"
+    argv = ["bench", "--bpnp", "--frames", "2", "--points", "12", "--repeats", "1", "--baseline-repeats", "1"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "B=2 frames x N=12 points, forward+backward, 1 thread" and "exact BPnP" in out[1], out

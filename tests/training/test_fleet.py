@@ -1,10 +1,10 @@
-"""`dimenet fleet train` and the engine (runtime/cli/engine.py): a manifest of jobs, each the
-same `dimenet train`, run here or as Ray jobs; resume, a failing job, and the same results."""
+"""`dimenet fleet train` on the engine (runtime/jobs/engine.py; the engine alone: tests/jobs/test_engine.py): a
+manifest of jobs, each the same `dimenet train`, run here or as Ray jobs; resume, a failing job, and the same
+results."""
 
 from __future__ import annotations
 
 import json
-import math
 import re
 import subprocess
 import sys
@@ -14,7 +14,6 @@ import pytest
 
 pytest.importorskip("torch")
 
-from dimenet.runtime.cli.engine import Engine, EngineError, run_all
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.sim.family import simulate_family
@@ -77,30 +76,6 @@ def test_bad_manifests_name_the_job_and_the_field(tmp_path):
         read_manifest(tmp_path / "absent.json")
 
 
-def _double(x):
-    if x == 3:
-        raise ValueError("three")
-    return 2 * x
-
-
-def test_the_engine_keeps_order_and_turns_a_failure_into_its_outcome():
-    outcomes = run_all(_double, [1, 2, 3, 4])
-    assert [o.value for o in outcomes] == [2, 4, None, 8] and "ValueError: three" in outcomes[2].error
-    with pytest.raises(EngineError, match="local:N needs N >= 1"):
-        pytest.importorskip("ray")
-        run_all(_double, [1], address="local:0")
-
-
-def test_one_engine_session_serves_dependent_batches():
-    ray = pytest.importorskip("ray")
-    with Engine("local:2") as engine:  # the jobs: a function Ray's workers can import
-        first = engine.run_all(math.sqrt, [16.0, 81.0])
-        assert ray.is_initialized()
-        second = engine.run_all(math.sqrt, [o.value for o in first] + [-1.0])
-    assert not ray.is_initialized()
-    assert [o.value for o in second] == [2.0, 3.0, None] and "ValueError: math domain error" in second[2].error
-
-
 def test_ray_jobs_give_the_same_models_and_the_same_family(manifest, tmp_path):
     pytest.importorskip("ray")
     start = time.monotonic()
@@ -120,7 +95,7 @@ def test_ray_jobs_give_the_same_models_and_the_same_family(manifest, tmp_path):
 
 def test_nothing_imports_ray_until_an_address_asks_for_it():
     code = (
-        "import sys, dimenet.runtime.cli.main, dimenet.runtime.cli.engine, dimenet.training.trainer, "
+        "import sys, dimenet.runtime.cli.main, dimenet.runtime.jobs.engine, dimenet.training.trainer, "
         "dimenet.training.fleet, dimenet.training.commands; print('ray' in sys.modules)"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)

@@ -14,8 +14,8 @@ onnx = pytest.importorskip("onnx")
 from helpers import model_spec, random_torch_model
 from onnx import helper, numpy_helper
 
-from dimenet.export.commands import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 from dimenet.export.onnx_export import export_model
+from dimenet.export.opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify import rectifier as rectifier_module
 from dimenet.runtime.rectify.model import load_onnx_model

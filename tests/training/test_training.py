@@ -17,7 +17,8 @@ from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.sim.simulator import PROFILES, simulate
+from dimenet.runtime.sim.profiles import PROFILES
+from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 from dimenet.training.trainer import TrainConfig, focal_loss, train

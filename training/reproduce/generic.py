@@ -9,13 +9,13 @@ from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
+from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.model import OnnxModel
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
@@ -68,7 +68,7 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
 
 def fresh_family(generic: Optional[Predictor] = None) -> list:
     """rho (rig, all points) of the generic model (default: the bundled one) on each camera of a
-    family it never saw. A job of ``runtime.cli.engine.run_all`` too (it needs no other result)."""
+    family it never saw. A job of ``runtime.jobs.engine.run_all`` too (it needs no other result)."""
     if generic is None:
         model = load_model()
         generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)

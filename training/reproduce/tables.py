@@ -10,13 +10,13 @@ from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.cli.engine import Engine
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
 from dimenet.runtime.evaluation.methods import ALL_METHODS, METHODS, evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.jobs.engine import Engine
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.rectifier import load_model
 from dimenet.runtime.sim.simulator import simulate
@@ -94,7 +94,7 @@ def _generic_rows(data: dict, run_dirs: dict, fine_tune_job: tuple, fresh: list,
     return run_generic(data, device, config, load_model(), {"fine_tune": fine_tune_job, "fresh_family": fresh})
 
 
-# The jobs of ``runtime.cli.engine.Engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
+# The jobs of ``runtime.jobs.engine.Engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
 # loads what it needs from run dirs, so the same jobs run in this process or as Ray tasks.
 JOBS = {
     "train": _train,
@@ -122,7 +122,7 @@ def _run_jobs(engine: Engine, items: dict, cpus_per_job: int, desc: str) -> dict
 def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
     """Train, evaluate and write the report; returns the results dictionary. Two batches of jobs
     (the trainings, then the evaluations of the trained models) run one after another, or as Ray
-    jobs with ``address`` (``runtime.cli.engine``): the same numbers either way, each model
+    jobs with ``address`` (``runtime.jobs.engine``): the same numbers either way, each model
     trained on one thread from its seed."""
     start = time.monotonic()
     out = Path(config.out_dir)

@@ -1,23 +1,25 @@
 """`dimenet bench`: latency of the runtime against cv2.solvePnP ITERATIVE under K_c
-(runtime/evaluation/latency.py); with ``--ingest DIR``, `dimenet ingest` on rendered full-size
-photos against the renderer's truth (runtime/ingest/bench.py); with ``--bpnp``, forward +
-backward of the BPnP layer against a BPnP_fast-style baseline (training/bench_bpnp.py: needs
-the train extra, imported only then, so the runtime never imports torch); with ``--fuzz N``,
-hostile input through the rectifier and the readers (runtime/evaluation/fuzz.py); with
+(runtime/bench/latency.py); with ``--ingest DIR``, `dimenet ingest` on rendered full-size
+photos against the renderer's truth (runtime/bench/ingest.py); with ``--bpnp``, forward +
+backward of the BPnP layer against a BPnP_fast-style baseline (the ``bpnp`` entry point of the
+``dimenet.benches`` group, training/bench_bpnp.py: needs the train extra, loaded only then, so the
+runtime never imports torch or the training package); with ``--fuzz N``,
+hostile input through the rectifier and the readers (runtime/bench/fuzz.py); with
 ``--stream N``, `dimenet rectify --points` on an N-frame points CSV of the bundled example's
-frames: frames/s and peak memory (runtime/evaluation/streaming.py)."""
+frames: frames/s and peak memory (runtime/bench/streaming.py)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 
+from dimenet.runtime.bench.latency import format_report, run_bench
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism, seed
 from dimenet.runtime.cli.commands.render import MAX_PHOTOS
 from dimenet.runtime.cli.main import CliError, Command
-from dimenet.runtime.evaluation.latency import format_report, run_bench
 from dimenet.runtime.geometry.pnp import MIN_POINTS
-from dimenet.runtime.sim.simulator import PROFILES
+from dimenet.runtime.plugins import entry_points
+from dimenet.runtime.sim.profiles import PROFILES
 
 # Each bench's options and their defaults. The parser's defaults are None, so that an option
 # given to a bench it does not belong to is refused instead of ignored.
@@ -172,8 +174,8 @@ def _run_stream(args: argparse.Namespace) -> int:
     from importlib import resources
 
     from dimenet.runtime.assets import asset
+    from dimenet.runtime.bench.streaming import format_stream_report, run_stream_bench
     from dimenet.runtime.cli.commands.rectify import EXAMPLE_CAMERA, EXAMPLE_DATA
-    from dimenet.runtime.evaluation.streaming import format_stream_report, run_stream_bench
     from dimenet.runtime.formats.camera import read_camera
     from dimenet.runtime.formats.dataset import read_dataset
 
@@ -191,8 +193,8 @@ def _run_fuzz(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from dimenet.runtime.evaluation.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
-    from dimenet.runtime.evaluation.latency import bench_rectifier
+    from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
+    from dimenet.runtime.bench.latency import bench_rectifier
     from dimenet.runtime.rectify.rectifier import load_model
     from dimenet.runtime.sim.simulator import simulate
 
@@ -232,7 +234,7 @@ def _run_latency(args: argparse.Namespace) -> int:
 
 
 def _run_ingest(args: argparse.Namespace) -> int:
-    from dimenet.runtime.ingest.bench import format_ingest_report, run_ingest_bench
+    from dimenet.runtime.bench.ingest import format_ingest_report, run_ingest_bench
 
     o = _options(args, INGEST)
     figures = run_ingest_bench(args.ingest, **o)
@@ -249,17 +251,25 @@ def _run_bpnp(args: argparse.Namespace) -> int:
             f"dimenet bench: --frames x --points must be <= {MAX_BPNP_CORRESPONDENCES} with --bpnp, "
             f"got {o['frames']} x {o['points']}"
         )
+    bench = _bpnp_bench()
+    result = bench.run(o["frames"], o["points"], o["repeats"], o["baseline_repeats"])
+    print(json.dumps(result, indent=2) if args.json else bench.format_report(result))
+    return 0
+
+
+def _bpnp_bench():
+    """The BPnP bench the train extra registers as ``bpnp`` in ``dimenet.benches``: a module with
+    ``run(frames, points, repeats, baseline_repeats) -> dict`` and ``format_report(dict) -> str``."""
+    entry = entry_points("dimenet.benches").get("bpnp")
     try:
-        from dimenet.training.bench_bpnp import format_report as format_bpnp_report
-        from dimenet.training.bench_bpnp import run as run_bpnp
+        if entry is None:
+            raise ImportError("no bpnp bench registered", name="dimenet.training")
+        return entry.load()
     except ImportError as exc:
         raise CliError(
             f"dimenet bench: --bpnp needs the train extra ({exc.name or exc} is not installed): "
             "pip install 'dimenet-runtime[train]'"
         ) from None
-    result = run_bpnp(o["frames"], o["points"], o["repeats"], o["baseline_repeats"])
-    print(json.dumps(result, indent=2) if args.json else format_bpnp_report(result))
-    return 0
 
 
 COMMAND = Command(

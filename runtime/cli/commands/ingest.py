@@ -10,7 +10,6 @@ from pathlib import Path
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.camera import camera_file, read_camera
@@ -20,6 +19,7 @@ from dimenet.runtime.formats.rig import MAX_RIG_POINTS, PAPER_RIG_NAME, rig_from
 from dimenet.runtime.ingest.outcome import DROPPED, IDENTIFIED, NOT_FOUND
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
 from dimenet.runtime.ingest.pipeline import MIN_BOARDS, SPLITS, check_object, ingest, report
+from dimenet.runtime.jobs.progress import progress
 
 OPENCV_MAX_MEGAPIXELS = 1000.0  # OpenCV refuses to decode more than 2**30 px (1073.7 MP) whatever the flag
 

@@ -24,20 +24,15 @@ from dimenet.runtime.cli.arguments import nonempty_path
 from dimenet.runtime.cli.camera import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import CameraError
+from dimenet.runtime.evaluation.rectify_points import rectified_records
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera import camera_file, read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
-from dimenet.runtime.formats.points import (
-    PointsFrame,
-    counted,
-    json_lines,
-    read_points,
-    rectified_records,
-    run_record,
-)
+from dimenet.runtime.formats.points import PointsFrame, read_points
+from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.geometry import k_params
+from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.rectifier import MODES, BatchRectification, Rectifier, load_model
 
 EXAMPLE_DATA = "example_frames.npz"

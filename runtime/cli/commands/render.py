@@ -11,10 +11,10 @@ from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_
 from dimenet.runtime.cli.commands.simulate import dist_coeffs
 from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.formats.rig import PAPER_RIG_NAME, rig_from_argument
+from dimenet.runtime.jobs.progress import progress
+from dimenet.runtime.sim.profiles import PROFILES, get_profile
 from dimenet.runtime.sim.render import FORMATS, TRUTH_FILE, photo_name, scaled_profile, write_render
-from dimenet.runtime.sim.simulator import PROFILES, get_profile
 
 MAX_PHOTOS = 10_000  # --n here and in `dimenet bench --ingest`: ~30 GB of full-size JPEGs
 MAX_SCALE = 64.0  # 4032x3024 -> 63x47 px; past that the boards are a few pixels

@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dimenet.runtime.cli.arguments import integer_in, nonempty_path, seed
-from dimenet.runtime.cli.engine import add_address_argument, run_all
+from dimenet.runtime.cli.arguments import add_address_argument, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
+from dimenet.runtime.jobs.engine import run_all
 from dimenet.runtime.sim.family import MAX_FAMILY, family_member, family_profiles, hfov_deg
-from dimenet.runtime.sim.simulator import PROFILES, DeviceProfile, checked_dist_coeffs, simulate
+from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
+from dimenet.runtime.sim.simulator import checked_dist_coeffs, simulate
 
 MAX_EXTRA_FRAMES = 10_000  # natural or planar frames: ~13 KB and ~4 ms each (2**40: MemoryError)
 

@@ -1,4 +1,4 @@
-"""Jobs shared by threads of this process and helper processes (``workers.run_shared``)."""
+"""A function over jobs shared by threads of this process and helper processes (``jobs.workers.run_shared``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import cv2
 import pytest
 from helpers import pid_slow_here
 
-from dimenet.runtime.ingest.workers import LOCAL_THREADS, run_shared
+from dimenet.runtime.jobs.workers import LOCAL_THREADS, run_shared
 
 
 def where_slow_here(seconds: float) -> tuple[int, str]:
@@ -21,20 +21,20 @@ def where_slow_here(seconds: float) -> tuple[int, str]:
 
 def test_two_workers_are_two_threads_of_this_process_and_results_come_in_the_jobs_order():
     assert LOCAL_THREADS == 2
-    where = list(run_shared(where_slow_here, [[0.05]] * 8, 2))
+    where = list(run_shared(where_slow_here, [0.05] * 8, 2))
     assert {pid for pid, _ in where} == {os.getpid()}
     assert len({name for _, name in where}) == 2  # both threads took jobs
-    assert list(run_shared(math.sqrt, [[k * k] for k in range(20)], 2)) == [float(k) for k in range(20)]
+    assert list(run_shared(math.sqrt, [k * k for k in range(20)], 2)) == [float(k) for k in range(20)]
 
 
 def test_more_workers_add_helper_processes_that_join_when_up():
-    pids = list(run_shared(pid_slow_here, [[0.5]] * 8, 3))  # 0.5 s a job here, none in a helper
+    pids = list(run_shared(pid_slow_here, [0.5] * 8, 3))  # 0.5 s a job here, none in a helper
     assert len(pids) == 8 and os.getpid() in pids and len(set(pids)) == 2
     assert pids[0] == os.getpid()  # this process starts at once, before any helper is up
 
 
 def test_a_short_run_does_not_wait_for_helpers_coming_up_and_they_are_shut_down_after():
-    assert list(run_shared(math.sqrt, [[4.0]], 3)) == [2.0]
+    assert list(run_shared(math.sqrt, [4.0], 3)) == [2.0]
     starter = [t for t in threading.enumerate() if t.name == "dimenet-helpers"]
     assert len(starter) == 1  # still starting the helper: the result did not wait for it
     starter[0].join(timeout=60)
@@ -45,5 +45,5 @@ def test_a_short_run_does_not_wait_for_helpers_coming_up_and_they_are_shut_down_
 def test_an_error_of_a_job_propagates_and_opencvs_threads_are_restored(workers):
     threads = cv2.getNumThreads()
     with pytest.raises(ValueError, match="math domain error"):
-        list(run_shared(math.sqrt, [[4.0], [-1.0], [9.0]], workers))
+        list(run_shared(math.sqrt, [4.0, -1.0, 9.0], workers))
     assert cv2.getNumThreads() == threads

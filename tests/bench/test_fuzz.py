@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from helpers import default_rectifier
 
-from dimenet.runtime.evaluation.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
+from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
 
 
 @pytest.mark.parametrize("mode", ["dimenet", "map"])

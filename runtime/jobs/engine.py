@@ -1,11 +1,11 @@
 """Many jobs at once: one function over a list of items, here one after another, or as Ray tasks
-(the `fleet` extra) on a cluster.
+(the `fleet` extra) on a cluster; each item's outcome in the items' order.
 
-``--address`` names the engine: absent, the jobs run in this process in order (as every command
-always did); ``local`` or ``local:N`` starts a Ray cluster on this machine with N CPUs (default:
-all); ``auto`` or ``ray://host:port`` joins a running one. Ray is imported only then, so the
-runtime and the other extras never need it. A job's exception is its outcome, not the run's:
-the others finish and the caller reports it by name.
+``--address`` (``cli.arguments.add_address_argument``) names the engine: absent, the jobs run in
+this process in order (as every command always did); ``local`` or ``local:N`` starts a Ray cluster
+on this machine with N CPUs (default: all); ``auto`` or ``ray://host:port`` joins a running one. Ray
+is imported only then, so the runtime and the other extras never need it. A job's exception is its
+outcome, not the run's: the others finish and the caller reports it by name.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import traceback
 from dataclasses import dataclass
 from typing import Any, Callable, Optional
 
-from dimenet.runtime.cli.progress import progress
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.jobs.progress import progress
 
 
 class EngineError(DimenetError):
@@ -104,18 +104,3 @@ def _ray(address: str):
             f"--address {address}: Ray could not start or join a cluster ({type(exc).__name__}: {exc})"
         ) from None
     return ray
-
-
-def add_address_argument(p, what: str) -> None:
-    """The ``--address`` and ``--cpus-per-job`` options of a command whose jobs are ``what``."""
-    from dimenet.runtime.cli.arguments import integer_in
-
-    p.add_argument(
-        "--address",
-        metavar="ADDR",
-        help=f"run the {what} as Ray jobs (the fleet extra): local or local:N (a cluster on this machine, N CPUs), "
-        "auto or ray://host:port (a running one); default: one after another here",
-    )
-    p.add_argument(
-        "--cpus-per-job", type=integer_in(1, 1024), default=1, metavar="N", help="CPUs per Ray job (default 1)"
-    )

@@ -1,13 +1,14 @@
-"""Jobs worked on by threads of this process and by helper processes at once, the results in the jobs' order.
+"""A function over items (jobs) worked on by threads of this process and by helper processes at once, the results in
+the items' order (ingest's photos: ``ingest.pipeline``).
 
 ``run_shared`` with N workers: LOCAL_THREADS (2) threads of this process, or N when fewer, take the next job whenever
 they are free, from the start; with more workers, N − 2 helper processes (a ``concurrent.futures`` process pool
-started from a fork server that has imported the pipeline, or spawned where the platform has no fork server) join as
-they come up. Threads start at once but share Python's lock: OpenCV, most of a photo's work, lets go of it while it
-runs, so two threads keep two cores busy, but the photo's Python part runs on one core at a time, so more threads
-would add little. A helper process costs a fraction of a second of a core before its first job (the fork server's
-imports of numpy, OpenCV and the pipeline), most of a run of a handful of photos (the figures: models_spec/ingest.md,
-"Measured"). OpenCV runs on one thread in each worker (in this process
+started from a fork server that has imported the function's module, or spawned where the platform has no fork server)
+join as they come up. Threads start at once but share Python's lock: OpenCV, most of a photo's work, lets go of it
+while it runs, so two threads keep two cores busy, but the photo's Python part runs on one core at a time, so more
+threads would add little. A helper process costs a fraction of a second of a core before its first job (the fork
+server's imports of numpy, OpenCV and the function's module), most of a run of a handful of photos (the figures:
+models_spec/ingest.md, "Measured"). OpenCV runs on one thread in each worker (in this process
 while it works).
 
 This process does not wait for helpers still coming up when every job is done: the thread that started them shuts
@@ -24,17 +25,16 @@ from typing import Any, Callable
 
 import cv2
 
-PRELOAD = "dimenet.runtime.ingest.pipeline"  # what the fork server imports before it forks a helper
 LOCAL_THREADS = 2  # threads of this process that work on jobs (fewer when there are fewer workers)
 
 
-def worker_context() -> multiprocessing.context.BaseContext:
-    """How helper processes start: from a fork server that has imported PRELOAD (no OpenCV thread forked;
-    POSIX), else spawned (each importing it on its first job)."""
+def worker_context(preload: str) -> multiprocessing.context.BaseContext:
+    """How helper processes start: from a fork server that has imported the module ``preload`` (no OpenCV thread
+    forked; POSIX), else spawned (each importing it on its first job)."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([PRELOAD])
+    context.set_forkserver_preload([preload])
     return context
 
 
@@ -42,10 +42,11 @@ def _ready() -> None:
     """A helper's first call: it has started."""
 
 
-def run_shared(fn: Callable[..., Any], jobs: Sequence[Sequence[Any]], workers: int) -> Iterator[Any]:
-    """``fn(*job)`` for every job, yielded in the jobs' order, by ``workers`` workers: threads of this process and
-    helper processes (see the module doc); ``fn`` must be thread-safe, and with helpers ``fn`` and the jobs picklable.
-    An exception of ``fn`` propagates (the jobs not yet started are dropped)."""
+def run_shared(fn: Callable[[Any], Any], jobs: Sequence[Any], workers: int) -> Iterator[Any]:
+    """``fn(job)`` for every job, yielded in the jobs' order, by ``workers`` workers: threads of this process and
+    helper processes (see the module doc); ``fn`` must be thread-safe, and with helpers ``fn`` and the jobs picklable
+    (the fork server imports ``fn``'s module). An exception of ``fn`` propagates (the jobs not yet started are
+    dropped)."""
     n = len(jobs)
     cond = threading.Condition()
     state = {"taken": 0, "stopping": False, "starting": True, "closed": False}
@@ -68,7 +69,7 @@ def run_shared(fn: Callable[..., Any], jobs: Sequence[Sequence[Any]], workers: i
     def work() -> None:  # a thread of this process
         while (i := take()) >= 0:
             try:
-                put(i, True, fn(*jobs[i]))
+                put(i, True, fn(jobs[i]))
             except Exception as exc:
                 put(i, False, exc)
 
@@ -77,7 +78,7 @@ def run_shared(fn: Callable[..., Any], jobs: Sequence[Sequence[Any]], workers: i
         if i < 0:
             return
         try:
-            pool.submit(fn, *jobs[i]).add_done_callback(lambda done: finished(pool, i, done))
+            pool.submit(fn, jobs[i]).add_done_callback(lambda done: finished(pool, i, done))
         except Exception as exc:  # a broken pool: the job's result is that error
             put(i, False, exc)
 
@@ -97,7 +98,9 @@ def run_shared(fn: Callable[..., Any], jobs: Sequence[Sequence[Any]], workers: i
     helpers = workers - min(workers, LOCAL_THREADS)
     pool = None
     if helpers:
-        pool = ProcessPoolExecutor(helpers, mp_context=worker_context(), initializer=cv2.setNumThreads, initargs=(1,))
+        pool = ProcessPoolExecutor(
+            helpers, mp_context=worker_context(fn.__module__), initializer=cv2.setNumThreads, initargs=(1,)
+        )
 
     def start() -> None:  # the first submit starts the helpers, and waits for the fork server's imports
         try:

@@ -4,7 +4,7 @@
 The CSV (``models_spec/points-csv.md``) tiles the frames of a dataset, all their valid points
 to 1e-4 px and 1e-4 mm (frame k is frame k mod F, id ``f<k>``, t_ns at 30 frames/s). It is then
 streamed through the same path as the command, ``formats.points.read_points``,
-``rectified_records`` (``Rectifier.rectify`` frame by frame) and ``json_lines``, each line
+``evaluation.rectify_points.rectified_records`` (``Rectifier.rectify`` frame by frame) and ``json_lines``, each line
 written and flushed to /dev/null. Memory: the process's peak resident set size
 (``resource.getrusage``) after 10 % of the frames and at the end; equal figures show the stream
 runs in constant memory.
@@ -22,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from dimenet.runtime.evaluation.rectify_points import rectified_records
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.formats.points import PointsFrame, counted, json_lines, read_points, rectified_records, run_record
+from dimenet.runtime.formats.points import PointsFrame, read_points
+from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dimenet.runtime.bench.latency import bench_frames, percentiles_us
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.evaluation.latency import bench_frames, percentiles_us
 
 
 def test_bench_frames_have_exactly_the_requested_points():

@@ -6,7 +6,7 @@ Rendered: renders ``n`` photos into DIR first (a new or empty folder) unless DIR
 ``truth.npz`` (then the photos it names, whatever their size, e.g. ``dimenet render --scale 2.52``
 for 1600x1200); then ingests them (timed: photos/s) and reports the detection rate, identity errors,
 corner RMS against the true projections and the mean |K* - K_true| of the ingested frames
-(``render_truth.score``).
+(``bench.ingest_score.score``).
 
 Real: a DIR without ``truth.npz`` but with a rig file ``rig.json`` (``dimenet-rig/1``) beside its photos
 (every JPEG, PNG, TIFF, WebP, BMP or PNM in it, by name): ingests them with that rig (timed) and reports
@@ -20,13 +20,14 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from dimenet.runtime.bench.ingest_score import score
 from dimenet.runtime.errors import IngestError
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import load_rig, paper_rig
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.ingest.pipeline import ingest
+from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, write_render
-from dimenet.runtime.sim.render_truth import read_truth, score
-from dimenet.runtime.sim.simulator import get_profile
 
 RIG_FILE = "rig.json"  # the rig of a folder of real photos
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".bmp", ".pbm", ".pgm", ".ppm")

@@ -24,7 +24,8 @@ from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.rectify.model import OnnxModel
 from dimenet.runtime.rectify.rectifier import Rectifier, load_model
-from dimenet.runtime.sim.simulator import get_profile, simulate
+from dimenet.runtime.sim.profiles import get_profile
+from dimenet.runtime.sim.simulator import simulate
 
 BENCH_PROFILE = "galaxy-s8"
 

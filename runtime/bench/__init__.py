@@ -1,0 +1,3 @@
+"""The benches of `dimenet bench`, above the simulator, ingest and evaluation they measure: latency
+(the rectifier against OpenCV's PnP), ingest (photos against the renderer's truth, scored by
+ingest_score), fuzz (hostile input) and stream (`dimenet rectify --points` throughput and memory)."""

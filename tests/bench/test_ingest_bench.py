@@ -1,0 +1,33 @@
+"""`dimenet bench --ingest` (``bench.ingest``) on small rendered photos: scored against their truth, and the
+same photos as a folder of real photos with their rig (no truth: timed and counted)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+from dimenet.runtime.bench.ingest import RIG_FILE, format_ingest_report, run_ingest_bench
+from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
+from dimenet.runtime.sim.profiles import get_profile
+from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
+
+
+def test_rendered_photos_are_scored_against_their_truth_and_real_ones_counted(tmp_path):
+    rendered = tmp_path / "rendered"
+    write_render(rendered, paper_rig(), scaled_profile(get_profile("galaxy-s8"), 3.0), 2, seed=0)
+    figures = run_ingest_bench(rendered, n=2, seed=0, profile="galaxy-s8", workers=1)
+    assert figures["photos"] == 2 and figures["boards_shown"] > 0
+    assert figures["detection_rate"] == figures["boards_found"] / figures["boards_shown"] > 0.5
+    assert figures["identity_errors"] == 0 and figures["corner_rms_px"] < 0.5 and figures["k_error_px"] < 5.0
+    assert f"{figures['photos']} photos, {figures['frames']} frames" in format_ingest_report(figures)
+
+    real = tmp_path / "real"
+    real.mkdir()
+    for photo in sorted(rendered.glob("photo-*")):
+        shutil.copy(photo, real)
+    (real / RIG_FILE).write_text(json.dumps(rig_to_dict(paper_rig())))
+    assert not (real / TRUTH_FILE).exists()
+    counted = run_ingest_bench(real, n=2, seed=0, profile="galaxy-s8", workers=1)
+    assert counted["photos"] == 2 and counted["boards_in_rig"] == len(paper_rig().boards)
+    assert sum(len(b) for b in counted["boards"].values()) == figures["boards_found"] + figures["extra_boards"]
+    assert "2 real photos" in format_ingest_report(counted)
