@@ -28,7 +28,7 @@ from helpers import constant_uncertainty, importable, model_spec, random_model_f
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
-from dimenet.runtime.rectify import rectifier as rectifier_module
+from dimenet.runtime.rectify import model as model_module
 from dimenet.runtime.sim.simulator import simulate
 
 NATURAL_FRAMES = 34  # the paper's LEGO test set size
@@ -68,7 +68,7 @@ def model_path(tmp_path_factory, frames):
     """A random-init model exported for these frames, else None (the bundled default model)."""
     if importable("torch", "onnx"):
         return random_model_file(tmp_path_factory.mktemp("model") / "random.onnx", model_spec(frames))
-    if not asset(rectifier_module.DEFAULT_MODEL).is_file():
+    if not asset(model_module.DEFAULT_MODEL).is_file():
         pytest.skip("needs torch and onnx to export a test model, or the bundled default model")
     return None
 

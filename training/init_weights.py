@@ -24,9 +24,8 @@ import torch
 from onnx import helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.rectify.model import OnnxModel, onnx_model_from_bytes
-from dimenet.runtime.rectify.rectifier import DEFAULT_SOURCE as BUNDLED_SOURCE
-from dimenet.runtime.rectify.rectifier import default_model_bytes
+from dimenet.runtime.rectify.model import DEFAULT_SOURCE as BUNDLED_SOURCE
+from dimenet.runtime.rectify.model import OnnxModel, default_model_bytes, onnx_model_from_bytes
 from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import OUTPUT_SCALE_PX, DimeNet

@@ -22,8 +22,8 @@ import onnxruntime as ort
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.rectify.model import OnnxModel
-from dimenet.runtime.rectify.rectifier import Rectifier, load_model
+from dimenet.runtime.rectify.model import OnnxModel, load_model
+from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.simulator import simulate
 

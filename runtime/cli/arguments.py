@@ -7,16 +7,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 from typing import Callable, Optional
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.rectify.model import MAX_THREADS
 
 # Caps shared by the subcommands' flags (argparse types below). A value past a cap is a typo or
 # a value that would hang the command or exhaust memory; each is stated in the error message.
 MAX_SEED = 2**32 - 1  # numpy's default_rng takes any int >= 0, torch.manual_seed < 2**64 (train adds 2)
-MAX_PARALLEL = 4 * (os.cpu_count() or 1)  # --threads, --workers: more only contend (10**6 hangs)
+MAX_PARALLEL = MAX_THREADS  # --threads, --workers: the API's cap on a session's threads
 MAX_GRID = 64  # grid columns and rows each; 64x64 = 4096 cells (100000x100000: MemoryError)
 MAX_NOISE = 1000.0  # --noise-2d px, --noise-3d mm: far past any photo's noise (1e300: PnP fails)
 

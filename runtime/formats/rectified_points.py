@@ -17,7 +17,8 @@ import numpy as np
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.points import PointsFrame
-from dimenet.runtime.rectify.rectifier import Rectification, Rectifier
+from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.results import Rectification
 
 FORMAT = "dimenet-rectified-points/1"  # the output's first line: {"format": FORMAT, ...}
 

@@ -22,7 +22,8 @@ The values in the reasons are in the user's pixels (``user_px``: user px per mod
 
 from __future__ import annotations
 
-from typing import Optional
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -30,6 +31,7 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MAX_COORDINATE,
+    MIN_POINTS,
     check_not_degenerate,
     covariance_invariants,
     covariance_invariants_batch,
@@ -226,3 +228,105 @@ def behind_camera_error(n_behind: int, n: int) -> InputError:
 
 NO_POSE_REASON = "no pose under the predicted K"
 BEHIND_REASON = "a point lies behind the camera at the pose under the predicted K"
+
+
+def all_inside(bounds, points_2d: np.ndarray, points_3d: np.ndarray) -> bool:
+    """``bounds.inside(points_2d, points_3d).all()`` (an ``ImageBounds``): (N, 2), (N, 3) float64
+    C-contiguous, or any leading dims. OpenCV's checks first (checkRange's range is
+    [-MAX_COORDINATE, MAX_COORDINATE), as the reference's), numpy's when they say no: 6 against
+    26 µs at 320 points (models_spec/BENCHMARKS.md)."""
+    if (
+        cv2.checkRange(points_3d, True, -MAX_COORDINATE, MAX_COORDINATE)[0]
+        and cv2.countNonZero(cv2.inRange(points_2d.reshape(-1, 1, 2), *bounds.cv_bounds)) == points_2d.size // 2
+    ):
+        return True
+    return bool(bounds.inside(points_2d, points_3d).all())
+
+
+def in_frame(b: int, call, *args):
+    """``call(*args)``, its InputError prefixed with the frame index ``b`` of a batch."""
+    try:
+        return call(*args)
+    except InputError as exc:
+        raise InputError(f"frame {b}: {exc}") from None
+
+
+def validated_frame(image: ImageBounds, points_2d, points_3d) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """The input rules on one frame: its points as float64 (N, 2) px and (N, 3) mm with the
+    ``covariance_invariants`` of the 3D points, or InputError naming the problem."""
+    p2 = real_array(points_2d, "points_2d", "(N, 2)", 2, 2)
+    p3 = real_array(points_3d, "points_3d", "(N, 3)", 2, 3)
+    n = len(p2)
+    if len(p3) != n:
+        raise InputError(f"points_2d has {n} points and points_3d {len(p3)}: they must correspond one to one")
+    if n < MIN_POINTS:
+        raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
+    if not all_inside(image, p2, p3):
+        image.raise_bad_values(p2, p3, True, "")
+    invariants_3d = check_spread(p2, p3)
+    distinct = too_few_distinct(p2, p3, MIN_POINTS)
+    if distinct is not None:
+        raise InputError(f"{distinct} distinct points of {n}: rectification needs at least {MIN_POINTS}")
+    return p2, p3, invariants_3d
+
+
+@dataclass(frozen=True)
+class Frames:
+    """A validated batch: points_2d (B, P, 2) px (the model's pinhole pixels) and points_3d (B, P, 3)
+    mm float64; valid and infer (B, P) bool; mask: valid, or None when every point is valid; frames:
+    each frame's valid points; invariants_3d: ``covariance_invariants_batch`` of the valid 3D
+    points; points_2d_image: the points as given (the user's pixels, distorted by the lens)."""
+
+    points_2d: np.ndarray
+    points_3d: np.ndarray
+    valid: np.ndarray
+    infer: np.ndarray
+    mask: Optional[np.ndarray]
+    frames: list
+    invariants_3d: tuple
+    points_2d_image: np.ndarray
+
+
+def validated_batch(
+    image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d, valid, infer_mask
+) -> Frames:
+    """The input rules on B frames (those of ``validated_frame`` on each frame's valid points, and
+    infer_mask a subset of valid), the 2D points mapped by ``to_model`` (the user's pixels -> the
+    model's pinhole pixels) before the spread rule, or InputError naming the first unusable frame."""
+    p2 = real_array(points_2d, "points_2d", "(B, P, 2)", 3, 2)
+    p3 = real_array(points_3d, "points_3d", "(B, P, 3)", 3, 3)
+    if p3.shape[:2] != p2.shape[:2]:
+        raise InputError(f"points_2d has shape {p2.shape} and points_3d {p3.shape}: (B, P) must agree")
+    if len(p2) == 0:
+        raise InputError("points_2d: an empty batch (B = 0), nothing to rectify")
+    valid = bool_mask(valid, "valid", p2.shape[:2])
+    infer = valid if infer_mask is None else bool_mask(infer_mask, "infer_mask", p2.shape[:2])
+    if np.any(infer & ~valid):
+        raise InputError("infer_mask: must be a subset of valid")
+    counts = valid.sum(1)
+    if np.any(counts < MIN_POINTS):
+        b = int(np.argmin(counts))
+        raise InputError(f"frame {b}: {int(counts[b])} valid points, rectification needs at least {MIN_POINTS}")
+    every = bool(valid.all())
+    mask = None if every else valid
+    inside = (
+        all_inside(image, p2, p3)
+        if every
+        else all_inside(image, np.where(valid[..., None], p2, 0.0), np.where(valid[..., None], p3, 0.0))
+    )
+    if not inside:
+        for b in np.flatnonzero(np.any(valid & ~image.inside(p2, p3), 1)):
+            image.raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
+    p2_image, p2 = p2, to_model(p2)
+    frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
+    spread_3d, invariants_3d = spread_frames(p3, mask)
+    spread = spread_3d & spread_frames(p2, mask)[0]
+    for b in np.flatnonzero(~spread):
+        in_frame(b, check_spread, *frames[b])
+    for b, (x, X) in enumerate(frames):
+        distinct = too_few_distinct(x, X, MIN_POINTS)
+        if distinct is not None:
+            raise InputError(
+                f"frame {b}: {distinct} distinct valid points of {len(x)}: rectification needs at least {MIN_POINTS}"
+            )
+    return Frames(p2, p3, valid, infer, mask, frames, invariants_3d, p2_image)

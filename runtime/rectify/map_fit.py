@@ -34,7 +34,8 @@ from dimenet.runtime.geometry import (
     left_update,
     solve_pnp_start,
 )
-from dimenet.runtime.rectify.fast import frame_residuals, frame_within_bounds
+from dimenet.runtime.geometry.camera import frame_residuals
+from dimenet.runtime.rectify.spec import frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 
 # Gauss-Newton steps: from k_net and the turned C0 pose one step lands at the optimum

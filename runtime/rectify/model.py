@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
+import os
 import re
 import threading
 from collections.abc import Sequence
@@ -25,8 +26,15 @@ from typing import Optional
 import numpy as np
 import onnxruntime as ort
 
+from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
+
+DEFAULT_MODEL = "default_model.onnx"  # the bundled default, in dimenet.runtime.assets
+DEFAULT_SOURCE = f"bundled default model ({DEFAULT_MODEL})"  # how errors and reports name it
+# Most ONNX Runtime intra-op threads a session may ask for: more only contend for the cores (the CLI's
+# --threads and --workers take the same cap); 10**6 threads crash the process, 10**5 spin for minutes.
+MAX_THREADS = 4 * (os.cpu_count() or 1)
 
 INPUT_NAME = "features"
 OUTPUT_NAME = "delta_k"
@@ -69,8 +77,8 @@ class OnnxModel:
 
 def session_options(threads: int) -> ort.SessionOptions:
     """Sequential execution on ``threads`` intra-op threads, one inter-op thread, errors-only log."""
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise InputError(f"threads must be an integer >= 1, got {threads!r}")
+    if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS:
+        raise InputError(f"threads must be an integer from 1 to {MAX_THREADS} (4 x the CPUs), got {threads!r}")
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
@@ -215,3 +223,22 @@ def load_onnx_model(path: str | Path, *, threads: int = 1, providers: Optional[S
     if not path.is_file():
         raise ModelError(f"{path}: no such model file")
     return onnx_model_from_bytes(path.read_bytes(), str(path), threads=threads, providers=providers)
+
+
+def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers=None) -> OnnxModel:
+    """A ``dimenet-model/1`` .onnx file, or without a path the bundled default model (ModelError
+    when this installation has none)."""
+    if path is not None:
+        return load_onnx_model(path, threads=threads, providers=providers)
+    return onnx_model_from_bytes(default_model_bytes(), DEFAULT_SOURCE, threads=threads, providers=providers)
+
+
+def default_model_bytes() -> bytes:
+    """The bundled default model's file, or ModelError when this installation has none."""
+    resource = asset(DEFAULT_MODEL)
+    if not resource.is_file():
+        raise ModelError(
+            f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
+            f"pass a model file from `dimenet export`"
+        )
+    return resource.read_bytes()

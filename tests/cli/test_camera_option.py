@@ -16,7 +16,7 @@ from dimenet.runtime.evaluation.calibration import read_calibration
 from dimenet.runtime.formats.camera import read_camera
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL
+from dimenet.runtime.rectify.model import DEFAULT_MODEL
 
 
 def write_camera(path, K, size):

@@ -24,8 +24,7 @@ from dimenet.runtime.errors import ModelError
 from dimenet.runtime.geometry import k_matrix
 from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.grid import Grid
-from dimenet.runtime.rectify.model import load_onnx_model, onnx_model_from_bytes
-from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL
+from dimenet.runtime.rectify.model import DEFAULT_MODEL, load_onnx_model, onnx_model_from_bytes
 from dimenet.runtime.rectify.spec import (
     METADATA_KEY,
     VERSION,

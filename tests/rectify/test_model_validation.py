@@ -24,8 +24,8 @@ from helpers import DEVICE_MODEL
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.dataset import read_dataset
-from dimenet.runtime.rectify.model import load_onnx_model, onnx_model_from_bytes
-from dimenet.runtime.rectify.rectifier import DEFAULT_MODEL, Rectifier
+from dimenet.runtime.rectify.model import DEFAULT_MODEL, load_onnx_model, onnx_model_from_bytes
+from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.spec import (
     METADATA_KEY,
     VERSION,

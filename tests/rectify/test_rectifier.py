@@ -19,7 +19,7 @@ from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
 from dimenet.runtime.geometry import check_not_degenerate, covariance_invariants, k_matrix, k_params
 from dimenet.runtime.rectify import checks
-from dimenet.runtime.rectify import rectifier as rectifier_module
+from dimenet.runtime.rectify import model as model_module
 from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.features import grid_features
 from dimenet.runtime.rectify.rectifier import Rectifier
@@ -230,6 +230,6 @@ def test_non_finite_or_worse_k_falls_back_to_k_c(frames, delta_k, reason):
 
 
 def test_missing_bundled_model_is_a_model_error(monkeypatch):
-    monkeypatch.setattr(rectifier_module, "DEFAULT_MODEL", "absent_model.onnx")
+    monkeypatch.setattr(model_module, "DEFAULT_MODEL", "absent_model.onnx")
     with pytest.raises(ModelError, match="no bundled default model"):
         Rectifier.load()

@@ -17,7 +17,8 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset, dataset_ca
 from dimenet.runtime.evaluation.metrics import reduction_ratio
 from dimenet.runtime.geometry.distortion import distort_points, mean_distorted_error, undistort_points
 from dimenet.runtime.rectify.camera import Camera, checked_camera
-from dimenet.runtime.rectify.rectifier import Rectifier, load_model
+from dimenet.runtime.rectify.model import load_model
+from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.sim.simulator import simulate
 
 # A phone main camera's barrel distortion (k1, k2, p1, p2, k3): ~90 px at a 12 MP corner.

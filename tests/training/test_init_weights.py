@@ -17,9 +17,8 @@ from onnx import helper, numpy_helper
 from dimenet.export.onnx_export import export_model
 from dimenet.export.opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.rectify import rectifier as rectifier_module
-from dimenet.runtime.rectify.model import load_onnx_model
-from dimenet.runtime.rectify.rectifier import load_model
+from dimenet.runtime.rectify import model as model_module
+from dimenet.runtime.rectify.model import load_model, load_onnx_model
 from dimenet.runtime.rectify.spec import METADATA_KEY
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.init_weights import InitialWeights, initial_weights
@@ -254,6 +253,6 @@ def test_broken_run_dirs_are_refused_by_name(tmp_path, torch_model, spec):
 
 
 def test_a_trimmed_installation_without_the_default_model_is_refused(tmp_path, monkeypatch):
-    monkeypatch.setattr(rectifier_module, "DEFAULT_MODEL", "absent_model.onnx")
+    monkeypatch.setattr(model_module, "DEFAULT_MODEL", "absent_model.onnx")
     with pytest.raises(ModelError, match=r"this installation has no bundled default model"):
         initial_weights("default")

@@ -11,7 +11,7 @@ pytest.importorskip("torch")
 from helpers import DEVICE_MODEL
 
 from dimenet.runtime.evaluation.predictor import load_onnx_predictor
-from dimenet.runtime.rectify.rectifier import load_model
+from dimenet.runtime.rectify.model import load_model
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.config import ReproduceConfig
 from dimenet.training.init_weights import initial_weights

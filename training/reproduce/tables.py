@@ -18,7 +18,7 @@ from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.jobs.engine import Engine
 from dimenet.runtime.rectify.grid import Grid
-from dimenet.runtime.rectify.rectifier import load_model
+from dimenet.runtime.rectify.model import load_model
 from dimenet.runtime.sim.simulator import simulate
 
 from ..config import ReproduceConfig, TrainConfig

@@ -195,7 +195,7 @@ def _run_fuzz(args: argparse.Namespace) -> int:
 
     from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
     from dimenet.runtime.bench.latency import bench_rectifier
-    from dimenet.runtime.rectify.rectifier import load_model
+    from dimenet.runtime.rectify.model import load_model
     from dimenet.runtime.sim.simulator import simulate
 
     o = _options(args, FUZZ)

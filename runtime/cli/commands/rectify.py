@@ -33,7 +33,9 @@ from dimenet.runtime.formats.points import PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.rectifier import MODES, BatchRectification, Rectifier, load_model
+from dimenet.runtime.rectify.model import load_model
+from dimenet.runtime.rectify.rectifier import MODES, Rectifier
+from dimenet.runtime.rectify.results import BatchRectification
 
 EXAMPLE_DATA = "example_frames.npz"
 EXAMPLE_CAMERA = "example_camera.json"  # the example's camera (galaxy-s8 K_c calibrated on its train split)

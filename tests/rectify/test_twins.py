@@ -1,4 +1,5 @@
-"""Each hot-path twin of rectify.fast against its numpy reference, on ordinary and edge inputs."""
+"""Each hot-path twin of the rectifier (beside its reference: geometry.camera, rectify.checks,
+rectify.spec) against that numpy reference, on ordinary and edge inputs."""
 
 import cv2
 import numpy as np
@@ -6,10 +7,10 @@ import pytest
 from helpers import random_frames
 
 from dimenet.runtime import geometry as g
-from dimenet.runtime.rectify import fast
-from dimenet.runtime.rectify.checks import ImageBounds
+from dimenet.runtime.geometry.camera import frame_error_and_depth, frame_mean_norm, frame_residuals
+from dimenet.runtime.rectify.checks import ImageBounds, all_inside
 from dimenet.runtime.rectify.features import FeatureSpec
-from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.spec import ModelSpec, frame_within_bounds
 
 
 def _frame(seed=0, points=320):
@@ -21,18 +22,16 @@ def test_frame_residuals_equal_the_reference_residuals():
     x, X, K, rvec, tvec = _frame()
     R = cv2.Rodrigues(rvec)[0]
     reference = g.reprojection_residuals(x, X, K, R, tvec)  # (2, N)
-    np.testing.assert_allclose(fast.frame_residuals(x, X, K, R, tvec).T, reference, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(frame_residuals(x, X, K, R, tvec).T, reference, rtol=0, atol=1e-9)
     assert np.abs(reference).max() > 0.1  # noisy points: the residuals are not trivially zero
 
 
 def test_frame_mean_norm_and_error_equal_the_reference_means():
     x, X, K, rvec, tvec = _frame(1)
     d = g.reprojection_residuals(x, X, K, cv2.Rodrigues(rvec)[0], tvec)
-    assert fast.frame_mean_norm(np.ascontiguousarray(d)) == pytest.approx(
-        g.mean_residual_norms(d[None], None)[0], rel=1e-12
-    )
+    assert frame_mean_norm(np.ascontiguousarray(d)) == pytest.approx(g.mean_residual_norms(d[None], None)[0], rel=1e-12)
     reference = g.mean_reprojection_error(x[None], X[None], None, K, rvec[None], tvec[None])[0]
-    e, depth = fast.frame_error_and_depth(x, X, K, rvec, tvec)
+    e, depth = frame_error_and_depth(x, X, K, rvec, tvec)
     assert e == pytest.approx(reference, rel=1e-9)
     assert depth == pytest.approx(g.min_depths(X[None], None, rvec[None], tvec[None])[0], rel=1e-12) and depth > 0
 
@@ -53,7 +52,7 @@ def test_all_inside_equals_the_reference_mask(edit):
     bounds = ImageBounds((4032, 3024))
     x, X = np.random.default_rng(2).uniform(0, 3000, (40, 2)), np.random.default_rng(3).uniform(-100, 100, (40, 3))
     edit(x, X)
-    assert fast.all_inside(bounds, x, X) == bool(bounds.inside(x, X).all())
+    assert all_inside(bounds, x, X) == bool(bounds.inside(x, X).all())
 
 
 @pytest.mark.parametrize(
@@ -76,4 +75,4 @@ def test_frame_within_bounds_is_the_spec_rule(k):
         K_bounds=bounds,
         hidden=(8,),
     )
-    assert fast.frame_within_bounds(k, bounds.tolist()) == bool(spec.k_within_bounds(np.array(k)))
+    assert frame_within_bounds(k, bounds.tolist()) == bool(spec.k_within_bounds(np.array(k)))

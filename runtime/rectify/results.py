@@ -1,0 +1,72 @@
+"""What the rectifier returns: one frame's ``Rectification``, B frames' ``BatchRectification``,
+and the lap timer that fills a frame's ``timings_us``."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Callable, Optional
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """One frame. K (3, 3) px; rvec (3,) rad and tvec (3,) mm {W}->{C} under K; the mean Euclidean
+    reprojection errors (px) over the given points under K and under K_c (each with its own
+    pose); delta_k (4,) px the applied (dfx, dfy, dcx, dcy), 0 on fallback; fallback None or
+    why K_c's solution (or in map mode, DIME-Net's) was returned; timings_us: microseconds per
+    stage; K_cov (4, 4) px^2 the covariance of (fx, fy, cx, cy): the network's (mode dimenet)
+    or the MAP posterior (mode map); None when K is K_c's or the model has no uncertainty;
+    K_c (3, 3) px the prior used (``Rectifier.K_c``). ``covariance`` computes K_cov when first
+    asked for: the hot path does not pay for it."""
+
+    K: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    reprojection_error_px: float
+    reprojection_error_kc_px: float
+    delta_k: np.ndarray
+    fallback: Optional[str]
+    timings_us: dict
+    K_c: np.ndarray
+    covariance: Optional[Callable[[], np.ndarray]] = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def K_cov(self) -> Optional[np.ndarray]:
+        """(4, 4) px^2, computed on first access from ``covariance`` (None without one)."""
+        return None if self.covariance is None else self.covariance()
+
+
+@dataclass(frozen=True)
+class BatchRectification:
+    """B frames, as Rectification: K (B, 3, 3), rvec (B, 3), tvec (B, 3), errors (B,) px over
+    each frame's valid points, delta_k (B, 4) px, fallback: one reason or None per frame;
+    K_c (3, 3) px the prior used; K_cov (B, 4, 4) px^2, NaN for frames whose K is K_c's, or
+    None without an uncertainty model."""
+
+    K: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    reprojection_error_px: np.ndarray
+    reprojection_error_kc_px: np.ndarray
+    delta_k: np.ndarray
+    fallback: tuple
+    K_c: np.ndarray
+    K_cov: Optional[np.ndarray] = None
+
+
+class Lap:
+    """Microseconds per stage: each call closes the stage that ran since the previous call."""
+
+    __slots__ = ("timings", "_last")
+
+    def __init__(self) -> None:
+        self.timings: dict = {}
+        self._last = time.perf_counter_ns()
+
+    def __call__(self, stage: str) -> None:
+        now = time.perf_counter_ns()
+        self.timings[stage] = (now - self._last) / 1e3
+        self._last = now

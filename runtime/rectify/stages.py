@@ -1,0 +1,455 @@
+"""The rectifier's stages after validation, each as a pair: one frame (``frame_*``) and B frames
+(``batch_*``) side by side, both keeping the same rule of ``rectify.checks``. The stages run in the
+model's pixels (``ModelCamera``); a frame's result comes back in the user's.
+
+The frame path works on plain floats and OpenCV (the hot path); the batch path on (B, ...) arrays.
+A batch of one costs about 2.4 times a single frame, so both stay.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import partial
+from typing import Callable, Optional
+
+import cv2
+import numpy as np
+
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, mean_reprojection_error, min_depths
+from dimenet.runtime.geometry import solve_pnp_start as pnp
+from dimenet.runtime.geometry.camera import frame_error_and_depth, frame_mean_norm
+from dimenet.runtime.geometry.distortion import mean_distorted_error, undistort_points
+from dimenet.runtime.rectify.camera import Camera, PixelMap
+from dimenet.runtime.rectify.checks import (
+    BEHIND_REASON,
+    NO_POSE_REASON,
+    Frames,
+    ImageBounds,
+    behind_camera_error,
+    implausible_reason,
+    in_frame,
+    loses_to_k_c,
+    out_of_range,
+    out_of_range_reason,
+    worse_reason,
+)
+from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.rectify.inference import NetworkK, network_statistics
+from dimenet.runtime.rectify.map_fit import map_rectify
+from dimenet.runtime.rectify.results import BatchRectification, Rectification
+from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera, frame_within_bounds
+from dimenet.runtime.rectify.uncertainty import occupied_cells, thickness
+
+
+@dataclass(frozen=True, eq=False)
+class ModelCamera:
+    """The camera a ``Rectifier`` serves, built once: ``spec`` the model's spec in model px (its
+    K_c, image size and K_bounds those of the camera mapped onto the model's pixels); K_c (3, 3),
+    k_c (4,) and fx_c model px, with ``k_c_list`` and ``K_bounds_list`` as floats for the frame
+    path; ``image`` the user's image (the input rule's bounds); ``pixels`` the map from the user's
+    pixels onto the model's (None: the same) and ``user_px`` user px per model px; the lens
+    (``lens_K`` (3, 3) px, ``dist_coeffs``; None without one); ``K_c_user`` (3, 3) the prior in the
+    user's pixels (read-only)."""
+
+    spec: ModelSpec
+    K_c: np.ndarray
+    k_c: np.ndarray
+    k_c_list: list
+    fx_c: float
+    K_bounds_list: list
+    image: ImageBounds
+    pixels: Optional[PixelMap]
+    user_px: float
+    lens_K: Optional[np.ndarray]
+    dist_coeffs: Optional[np.ndarray]
+    K_c_user: np.ndarray
+
+    @classmethod
+    def build(cls, served: ServedCamera, camera: Optional[Camera]) -> ModelCamera:
+        spec = served.model
+        k_c = k_params(spec.K_c)
+        K_c_user = served.K_c.copy()
+        K_c_user.setflags(write=False)
+        return cls(
+            spec=spec,
+            K_c=np.ascontiguousarray(spec.K_c, dtype=np.float64),
+            k_c=k_c,
+            k_c_list=k_c.tolist(),
+            fx_c=float(k_c[0]),
+            K_bounds_list=spec.K_bounds.tolist(),
+            image=ImageBounds(served.image_size),
+            pixels=served.pixels,
+            user_px=1.0 if served.pixels is None else 1.0 / served.pixels.scale,
+            lens_K=None if camera is None else camera.lens_K,
+            dist_coeffs=None if camera is None else camera.dist_coeffs,
+            K_c_user=K_c_user,
+        )
+
+    def to_model(self, points_2d: np.ndarray) -> np.ndarray:
+        """(..., 2) points in the user's pixels (distorted by the lens) -> the model's pinhole pixels."""
+        if self.dist_coeffs is not None:
+            points_2d = undistort_points(points_2d, self.lens_K, self.dist_coeffs)
+        return points_2d if self.pixels is None else self.pixels.points_to_model(points_2d)
+
+    def user_k(self, k) -> np.ndarray:
+        """(4,) (fx, fy, cx, cy) model px -> the user's px (for the reasons)."""
+        return np.asarray(k) if self.pixels is None else self.pixels.k_to_user(k)
+
+    def image_errors(self, p2_image, p3, valid, K, rvecs, tvecs) -> np.ndarray:
+        """Mean errors (px) in the lens's distorted image of (B, N) points (the user's) for each of
+        the candidate (K, pose) pairs: K (M, 3, 3) px, rvecs and tvecs M arrays (B, 3) or (3,) -> (M, B)."""
+        return np.stack(
+            [
+                mean_distorted_error(
+                    p2_image,
+                    p3,
+                    valid,
+                    K[m],
+                    np.reshape(rvecs[m], (-1, 3)),
+                    np.reshape(tvecs[m], (-1, 3)),
+                    self.lens_K,
+                    self.dist_coeffs,
+                )
+                for m in range(len(K))
+            ]
+        )
+
+
+@dataclass
+class Candidate:
+    """The K on offer for one frame while the stages run: K (3, 3) and delta_k (4,) px; its pose
+    {W}->{C} (None until solved) and whether PnP solved it (refine may polish it); e (px), its
+    mean error over the frame's points (None until measured); covariance: computes K_cov (None:
+    none); note: why map's K gave way to DIME-Net's (None otherwise)."""
+
+    K: np.ndarray
+    delta_k: np.ndarray
+    covariance: Optional[Callable[[], np.ndarray]]
+    rvec: Optional[np.ndarray] = None
+    tvec: Optional[np.ndarray] = None
+    from_pnp: bool = False
+    e: Optional[float] = None
+    note: Optional[str] = None
+
+
+@dataclass
+class BatchCandidates:
+    """``Candidate`` of B frames: K (B, 3, 3), delta_k (B, 4) px, their poses rvec, tvec (B, 3),
+    K_cov (B, 4, 4) px^2 or None; reasons: why each frame's candidate was refused (None:
+    standing); notes: map's soft fallbacks; from_map (B,) bool: the pose is the MAP fit's own (not
+    PnP's, so refine leaves it, as it does a frame's)."""
+
+    K: np.ndarray
+    delta_k: np.ndarray
+    rvec: np.ndarray
+    tvec: np.ndarray
+    K_cov: Optional[np.ndarray]
+    reasons: list
+    notes: list
+    from_map: np.ndarray
+
+    @property
+    def standing(self) -> np.ndarray:
+        return np.array([r is None for r in self.reasons])
+
+
+def refined(points_2d, points_3d, K, rvec, tvec) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.solvePnPRefineLM polish of a pose: least-squares reprojection error under K."""
+    r, t = cv2.solvePnPRefineLM(points_3d, points_2d, K, None, rvec.reshape(3, 1).copy(), tvec.reshape(3, 1).copy())
+    return r.ravel(), t.ravel()
+
+
+# -- pnp_kc: the C0 poses under K_c ------------------------------------------------------------
+
+
+def batch_c0_poses(cam: ModelCamera, fr: Frames) -> tuple[np.ndarray, np.ndarray]:
+    """SQPnP poses {W}->{C0} under K_c on each frame's valid points; InputError naming a frame with
+    a point behind the camera (a frame's ``frame_features`` checks it from the feature's points)."""
+    B = len(fr.frames)
+    rvec_c0, tvec_c0 = np.empty((B, 3)), np.empty((B, 3))
+    for b, (x, X) in enumerate(fr.frames):
+        rvec_c0[b], tvec_c0[b] = in_frame(b, pnp, x, X, cam.K_c)
+    behind = min_depths(fr.points_3d, fr.mask, rvec_c0, tvec_c0) <= 0
+    if behind.any():
+        b = int(np.argmax(behind))
+        x, X = fr.frames[b]
+        Z = X @ cv2.Rodrigues(rvec_c0[b])[0][2] + tvec_c0[b, 2]
+        raise InputError(f"frame {b}: {behind_camera_error(int(np.count_nonzero(Z <= 0)), len(X))}")
+    return rvec_c0, tvec_c0
+
+
+def batch_inference_poses(cam: ModelCamera, fr: Frames, rvec_c0, tvec_c0, reasons: list):
+    """The C0 poses of the inference points: the valid points' when they are the inference
+    points, else SQPnP under K_c on each frame's inference points; frames with too few of
+    them or no pose get a fallback reason and an empty inference mask. -> (infer, rvec, tvec)."""
+    if fr.infer is fr.valid:
+        return fr.infer, rvec_c0, tvec_c0
+    rvec, tvec, infer = rvec_c0.copy(), tvec_c0.copy(), fr.infer.copy()
+    for b in range(len(infer)):
+        n = int(infer[b].sum())
+        try:
+            if n < MIN_POINTS:
+                raise InputError(f"{n} inference points, fewer than {MIN_POINTS}")
+            rvec[b], tvec[b] = pnp(fr.points_2d[b][infer[b]], fr.points_3d[b][infer[b]], cam.K_c)
+        except InputError as exc:
+            reasons[b], infer[b] = f"no K inferred: {exc}", False
+    return infer, rvec, tvec
+
+
+# -- features: the network's input at the C0 pose (a batch's: ``inference.network_k``) ---------
+
+
+def frame_features(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0) -> tuple[np.ndarray, float]:
+    """One frame's grid feature (1, D) at its C0 pose and e_c, its mean error (px) under K_c there
+    (the feature's PMD rows); InputError when a point lies behind the camera."""
+    feats, points = grid_features(
+        p2[None],
+        p3[None],
+        None,
+        cam.K_c,
+        cam.spec.image_size,
+        cam.spec.features,
+        poses=(rvec_c0[None], tvec_c0[None]),
+        return_points=True,
+    )
+    if not cv2.checkRange(points[0, 4], True, 0.0, np.inf)[0]:  # 1 / Z_C0 <= 0: a point behind the camera
+        raise behind_camera_error(int(np.count_nonzero(points[0, 4] <= 0)), len(p2))
+    return feats, frame_mean_norm(points[0, :2])
+
+
+# -- model's end: the range rule, the K-bounds rule and the network's covariance ----------------
+
+
+def frame_candidate(cam: ModelCamera, delta_k, feats, n_points: int, e_c: float, invariants_3d: tuple):
+    """(candidate, None), or (None, why) when e_c is beyond the model's range or K = K_c + Delta K
+    breaks the K-bounds rule."""
+    if out_of_range(e_c, cam.fx_c):
+        return None, out_of_range_reason(e_c, cam.fx_c, cam.user_px)
+    k = [c + d for c, d in zip(cam.k_c_list, delta_k.tolist())]
+    if not frame_within_bounds(k, cam.K_bounds_list):
+        return None, implausible_reason(delta_k, cam.user_k(k))
+    covariance = None
+    if cam.spec.uncertainty is not None:  # computed when K_cov is first asked for: the hot path does not pay
+        covariance = partial(_frame_covariance, cam.spec, feats, n_points, e_c, invariants_3d)
+    return Candidate(K=k_matrix(k), delta_k=delta_k, covariance=covariance), None
+
+
+def _frame_covariance(spec: ModelSpec, feats: np.ndarray, n_points: int, pmd_px: float, invariants_3d: tuple):
+    """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count, mean
+    PMD (px) and the ``covariance_invariants`` of its 3D points."""
+    cells = occupied_cells(feats, len(spec.features.channels))[0]
+    return spec.uncertainty.frame_covariance(n_points, cells, pmd_px, thickness(*invariants_3d))
+
+
+def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_c0, e_c0, reasons: list):
+    """The range rule on e_c0 (B,) px and the K-bounds rule of B frames, then SQPnP under each
+    standing K on the frame's valid points (``frame_pose``)."""
+    cand = BatchCandidates(
+        K=k_matrix(net.k),
+        delta_k=net.delta_k,
+        rvec=rvec_c0.copy(),
+        tvec=tvec_c0.copy(),
+        K_cov=None,
+        reasons=reasons,
+        notes=[None] * len(reasons),
+        from_map=np.zeros(len(reasons), bool),
+    )
+    far = out_of_range(e_c0, cam.fx_c)
+    for b, (x, X) in enumerate(fr.frames):
+        if reasons[b] is None and far[b]:
+            reasons[b] = out_of_range_reason(e_c0[b], cam.fx_c, cam.user_px)
+        if reasons[b] is None and not net.plausible[b]:
+            reasons[b] = implausible_reason(net.delta_k[b], cam.user_k(net.k[b]))
+        if reasons[b] is None:
+            try:
+                cand.rvec[b], cand.tvec[b] = pnp(x, X, cand.K[b])
+            except InputError:
+                reasons[b] = NO_POSE_REASON
+    return cand
+
+
+def batch_covariances(cam: ModelCamera, cand: BatchCandidates, net, fr: Frames, infer, pending, pmd_px) -> None:
+    """The network's K_cov of the pending frames (NaN elsewhere), in place. With K inferred from the
+    valid points, validation's 3D invariants and ``pmd_px`` are those of the inference points."""
+    cand.K_cov = np.full((len(infer), 4, 4), np.nan)
+    if not pending.any():
+        return
+    n_channels = len(cam.spec.features.channels)
+    if pmd_px is not None:
+        known = (pmd_px[pending], tuple(a[pending] for a in fr.invariants_3d))
+        stats = network_statistics(net, pending, infer, fr.points_3d, n_channels, *known)
+    else:
+        stats = network_statistics(net, pending, infer, fr.points_3d, n_channels)
+    cand.K_cov[pending] = cam.spec.uncertainty.covariance(stats)
+
+
+# -- map (mode map): the network's K as a prior fused with the frame's points --------------------
+
+
+def _map(cam: ModelCamera, p2, p3, k_net: np.ndarray, K_cov_net: np.ndarray, rvec_c0, tvec_c0):
+    """(the MAP fit, None), or (None, the note saying why DIME-Net's K stands)."""
+    spec = cam.spec
+    fit, why = map_rectify(
+        p2, p3, k_net, K_cov_net, spec.K_bounds, cam.K_c, pose=(rvec_c0, tvec_c0), uncertainty=spec.uncertainty
+    )
+    return (fit, None) if why is None else (None, f"map: {why}; DIME-Net's K is returned")
+
+
+def frame_map(cam: ModelCamera, p2, p3, cand: Candidate, rvec_c0, tvec_c0) -> Candidate:
+    """From the C0 pose (MAP needs no PnP under the network's K): the MAP K, pose and posterior,
+    or the DIME-Net candidate with a note."""
+    fit, note = _map(cam, p2, p3, cam.k_c + cand.delta_k, cand.covariance(), rvec_c0, tvec_c0)
+    if fit is None:
+        return replace(cand, note=note)
+    return Candidate(
+        K=k_matrix(fit.k),
+        delta_k=fit.k - cam.k_c,
+        covariance=partial(np.array, fit.K_cov),
+        rvec=fit.rvec,
+        tvec=fit.tvec,
+        e=frame_mean_norm(fit.residuals.T),
+    )
+
+
+def batch_maps(cam: ModelCamera, cand: BatchCandidates, net, fr: Frames, infer, poses_i, pending) -> None:
+    """The pending frames' MAP K from their inference points and their C0 pose, in place, and the pose
+    on their valid points; a failed fit leaves DIME-Net's K and a note."""
+    for b in np.flatnonzero(pending):
+        m = infer[b]
+        x, X = fr.points_2d[b][m], fr.points_3d[b][m]
+        fit, cand.notes[b] = _map(cam, x, X, net.k[b], cand.K_cov[b], poses_i[0][b], poses_i[1][b])
+        if fit is not None:
+            cand.K[b], cand.delta_k[b], cand.K_cov[b] = k_matrix(fit.k), fit.k - cam.k_c, fit.K_cov
+            if infer is fr.valid:
+                cand.rvec[b], cand.tvec[b], cand.from_map[b] = fit.rvec, fit.tvec, True
+            else:
+                cand.rvec[b], cand.tvec[b] = pnp(*fr.frames[b], cand.K[b])
+
+
+# -- pnp_k: the pose under the candidate K (a batch's: in ``batch_candidates``) ------------------
+
+
+def frame_pose(p2, p3, cand: Candidate) -> Optional[str]:
+    """SQPnP pose under the candidate's K into ``cand``; NO_POSE_REASON when there is none."""
+    try:
+        cand.rvec, cand.tvec = pnp(p2, p3, cand.K)
+    except InputError:
+        return NO_POSE_REASON
+    cand.from_pnp = True
+    return None
+
+
+# -- check: the errors and the one fallback rule ------------------------------------------------
+
+
+def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, rvec_c0, tvec_c0) -> tuple:
+    """e(K) over the frame's points, the cheirality and worse-than-K_c rules; on a refusal (``reason``
+    or one of these) K_c's own solution. -> (the candidate standing, the reason or None)."""
+    if reason is None and cand.e is None:
+        cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
+        if depth <= 0:
+            reason = BEHIND_REASON
+    if reason is None and loses_to_k_c(cand.e, e_c, cam.fx_c):
+        reason = worse_reason(cand.e, e_c, cam.fx_c, cam.user_px)
+    if reason is not None:
+        cand = Candidate(
+            K=cam.K_c_user.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
+        )
+    return cand, reason
+
+
+def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c) -> np.ndarray:
+    """e(K) over each frame's valid points (e_c where not pending), and the cheirality and
+    worse-than-K_c rules into ``cand.reasons``."""
+    e = e_c.copy()
+    if pending.any():
+        mask = None if fr.mask is None else fr.mask[pending]
+        behind = min_depths(fr.points_3d[pending], mask, cand.rvec[pending], cand.tvec[pending]) <= 0
+        for b in np.flatnonzero(pending)[behind]:
+            cand.reasons[b] = BEHIND_REASON
+        pending = pending & cand.standing
+    if pending.any():
+        e[pending] = mean_reprojection_error(
+            fr.points_2d[pending],
+            fr.points_3d[pending],
+            None if fr.mask is None else fr.mask[pending],
+            cand.K[pending],
+            cand.rvec[pending],
+            cand.tvec[pending],
+        )
+    for b in np.flatnonzero(pending & loses_to_k_c(e, e_c, cam.fx_c)):
+        cand.reasons[b] = worse_reason(e[b], e_c[b], cam.fx_c, cam.user_px)
+    return e
+
+
+# -- the result, in the user's pixels -----------------------------------------------------------
+
+
+def frame_result(cam: ModelCamera, cand: Candidate, e_c: float, timings: dict, fell_back: bool, lens) -> Rectification:
+    """The frame's result in the user's pixels (``PixelMap``; the pose is the same in both; on
+    fallback K is K_c); ``lens`` (points_2d as given, points_3d, rvec_c0, tvec_c0) puts e and e_c in
+    the distorted image when the camera has a lens."""
+    pixels, to_user = cam.pixels, cam.user_px
+    covariance = cand.covariance
+    if covariance is not None and pixels is not None:
+        covariance = partial(_covariance_to_user, pixels, covariance)
+    K = cand.K
+    if pixels is not None:
+        K = cam.K_c_user.copy() if fell_back else pixels.K_to_user(cand.K)
+    e, e_c = cand.e * to_user, e_c * to_user
+    if cam.dist_coeffs is not None:
+        p2_image, p3, rvec_c0, tvec_c0 = lens
+        errors = cam.image_errors(
+            p2_image[None], p3[None], None, np.stack([K, cam.K_c_user]), (cand.rvec, rvec_c0), (cand.tvec, tvec_c0)
+        )
+        e, e_c = float(errors[0, 0]), float(errors[1, 0])
+    return Rectification(
+        K=K,
+        rvec=cand.rvec,
+        tvec=cand.tvec,
+        reprojection_error_px=e,
+        reprojection_error_kc_px=e_c,
+        delta_k=cand.delta_k * to_user if pixels is not None else cand.delta_k,
+        fallback=cand.note,
+        timings_us=timings,
+        K_c=cam.K_c_user,
+        covariance=covariance,
+    )
+
+
+def _covariance_to_user(pixels: PixelMap, covariance: Callable[[], np.ndarray]) -> np.ndarray:
+    return pixels.covariance_to_user(covariance())
+
+
+def batch_result(cam: ModelCamera, cand: BatchCandidates, fr: Frames, e, e_c, c0_poses) -> BatchRectification:
+    """B frames' result in the user's pixels: fallen-back frames (``cand.reasons``) get K_c's own
+    solution at their C0 pose ``c0_poses`` (rvec_c0, tvec_c0); e and e_c in the distorted image
+    when the camera has a lens."""
+    rvec_c0, tvec_c0 = c0_poses
+    fell_back = ~cand.standing
+    cand.rvec[fell_back], cand.tvec[fell_back], e[fell_back] = rvec_c0[fell_back], tvec_c0[fell_back], e_c[fell_back]
+    K, delta_k, K_cov = cand.K, cand.delta_k, cand.K_cov
+    if cam.pixels is not None:
+        K, delta_k, e, e_c = cam.pixels.K_to_user(K), delta_k * cam.user_px, e * cam.user_px, e_c * cam.user_px
+        K_cov = None if K_cov is None else cam.pixels.covariance_to_user(K_cov)
+    K[fell_back], delta_k[fell_back] = cam.K_c_user, 0.0
+    if K_cov is not None:
+        K_cov[fell_back] = np.nan
+    if cam.dist_coeffs is not None:
+        p3 = np.where(fr.valid[..., None], fr.points_3d, 0.0)
+        K_cs = np.broadcast_to(cam.K_c_user, K.shape)
+        e, e_c = cam.image_errors(
+            fr.points_2d_image, p3, fr.mask, np.stack([K, K_cs]), (cand.rvec, rvec_c0), (cand.tvec, tvec_c0)
+        )
+    return BatchRectification(
+        K=K,
+        rvec=cand.rvec,
+        tvec=cand.tvec,
+        reprojection_error_px=e,
+        reprojection_error_kc_px=e_c,
+        delta_k=delta_k,
+        fallback=tuple(r if r is not None else n for r, n in zip(cand.reasons, cand.notes)),
+        K_c=cam.K_c_user,
+        K_cov=K_cov,
+    )
