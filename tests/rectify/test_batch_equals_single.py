@@ -34,11 +34,15 @@ def cases(frames):
     half_K[:2, :2] /= 2
     half_K[:2, 2] = to_half(spec.K_c[:2, 2])
     half = Camera(half_K, tuple(int(s) // 2 for s in spec.image_size))
-    return {
-        "device": (linear_model(spec), own, p2),
-        "generic": (load_model(), own, p2),
-        "device-half": (linear_model(spec), half, to_half(p2)),
-    }, p3, valid
+    return (
+        {
+            "device": (linear_model(spec), own, p2),
+            "generic": (load_model(), own, p2),
+            "device-half": (linear_model(spec), half, to_half(p2)),
+        },
+        p3,
+        valid,
+    )
 
 
 @pytest.mark.parametrize("refine", [False, True])
