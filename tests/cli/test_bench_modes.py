@@ -70,7 +70,8 @@ def test_bench_without_torch_still_runs_its_help():
 def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
     assert main(["bench", "--fuzz", "12", "--seed", "3", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert set(report["counts"]) == {"rectify", "rectify_batch", "dataset file", "model file", "rig file"}
+    areas = {"rectify", "rectify_batch", "dataset file", "model file", "rig file", "crafted model"}
+    assert set(report["counts"]) == areas
     assert sum(report["counts"]["rectify"].values()) == 24  # 12 per mode
     assert report["failures"] == [] and all("crash" not in c for c in report["counts"].values())
     assert main(["bench", "--fuzz", "3", "--bpnp"]) == 2
