@@ -15,7 +15,7 @@ from helpers import DEVICE_MODEL
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify.model import load_onnx_model
-from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES, check_model_bytes
+from dimenet.runtime.rectify.onnx_graph import MAX_FIELDS, MAX_MODEL_BYTES, check_model_bytes
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_KEY
 
@@ -203,3 +203,24 @@ def test_bytes_that_are_no_protobuf_are_not_a_loadable_model():
     for blob in (b"\x0a\xff\xff\xff\xff\x0f", b"\x0b\x00", b"\x80" * 11, b"\x00\x01"):
         with pytest.raises(ModelError, match=r"^junk: not a loadable ONNX model \(malformed protobuf: "):
             check_model_bytes(blob, "junk")
+
+
+def test_a_file_of_countless_tiny_fields_is_refused_within_the_field_budget():
+    import time
+
+    blob = b"\x08\x00" * (MAX_MODEL_BYTES // 2)  # 33 million fields: 11 s to walk them all
+    start = time.monotonic()
+    with pytest.raises(ModelError, match=rf"^tiny: more than {MAX_FIELDS} protobuf fields"):
+        check_model_bytes(blob, "tiny")
+    assert time.monotonic() - start < 2.0
+
+
+def test_a_name_with_control_characters_stays_on_one_line(tmp_path):
+    def renamed(proto):
+        tanh_for_erf(proto)
+        next(n for n in proto.graph.node if n.op_type == "Tanh").name = "evil\n\x1b[2J" + "x" * 500
+
+    with pytest.raises(ModelError) as refused:
+        check_model_bytes(crafted(renamed), "m.onnx")
+    message = str(refused.value)
+    assert "\n" not in message and "\x1b" not in message and "'evil\\n\\x1b[2J" in message and len(message) < 300
