@@ -140,13 +140,13 @@ def read_manifest(path: str | Path) -> list:
     return out
 
 
-def job_config(job: FleetJob) -> dict:
+def _job_config(job: FleetJob) -> dict:
     """What a finished job was trained with, as its fleet.json records it (JSON values): every
     TrainConfig field and the init."""
     return json.loads(json.dumps({**dataclasses.asdict(job.config), "init": job.init}))
 
 
-def changed(record: dict, config: dict, dataset_sha256: str) -> Optional[str]:
+def _changed(record: dict, config: dict, dataset_sha256: str) -> Optional[str]:
     """Why a finished job's record (its fleet.json) does not fit the job now, or None when it
     does: "config changed: epochs 10 -> 20, ...", "dataset changed", or no record of either."""
     if not isinstance(record.get("config"), dict) or "dataset_sha256" not in record:
@@ -175,14 +175,14 @@ def run_job(item: tuple) -> dict:
     job, out = item
     final = Path(out) / job.name
     datasets, sha256 = read_training_data(job.dataset)
-    config = job_config(job)
+    config = _job_config(job)
     reason = None
     if (final / FLEET_FILE).is_file():
         try:
             record = json.loads((final / FLEET_FILE).read_text(encoding="utf-8"))
         except ValueError:  # not UTF-8 or not JSON
             record = None
-        reason = changed(record, config, sha256) if isinstance(record, dict) else f"its {FLEET_FILE} is unreadable"
+        reason = _changed(record, config, sha256) if isinstance(record, dict) else f"its {FLEET_FILE} is unreadable"
         if reason is None:
             return {**record, "resumed": True}
     partial = Path(out) / f".{job.name}.partial"
