@@ -8,20 +8,15 @@ import shlex
 import sys
 from pathlib import Path
 
-from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.arguments import grid_size, nonempty_path, seed
 from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 
-from .config import ReproduceConfig, TrainConfig
+from .config import FEATURE_VARIANTS, ReproduceConfig, TrainConfig, epochs, focal_weight, train_frames
 
 # The defaults --help states are the dataclasses' own (training/config.py imports no torch).
 TRAIN_DEFAULTS = TrainConfig()
 REPRODUCE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(ReproduceConfig) if f.name != "out_dir"}
-# The flags are range-checked by their argparse types, so a bad value is refused before torch is imported.
-MAX_EPOCHS = 100_000  # the paper's models train 600; 2**40 would run for ever
-MAX_FOCAL_WEIGHT = 1000.0  # 1e300 overflows the loss (NaN poses)
-epochs = integer_in(1, MAX_EPOCHS)
-MAX_TRAIN_FRAMES = 1_000_000
 
 
 def _add_train(p: argparse.ArgumentParser) -> None:
@@ -38,7 +33,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--features",
         default=d.variant,
-        choices=tuple("ABCDE"),
+        choices=FEATURE_VARIANTS,
         help=f"feature variant of paper Table 3 (default {d.variant})",
     )
     p.add_argument(
@@ -47,7 +42,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=seed, default=d.seed, help=f"seed: same seed, same model (default {d.seed})")
     p.add_argument(
         "--focal-weight",
-        type=finite_float_in(0.0, MAX_FOCAL_WEIGHT),
+        type=focal_weight,
         default=d.focal_weight,
         metavar="W",
         help="weight of the focal term, the squared error (px^2) of the net's fx, fy against "
@@ -61,7 +56,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--train-frames",
-        type=integer_in(2, MAX_TRAIN_FRAMES),
+        type=train_frames,
         metavar="N",
         help="keep only the first N train frames of each dataset, in file order (default: all)",
     )

@@ -10,6 +10,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+from dimenet.runtime.cli.arguments import finite_float_in, integer_in
+
+# The flags are range-checked by their argparse types, so a bad value is refused before torch is imported;
+# a fleet manifest's values go through the same types (training/fleet.py).
+MAX_EPOCHS = 100_000  # the paper's models train 600; 2**40 would run for ever
+MAX_FOCAL_WEIGHT = 1000.0  # 1e300 overflows the loss (NaN poses)
+MAX_TRAIN_FRAMES = 1_000_000
+FEATURE_VARIANTS = tuple("ABCDE")  # paper Table 3 (rectify.features.VARIANTS)
+epochs = integer_in(1, MAX_EPOCHS)
+focal_weight = finite_float_in(0.0, MAX_FOCAL_WEIGHT)
+train_frames = integer_in(2, MAX_TRAIN_FRAMES)
+
 
 @dataclass(frozen=True)
 class TrainConfig:

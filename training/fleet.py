@@ -6,15 +6,23 @@ with per job a unique ``name`` (its run dir ``DIR/<name>``), a ``dataset`` (a .n
 family folder, relative to the manifest) and any of `dimenet train`'s options: ``init``,
 ``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``.
 
+Every value goes through the argparse type `dimenet train` gives its flag (training/config.py),
+so a manifest passes nothing the command line refuses; a job name may not be one of the files
+the fleet writes into DIR (RESERVED, in any case).
+
 Each job trains into ``DIR/.<name>.partial`` and is renamed to ``DIR/<name>`` when it is done
-(with ``fleet.json``: its rho and errors on the dataset's test split and its seconds), so a run
-dir is there whole or not at all, and a second run skips the jobs already done (resume). A
-failed job is reported by name; the others finish. The jobs run one after another, or as Ray
+(with ``fleet.json``: its rho and errors on the dataset's test split, its seconds, and its
+configuration and dataset sha256), so a run dir is there whole or not at all, and a second run
+skips the jobs already done with the same configuration on the same data (resume); a job whose
+configuration or dataset changed is trained again and the summary says why. A failed job is
+reported by name; the others finish. The jobs run one after another, or as Ray
 jobs with ``--address`` (``runtime.jobs.engine``).
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import re
 import shutil
@@ -22,19 +30,37 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional
 
+from dimenet.runtime.cli.arguments import grid_size, seed
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.text import read_text
-from dimenet.runtime.json_text import JsonProblem, an_object, integer, parse_json, required, shown
+from dimenet.runtime.json_text import JsonProblem, an_object, parse_json, required, shown
 
-from .config import TrainConfig
+from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, train_frames
 
 FLEET_FILE, SUMMARY_MD, SUMMARY_JSON = "fleet.json", "summary.md", "summary.json"
+RESERVED = (SUMMARY_MD, SUMMARY_JSON)  # what the fleet itself writes into DIR, besides the run dirs
 MAX_MANIFEST_BYTES = 4 << 20
 MAX_JOBS = 10_000
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
-# Manifest key -> TrainConfig field, for the options a job may set (as `dimenet train` names them).
-_OPTIONS = {"seed": "seed", "epochs": "epochs", "grid": "grid", "features": "variant", "focal_weight": "focal_weight"}
+
+
+def _features(text: str) -> str:
+    if text not in FEATURE_VARIANTS:
+        raise argparse.ArgumentTypeError(f"must be one of {', '.join(FEATURE_VARIANTS)}, got {text!r}")
+    return text
+
+
+# Manifest key -> (TrainConfig field, JSON type, the argparse type of `dimenet train`'s flag).
+_OPTIONS = {
+    "seed": ("seed", int, seed),
+    "epochs": ("epochs", int, epochs),
+    "grid": ("grid", str, grid_size),
+    "features": ("variant", str, _features),
+    "focal_weight": ("focal_weight", float, focal_weight),
+    "train_frames": ("train_frames", int, train_frames),
+}
+_KEYS = {attr: key for key, (attr, _, _) in _OPTIONS.items()}  # TrainConfig field -> manifest key
 
 
 class ManifestError(DimenetError):
@@ -51,18 +77,33 @@ class FleetJob:
     config: TrainConfig
 
 
+def _option(key: str, value):
+    """A manifest value through the argparse type of `dimenet train`'s flag (JsonProblem naming the key)."""
+    _, kind, parse = _OPTIONS[key]
+    if kind is str and not isinstance(value, str):
+        raise JsonProblem(f"{key} must be a string, got {shown(value)}")
+    if kind is int and not (isinstance(value, int) and not isinstance(value, bool)):
+        raise JsonProblem(f"{key} must be an integer, got {shown(value)}")
+    if kind is float and not (isinstance(value, (int, float)) and not isinstance(value, bool)):
+        raise JsonProblem(f"{key} must be a number, got {shown(value)}")
+    try:
+        return parse(value if kind is str else str(value))
+    except argparse.ArgumentTypeError as exc:
+        raise JsonProblem(f"{key}: {exc}") from None
+
+
 def _job(d, base: Path, names: set) -> FleetJob:
     d = an_object(d, "a job")
     name = required(d, "name")
     if not (isinstance(name, str) and _NAME.fullmatch(name)):
         raise JsonProblem(f"name must be letters, digits, '.', '_' or '-' (a folder name), got {shown(name)}")
-    if name in names:
-        raise JsonProblem(f"name {name!r} is used twice (each job has its own run dir)")
-    unknown = sorted(set(d) - {"name", "dataset", "init", "train_frames", *_OPTIONS})
+    if name.casefold() in {r.casefold() for r in RESERVED}:
+        raise JsonProblem(f"name {name!r} is a file the fleet writes into its folder ({', '.join(RESERVED)})")
+    if name.casefold() in names:
+        raise JsonProblem(f"name {name!r} is used twice, in any case (each job has its own run dir)")
+    unknown = sorted(set(d) - {"name", "dataset", "init", *_OPTIONS})
     if unknown:
-        raise JsonProblem(
-            f"{unknown[0]!r} is not a job field (known: name, dataset, init, train_frames, {', '.join(_OPTIONS)})"
-        )
+        raise JsonProblem(f"{unknown[0]!r} is not a job field (known: name, dataset, init, {', '.join(_OPTIONS)})")
     dataset = required(d, "dataset")
     if not (isinstance(dataset, str) and dataset.strip()):
         raise JsonProblem(f"dataset must be a path, got {shown(dataset)}")
@@ -71,22 +112,8 @@ def _job(d, base: Path, names: set) -> FleetJob:
         raise JsonProblem(f"init must be 'default', a RUN_DIR or a MODEL.onnx, got {shown(init)}")
     if init is not None and init != "default":
         init = str(base / init)
-    config = TrainConfig()
-    for key, attr in _OPTIONS.items():
-        if key in d:
-            value = d[key]
-            default = getattr(config, attr)
-            if isinstance(default, str):
-                if not isinstance(value, str):
-                    raise JsonProblem(f"{key} must be a string, got {shown(value)}")
-            elif isinstance(default, int):
-                value = integer(value, key, 0 if key == "seed" else 1)
-            elif not (isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0):
-                raise JsonProblem(f"{key} must be a number >= 0, got {shown(value)}")
-            config = replace(config, **{attr: value})
-    if "train_frames" in d:
-        config = replace(config, train_frames=integer(d["train_frames"], "train_frames", 2))
-    return FleetJob(name=name, dataset=str(base / dataset), init=init, config=config)
+    options = {_OPTIONS[key][0]: _option(key, d[key]) for key in _OPTIONS if key in d}
+    return FleetJob(name=name, dataset=str(base / dataset), init=init, config=replace(TrainConfig(), **options))
 
 
 def read_manifest(path: str | Path) -> list:
@@ -107,25 +134,58 @@ def read_manifest(path: str | Path) -> list:
         except (JsonProblem, ValueError) as exc:
             label = f"job {i}" + (f" ({d['name']!r})" if isinstance(d, dict) and isinstance(d.get("name"), str) else "")
             raise ManifestError(f"{path}: {label}: {exc}") from None
-        names.add(job.name)
+        names.add(job.name.casefold())
         out.append(job)
     return out
+
+
+def _job_config(job: FleetJob) -> dict:
+    """What a finished job was trained with, as its fleet.json records it (JSON values): every
+    TrainConfig field and the init."""
+    return json.loads(json.dumps({**dataclasses.asdict(job.config), "init": job.init}))
+
+
+def _changed(record: dict, config: dict, dataset_sha256: str) -> Optional[str]:
+    """Why a finished job's record (its fleet.json) does not fit the job now, or None when it
+    does: "config changed: epochs 10 -> 20, ...", "dataset changed", or no record of either."""
+    if not isinstance(record.get("config"), dict) or "dataset_sha256" not in record:
+        return "finished without a record of its configuration and dataset (an older release)"
+    old = record["config"]
+    edits = [
+        f"{_KEYS.get(key, key)} {shown(old.get(key))} -> {shown(config.get(key))}"
+        for key in sorted(set(old) | set(config))
+        if old.get(key) != config.get(key)
+    ]
+    if edits:
+        return "config changed: " + ", ".join(edits)
+    if record["dataset_sha256"] != dataset_sha256:
+        return "dataset changed"
+    return None
 
 
 def run_job(item: tuple) -> dict:
     """One job (a job of ``runtime.jobs.engine.run_all``): item = (FleetJob, out dir). Trains into
     ``.<name>.partial``, evaluates on the dataset's test split, writes fleet.json and renames
-    the folder to ``<name>``; a finished job (its fleet.json there) is read, not retrained."""
+    the folder to ``<name>``; a finished job (its fleet.json there) is read, not retrained,
+    when its configuration and dataset sha256 are the job's (else ``retrained_because`` says why)."""
     from .init_weights import initial_weights
     from .trainer import read_training_data, train
 
     job, out = item
     final = Path(out) / job.name
+    datasets, sha256 = read_training_data(job.dataset)
+    config = _job_config(job)
+    reason = None
     if (final / FLEET_FILE).is_file():
-        return {**json.loads((final / FLEET_FILE).read_text(encoding="utf-8")), "resumed": True}
+        try:
+            record = json.loads((final / FLEET_FILE).read_text(encoding="utf-8"))
+        except ValueError:  # not UTF-8 or not JSON
+            record = None
+        reason = _changed(record, config, sha256) if isinstance(record, dict) else f"its {FLEET_FILE} is unreadable"
+        if reason is None:
+            return {**record, "resumed": True}
     partial = Path(out) / f".{job.name}.partial"
     shutil.rmtree(partial, ignore_errors=True)  # a job killed before: start it again
-    datasets, sha256 = read_training_data(job.dataset)
     init = None if job.init is None else initial_weights(job.init)
     result = train(
         datasets, job.config, partial, dataset_sha256=sha256, command=f"dimenet fleet train ({job.name})", init=init
@@ -135,11 +195,13 @@ def run_job(item: tuple) -> dict:
         "seconds": result.seconds,
         "best_epoch": result.best_epoch,
         **_test_errors(partial, datasets),
+        "config": config,
+        "dataset_sha256": sha256,
     }
     atomic_write_text(partial / FLEET_FILE, json.dumps(report, indent=1))
     shutil.rmtree(final, ignore_errors=True)
     partial.rename(final)
-    return {**report, "resumed": False}
+    return {**report, "resumed": False, **({} if reason is None else {"retrained_because": reason})}
 
 
 def _test_errors(run_dir: Path, datasets: list) -> dict:
@@ -197,6 +259,8 @@ def summary_table(rows: list) -> str:
             continue
         rho = None if r.get("rho") is None else 100 * r["rho"]
         status = "done before (resumed)" if r.get("resumed") else "trained"
+        if r.get("retrained_because"):
+            status += f" again: {r['retrained_because']}"
         lines.append(
             f"| {r['name']} | {fmt(rho, '.1f')} | {fmt(r.get('avg_e_c'), '.3f')} | {fmt(r.get('avg_e'), '.3f')} | "
             f"{r['seconds']:.0f} | {status} |"

@@ -1,12 +1,14 @@
 """Initial weights for fine-tuning: a DimeNet state dict and its spec from the bundled default
 model, a RUN_DIR or an exported ``dimenet-model/1`` ONNX file.
 
-From ONNX, the three weight matrices are read from the graph's initializers with the ``onnx``
-package (never pickle). The exporter (``export.onnx_export``) writes each ``nn.Linear`` as a
-``MatMul`` by an (in, out) initializer, the transpose of torch's (out, in) weight, and ends
-the graph with a ``Mul`` by the scalar constant OUTPUT_SCALE_PX; at opset >= 20 GELU is one
-``Gelu`` node, below it is spelled out with Div/Erf/Add/Mul by scalar constants. A ``Gemm``
-without bias and a scale folded into the last matrix are read too. The recovered weights are
+From ONNX, the file is first loaded as the runtime loads it (``onnx_model_from_bytes``: at most
+MAX_MODEL_BYTES, only the exporter's operators, every tensor float32 and in the file, as many
+values as its shape), then the three weight matrices are read from the graph's initializers
+with the ``onnx`` package (never pickle). The exporter (``export.onnx_export``) writes each
+``nn.Linear`` as a ``MatMul`` by an (in, out) initializer, the transpose of torch's (out, in)
+weight, and ends the graph with a ``Mul`` by the scalar constant OUTPUT_SCALE_PX; at opset >= 20
+GELU is one ``Gelu`` node, below it is spelled out with Div/Erf/Add/Mul by scalar constants. A
+scale folded into the last matrix is read too. The recovered weights are
 then checked against the graph itself: torch on them must match ONNX Runtime on probe
 features (as export's parity check), so a graph that is not this MLP is refused, never
 silently misread.
@@ -25,7 +27,7 @@ from onnx import helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify.model import DEFAULT_SOURCE as BUNDLED_SOURCE
-from dimenet.runtime.rectify.model import OnnxModel, default_model_bytes, onnx_model_from_bytes
+from dimenet.runtime.rectify.model import OnnxModel, default_model_bytes, onnx_model_from_bytes, read_model_file
 from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import OUTPUT_SCALE_PX, DimeNet
@@ -65,14 +67,10 @@ def _constants(graph: onnx.GraphProto) -> dict:
     return values
 
 
-def _attributes(node: onnx.NodeProto) -> dict:
-    return {a.name: helper.get_attribute_value(a) for a in node.attribute}
-
-
 def _matrix(node: onnx.NodeProto, constants: dict, source: str) -> Optional[np.ndarray]:
-    """The (out, in) float64 weight a MatMul or bias-free Gemm node multiplies by, None for
-    another node. ModelError for a bias, a transposed input or a weight that is no constant."""
-    if node.op_type not in ("MatMul", "Gemm"):
+    """The (out, in) float64 weight a MatMul node multiplies by, None for another node.
+    ModelError for a weight that is no constant matrix."""
+    if node.op_type != "MatMul":
         return None
     where = f"{source}: {node.op_type} node {node.name or node.output[0]!r}"
     if len(node.input) < 2 or node.input[1] not in constants:
@@ -80,23 +78,15 @@ def _matrix(node: onnx.NodeProto, constants: dict, source: str) -> Optional[np.n
     weight = np.asarray(constants[node.input[1]], dtype=np.float64)
     if weight.ndim != 2:
         raise ModelError(f"{where} multiplies by a {weight.ndim}-D constant, expected a matrix")
-    if node.op_type == "Gemm":
-        attrs = _attributes(node)
-        if len(node.input) > 2 and node.input[2]:
-            raise ModelError(f"{where} adds a bias: DIME-Net's layers have none")
-        if attrs.get("transA", 0):
-            raise ModelError(f"{where} transposes its input: not a DIME-Net graph")
-        weight = weight * attrs.get("alpha", 1.0)
-        return weight if attrs.get("transB", 0) else weight.T
     return weight.T
 
 
 def _output_scale(nodes: list, constants: dict, source: str) -> float:
     """The product of the scalar factors the nodes after the last matrix apply (1 for none):
-    each a Constant, an Identity, or a Mul or Div by one scalar constant."""
+    each a Constant, or a Mul or Div by one scalar constant."""
     scale = 1.0
     for node in nodes:
-        if node.op_type in ("Constant", "Identity"):
+        if node.op_type == "Constant":
             continue
         factors = [name for name in node.input if name in constants]
         if (
@@ -208,5 +198,5 @@ def initial_weights(source: str) -> InitialWeights:
             f"{path}: no such model file or RUN_DIR (initial weights come from {DEFAULT_SOURCE!r}, "
             f"a RUN_DIR or a MODEL.onnx)"
         )
-    state_dict, spec = onnx_initial_weights(path.read_bytes(), str(path))
+    state_dict, spec = onnx_initial_weights(read_model_file(path), str(path))
     return InitialWeights(state_dict=state_dict, spec=spec, source=source)

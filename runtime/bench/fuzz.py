@@ -1,4 +1,5 @@
-"""A fuzz of the rectifier and the file readers with hostile input (issue 20's classes).
+"""A fuzz of the rectifier and the file readers with hostile input (issue 20's classes, and
+issue 33's crafted model files).
 
 Every case must end in a ``DimenetError`` (``typed``) or in a result that is no confident wrong
 K (``ok``): K_c's own solution with a reason, or a finite K inside the spec's bounds with every
@@ -28,6 +29,7 @@ from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import load_rig
 from dimenet.runtime.rectify.model import onnx_model_from_bytes
+from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES
 from dimenet.runtime.rectify.rectifier import Rectifier
 
 OUTCOMES = ("typed", "ok", "crash", "silent-wrong")
@@ -188,10 +190,67 @@ def _mutations(rng: np.random.Generator, blob: bytes) -> Iterator[tuple[str, byt
             yield "appended junk", bytes(b) + rng.integers(0, 256, int(rng.integers(1, 4096)), dtype=np.uint8).tobytes()
 
 
+def _pb_varint(value: int) -> bytes:
+    out = bytearray()
+    while value > 0x7F:
+        out.append(value & 0x7F | 0x80)
+        value >>= 7
+    return bytes(out + bytes([value]))
+
+
+def _pb(number: int, value) -> bytes:
+    """One protobuf field: an int as a varint, str or bytes length-delimited."""
+    if isinstance(value, int):
+        return _pb_varint(number << 3) + _pb_varint(value)
+    data = value.encode() if isinstance(value, str) else value
+    return _pb_varint(number << 3 | 2) + _pb_varint(len(data)) + data
+
+
+def _tensor(name: str, dims: tuple, *fields: bytes, data_type: int = 1) -> bytes:
+    """An ONNX TensorProto: name, dims, data type (1 float32) and further fields."""
+    return b"".join([_pb(8, name), *(_pb(1, d) for d in dims), _pb(2, data_type), *fields])
+
+
+def _external(location: str) -> bytes:
+    return _pb(13, _pb(1, "location") + _pb(2, location)) + _pb(14, 1)  # external_data, data_location EXTERNAL
+
+
+def _crafted_models(blob: bytes) -> Iterator[tuple[str, bytes]]:
+    """Issue 33's model files, made from the bundled model's bytes without the onnx package: its
+    spec's weights_sha256 set to null (same length), then a field appended that protobuf merges
+    into the model or its graph (an unused initializer or node, a sparse tensor, a function), or
+    the file padded past MAX_MODEL_BYTES. Each must be a ModelError before any run."""
+    entry = blob.index(b'"weights_sha256": "') + len(b'"weights_sha256": ')
+    blob = blob[:entry] + b"null" + b" " * 62 + blob[entry + 66 :]
+    graph = {
+        "unused (100000, 100000) float32 with 16 bytes": _pb(5, _tensor("unused", (100000, 100000), _pb(9, bytes(16)))),
+        "external data at /etc/passwd": _pb(5, _tensor("passwd", (4,), _external("/etc/passwd"))),
+        "external data beside the cwd": _pb(5, _tensor("beside", (4,), _external("weights.bin"))),
+        "segment": _pb(5, _tensor("part", (4,), _pb(3, _pb(1, 0) + _pb(2, 2)), _pb(9, bytes(16)))),
+        "float64 initializer": _pb(5, _tensor("doubles", (2,), _pb(9, bytes(16)), data_type=11)),
+        "Loop with a subgraph": _pb(
+            1, _pb(1, "M") + _pb(2, "out") + _pb(3, "forever") + _pb(4, "Loop") + _pb(5, _pb(1, "body") + _pb(6, b""))
+        ),
+        "operator Tanh": _pb(1, _pb(1, "features") + _pb(2, "t") + _pb(4, "Tanh")),
+        "operator of another domain": _pb(1, _pb(1, "features") + _pb(2, "t") + _pb(4, "Erf") + _pb(7, "com.x")),
+        "sparse initializer": _pb(15, _pb(1, _tensor("v", (1,), _pb(9, bytes(4)))) + _pb(3, 4)),
+    }
+    cases = [(name, blob + _pb(7, field)) for name, field in graph.items()]
+    cases += [("model-local function", blob + _pb(25, _pb(1, "Twice") + _pb(10, "custom")))]
+    cases += [("past the size cap", blob + _pb(6, bytes(MAX_MODEL_BYTES)))]  # doc_string
+    while True:
+        yield from cases
+
+
+def _refused(model) -> tuple[str, str]:
+    return "silent-wrong", f"loaded ({model.source}): a crafted model must be refused"
+
+
 def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
     """``n_cases`` mutated files of each kind, read by their reader: a dataset (the example frames),
     the bundled model, the paper rig, the example camera as ROS YAML. A reader that returns counts
-    as ok: a mutation may miss what the reader reads (e.g. zip padding)."""
+    as ok: a mutation may miss what the reader reads (e.g. zip padding). Then ``n_cases`` crafted
+    model files (``_crafted_models``), which must each be refused."""
     folder = Path(folder)
     camera = json_file.read(json.loads(asset("example_camera.json").read_text(encoding="utf-8")), "camera")
     sources = {
@@ -212,3 +271,8 @@ def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, repor
                 call = lambda reader=reader, path=path: reader(path)  # noqa: E731
             outcome, detail = _outcome(call, lambda result: ("ok", ""))
             report.add(area, case, outcome, detail)
+    crafted = _crafted_models(asset("default_model.onnx").read_bytes())
+    for _ in range(n_cases):
+        case, data = next(crafted)
+        outcome, detail = _outcome(lambda data=data: onnx_model_from_bytes(data, "crafted.onnx"), _refused)
+        report.add("crafted model", case, outcome, detail)

@@ -3,7 +3,9 @@
 The file holds the frozen MLP (input ``features`` float32 [batch, D], output ``delta_k``
 float32 [batch, 4] px as (dfx, dfy, dcx, dcy)) and its model spec as JSON in the ONNX
 ``metadata_props`` under ``METADATA_KEY``. Loading refuses, with a ModelError naming the file:
-an unreadable or corrupt file, a foreign model without the spec, a spec of another major
+an unreadable or corrupt file, one past ``MAX_MODEL_BYTES``, a graph holding more than the
+exporter writes (other operators, subgraphs, external data: ``rectify.onnx_graph``, checked on
+the bytes before ONNX Runtime sees them), a foreign model without the spec, a spec of another major
 version or malformed, a graph whose input or output does not match the spec (declared, or
 as a probe call on zero features really gives), and bytes that differ from the spec's
 ``weights_sha256`` (spec >= 1.4). Needs onnxruntime only (never onnx, never torch). See
@@ -28,6 +30,7 @@ import onnxruntime as ort
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES, check_model_bytes
 from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
 
 DEFAULT_MODEL = "default_model.onnx"  # the bundled default, in dimenet.runtime.assets
@@ -185,9 +188,11 @@ def _checked_sha256(blob: bytes, spec: ModelSpec, source: str) -> str:
 def onnx_model_from_bytes(
     blob: bytes, source: str, *, threads: int = 1, providers: Optional[Sequence[str]] = None
 ) -> OnnxModel:
-    """Create the ORT session from the model's bytes, read and validate its spec, check the
-    graph's signature and a probe call against it, and the bytes against its weights_sha256."""
+    """Check the bytes hold only what the exporter writes (``check_model_bytes``), create the ORT
+    session from them, read and validate its spec, check the graph's signature and a probe call
+    against it, and the bytes against its weights_sha256."""
     options = session_options(threads)
+    check_model_bytes(blob, source)
     try:
         # On a failure ORT prints an "EP Error" banner to stdout and retries on its fallback
         # provider; the ModelError below is the one line a user gets.
@@ -222,7 +227,20 @@ def load_onnx_model(path: str | Path, *, threads: int = 1, providers: Optional[S
         )
     if not path.is_file():
         raise ModelError(f"{path}: no such model file")
-    return onnx_model_from_bytes(path.read_bytes(), str(path), threads=threads, providers=providers)
+    return onnx_model_from_bytes(read_model_file(path), str(path), threads=threads, providers=providers)
+
+
+def read_model_file(path: Path) -> bytes:
+    """The bytes of a model file, reading at most MAX_MODEL_BYTES + 1: ModelError naming the file
+    when it cannot be read or is larger."""
+    try:
+        with path.open("rb") as f:
+            blob = f.read(MAX_MODEL_BYTES + 1)
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read the model file ({exc.strerror or exc})") from None
+    if len(blob) > MAX_MODEL_BYTES:
+        raise ModelError(f"{path}: larger than {MAX_MODEL_BYTES} bytes, too large for a DIME-Net model")
+    return blob
 
 
 def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers=None) -> OnnxModel:

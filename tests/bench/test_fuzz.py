@@ -19,4 +19,5 @@ def test_mutated_files_end_in_typed_errors(tmp_path):
     report = FuzzReport()
     fuzz_files(tmp_path, 40, np.random.default_rng(4), report)
     assert report.bad == 0, report.table()
+    assert report.counts["crafted model"]["typed"] == 40, report.table()  # issue 33: every crafted model refused
     assert all(c["typed"] > 10 for c in report.counts.values()), report.table()

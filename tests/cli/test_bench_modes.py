@@ -85,6 +85,7 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
         "model file",
         "rig file",
         "camera file",
+        "crafted model",
     }
     assert sum(report["counts"]["rectify"].values()) == 24  # 12 per mode
     assert report["failures"] == [] and all("crash" not in c for c in report["counts"].values())

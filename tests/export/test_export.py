@@ -165,3 +165,24 @@ def test_failed_export_leaves_the_previous_file_intact(exported, run_dir, tmp_pa
         export_run(run_dir, out)
     assert out.read_bytes() == before
     assert sorted(os.listdir(tmp_path)) == ["broken_run", "model.onnx"]
+
+
+def test_every_opset_the_exporter_offers_writes_only_the_runtime_s_operators(spec):
+    """rectify.onnx_graph.EXPORTED_OPS is the exporter's operator set: each opset's export holds
+    operators of it only, and the runtime loads it (the check on the bytes passes)."""
+    onnx = pytest.importorskip("onnx")
+    from dimenet.export.commands import MAX_OPSET, MIN_OPSET
+    from dimenet.export.onnx_export import export_model
+    from dimenet.runtime.rectify.model import onnx_model_from_bytes
+    from dimenet.runtime.rectify.onnx_graph import EXPORTED_OPS, ONNX_DOMAINS
+
+    model = random_torch_model(spec, seed=3)
+    used = set()
+    for opset in range(MIN_OPSET, MAX_OPSET + 1):
+        blob = export_model(model, spec, opset=opset)
+        nodes = onnx.load_from_string(blob).graph.node
+        assert {n.domain for n in nodes} <= set(ONNX_DOMAINS)
+        assert {n.op_type for n in nodes} <= EXPORTED_OPS, opset
+        used |= {n.op_type for n in nodes}
+        onnx_model_from_bytes(blob, f"opset {opset}")
+    assert used == EXPORTED_OPS  # no operator listed that the exporter never writes

@@ -436,7 +436,8 @@ def test_spec_1_3_and_unstamped_1_4_models_load_without_the_check(bundled, tmp_p
 def _tiny_graph(spec_json: str, kind: str) -> bytes:
     """A graph features float [batch, 240] -> delta_k declared float [batch, 4] whose real
     output differs: 'wide' gives [batch, 5] (a data-dependent Slice hides it from shape
-    inference), 'batch1' only runs on one frame (Reshape to [1, 4]), 'inf' gives inf."""
+    inference; operators the exporter never writes), and of the exporter's operators: 'batch3'
+    only runs on batches of 1 or 3 frames (Add of a [3, 4] constant), 'inf' gives inf."""
     onnx = pytest.importorskip("onnx")
     from onnx import TensorProto, helper, numpy_helper
 
@@ -459,9 +460,9 @@ def _tiny_graph(spec_json: str, kind: str) -> bytes:
             const("axes", np.array([1], np.int64)),
             helper.make_node("Slice", ["y", "starts", "ends", "axes"], ["delta_k"]),
         ]
-    elif kind == "batch1":
-        nodes += [const("shape", np.array([1, 4], np.int64)), helper.make_node("Reshape", ["y", "shape"], ["delta_k"])]
-    else:
+    elif kind == "batch3":
+        nodes += [const("rows", np.zeros((3, 4), np.float32)), helper.make_node("Add", ["y", "rows"], ["delta_k"])]
+    elif kind == "inf":
         nodes += [const("inf", np.float32(np.inf)), helper.make_node("Add", ["y", "inf"], ["delta_k"])]
     graph = helper.make_graph(
         nodes,
@@ -480,8 +481,7 @@ def _tiny_graph(spec_json: str, kind: str) -> bytes:
 @pytest.mark.parametrize(
     "kind, message",
     [
-        ("wide", r"graph output 'delta_k' on 2 zero feature frames is float32 \[2, 5\], it differs from the declared"),
-        ("batch1", r"the graph fails on 2 zero feature frames, so it differs from the declared float32 \[batch, 4\]"),
+        ("batch3", r"the graph fails on 2 zero feature frames, so it differs from the declared float32 \[batch, 4\]"),
         ("inf", r"graph output 'delta_k' on zero features is not finite"),
     ],
 )
@@ -492,6 +492,17 @@ def test_the_load_probe_catches_a_graph_whose_real_output_differs(base, tmp_path
     declared = ort.InferenceSession(path.read_bytes(), providers=["CPUExecutionProvider"]).get_outputs()[0]
     assert declared.type == "tensor(float)" and declared.shape[1] == 4  # the declared signature looks right
     with pytest.raises(ModelError, match=rf"{kind}\.onnx: {message}"):
+        Rectifier.load(path)
+
+
+def test_a_graph_hiding_its_real_output_from_shape_inference_is_refused_before_any_run(base, tmp_path, monkeypatch):
+    spec = {k: v for k, v in base.items() if k != WEIGHTS_SHA256_KEY}
+    path = tmp_path / "wide.onnx"
+    path.write_bytes(_tiny_graph(json.dumps(spec), "wide"))
+    declared = ort.InferenceSession(path.read_bytes(), providers=["CPUExecutionProvider"]).get_outputs()[0]
+    assert declared.type == "tensor(float)" and declared.shape[1] == 4  # the declared signature looks right
+    monkeypatch.setattr(ort, "InferenceSession", None)  # refused on its bytes: no session is made
+    with pytest.raises(ModelError, match=r"wide\.onnx: node 1 \(''\) is the operator 'ReduceSum', which"):
         Rectifier.load(path)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -63,7 +64,7 @@ def test_bad_manifests_name_the_job_and_the_field(tmp_path):
         '{"jobs": [{"name": "../x", "dataset": "x.npz"}]}': "a folder name",
         '{"jobs": [{"name": "a", "dataset": "x"}, {"name": "a", "dataset": "y"}]}': "job 1 ('a'): name 'a' is used",
         '{"jobs": [{"name": "a", "dataset": "x", "lr": 1}]}': "'lr' is not a job field",
-        '{"jobs": [{"name": "a", "dataset": "x", "epochs": 0}]}': "epochs must be",
+        '{"jobs": [{"name": "a", "dataset": "x", "epochs": 0}]}': "job 0 ('a'): epochs: must be >= 1, got 0",
         '{"jobs": [{"name": "a", "dataset": "x", "grid": 8}]}': "grid must be a string",
         "[1]": "the manifest must be an object",
     }
@@ -74,6 +75,114 @@ def test_bad_manifests_name_the_job_and_the_field(tmp_path):
             read_manifest(path)
     with pytest.raises(ManifestError, match="absent.json: cannot read the fleet manifest"):
         read_manifest(tmp_path / "absent.json")
+
+
+# Issue 33: a manifest value the command line refuses: (manifest key, JSON text, `dimenet train` flag).
+PAST_THE_CAPS = [
+    ("epochs", "1000000000000", "--epochs"),
+    ("epochs", "1.5", "--epochs"),
+    ("seed", "18446744073709551616", "--seed"),
+    ("seed", "-1", "--seed"),
+    ("focal_weight", "1e300", "--focal-weight"),
+    ("focal_weight", "Infinity", "--focal-weight"),
+    ("focal_weight", "-0.5", "--focal-weight"),
+    ("grid", '"1000x1000"', "--grid"),
+    ("grid", '"abc"', "--grid"),
+    ("features", '"Z"', "--features"),
+    ("train_frames", "1000000000000000", "--train-frames"),
+    ("train_frames", "1", "--train-frames"),
+]
+
+
+@pytest.mark.parametrize(("key", "text", "flag"), PAST_THE_CAPS)
+def test_a_manifest_passes_nothing_the_command_line_refuses(tmp_path, capsys, key, text, flag):
+    path = tmp_path / "m.json"
+    path.write_text(f'{{"jobs": [{{"name": "a", "dataset": "x.npz", "{key}": {text}}}]}}')
+    with pytest.raises(ManifestError, match=rf"m\.json: job 0 \('a'\): {key}"):
+        read_manifest(path)
+    value = json.loads(text) if text != "Infinity" else float("inf")
+    assert main(["train", "x.npz", "--out", str(tmp_path / "run"), flag, str(value)]) == 2
+    assert f"argument {flag}" in capsys.readouterr().err
+
+
+def test_manifest_values_within_the_caps_are_the_command_line_s(tmp_path):
+    path = tmp_path / "m.json"
+    job = {"name": "a", "dataset": "x.npz", "epochs": 100000, "seed": 2**32 - 1, "focal_weight": 1000}
+    path.write_text(json.dumps({"jobs": [{**job, "grid": "64x64", "features": "E", "train_frames": 2}]}))
+    (config,) = [j.config for j in read_manifest(path)]
+    assert (config.epochs, config.seed, config.focal_weight, config.grid, config.variant, config.train_frames) == (
+        100000,
+        2**32 - 1,
+        1000.0,
+        "64x64",
+        "E",
+        2,
+    )
+
+
+@pytest.mark.parametrize("name", ["summary.json", "summary.md", "SUMMARY.JSON", "Summary.Md"])
+def test_a_job_may_not_be_named_as_a_file_the_fleet_writes(tmp_path, name):
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps({"jobs": [{"name": name, "dataset": "x.npz"}]}))
+    with pytest.raises(ManifestError, match=rf"job 0 \('{re.escape(name)}'\): name .* is a file the fleet writes"):
+        read_manifest(path)
+
+
+def test_job_names_differing_only_in_case_collide(tmp_path):
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps({"jobs": [{"name": "s8", "dataset": "x.npz"}, {"name": "S8", "dataset": "y.npz"}]}))
+    with pytest.raises(ManifestError, match=r"job 1 \('S8'\): name 'S8' is used twice, in any case"):
+        read_manifest(path)
+
+
+@pytest.fixture(scope="module")
+def two_datasets(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("resume")
+    for p, ds in simulate_family(2, 5, frames=(10, 3)):
+        write_dataset(ds, folder / f"{p.name}.npz")
+    return sorted(folder.glob("*.npz"))
+
+
+def _one_job(folder, dataset, **options):
+    path = folder / "m.json"
+    path.write_text(json.dumps({"jobs": [{"name": "a", "dataset": str(dataset), "epochs": 1, **options}]}))
+    return path
+
+
+def _row(summary):
+    (row,) = summary["jobs"]
+    assert row["error"] is None, row["error"]
+    return row
+
+
+def test_a_fleet_resumes_only_a_job_whose_config_and_dataset_are_unchanged(two_datasets, tmp_path):
+    out, data = tmp_path / "out", tmp_path / "job.npz"
+    shutil.copyfile(two_datasets[0], data)
+    first = _row(fleet_train(_one_job(tmp_path, data), out))
+    assert first["resumed"] is False and "retrained_because" not in first
+    record = json.loads((out / "a" / FLEET_FILE).read_text())
+    assert record["config"]["epochs"] == 1 and len(record["dataset_sha256"]) == 64
+    assert _row(fleet_train(_one_job(tmp_path, data), out))["resumed"] is True
+    again = _row(fleet_train(_one_job(tmp_path, data, epochs=2, seed=3), out))
+    assert again["resumed"] is False and again["retrained_because"] == "config changed: epochs 1 -> 2, seed 0 -> 3"
+    assert "trained again: config changed: epochs 1 -> 2, seed 0 -> 3" in (out / "summary.md").read_text()
+    assert json.loads((out / "a" / FLEET_FILE).read_text())["config"]["epochs"] == 2
+    shutil.copyfile(two_datasets[1], data)  # the same path, other frames
+    changed = _row(fleet_train(_one_job(tmp_path, data, epochs=2, seed=3), out))
+    assert changed["resumed"] is False and changed["retrained_because"] == "dataset changed"
+    assert _row(fleet_train(_one_job(tmp_path, data, epochs=2, seed=3), out))["resumed"] is True
+
+
+def test_a_run_finished_without_the_record_is_trained_again_and_says_why(two_datasets, tmp_path):
+    out = tmp_path / "out"
+    manifest = _one_job(tmp_path, two_datasets[0])
+    fleet_train(manifest, out)
+    record = json.loads((out / "a" / FLEET_FILE).read_text())
+    old = {k: v for k, v in record.items() if k not in ("config", "dataset_sha256")}
+    (out / "a" / FLEET_FILE).write_text(json.dumps(old))  # as an earlier release wrote it
+    row = _row(fleet_train(manifest, out))
+    assert row["resumed"] is False and "without a record of its configuration" in row["retrained_because"]
+    assert _row(fleet_train(manifest, out))["resumed"] is True
 
 
 def test_ray_jobs_give_the_same_models_and_the_same_family(manifest, tmp_path):
