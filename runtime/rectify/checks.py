@@ -243,6 +243,22 @@ def all_inside(bounds, points_2d: np.ndarray, points_3d: np.ndarray) -> bool:
     return bool(bounds.inside(points_2d, points_3d).all())
 
 
+def check_undistorted(points_model: np.ndarray, points_image: np.ndarray, valid) -> None:
+    """InputError naming the first valid point (and its frame, for (B, N, 2) points) whose
+    undistortion ``points_model`` is not finite: the lens's model has no inverse there (p1 = p2 = 1,
+    say), so no pinhole point, pose or K exists for the frame. ``valid``: (..., N) bool or True."""
+    bad = ~np.isfinite(points_model).all(-1) & valid
+    if not bad.any():
+        return
+    where = np.unravel_index(int(np.argmax(bad)), bad.shape)
+    x, y = points_image[where]
+    frame = f"frame {where[0]}: " if bad.ndim == 2 else ""
+    raise InputError(
+        f"{frame}points_2d: point {where[-1]} at ({x:.1f}, {y:.1f}) px lies where the lens model has no inverse "
+        f"(its undistortion is not finite): the camera's dist_coeffs do not describe the lens there"
+    )
+
+
 def in_frame(b: int, call, *args):
     """``call(*args)``, its InputError prefixed with the frame index ``b`` of a batch."""
     try:
@@ -251,9 +267,12 @@ def in_frame(b: int, call, *args):
         raise InputError(f"frame {b}: {exc}") from None
 
 
-def validated_frame(image: ImageBounds, points_2d, points_3d) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """The input rules on one frame: its points as float64 (N, 2) px and (N, 3) mm with the
-    ``covariance_invariants`` of the 3D points, or InputError naming the problem."""
+def validated_frame(
+    image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+    """The input rules on one frame: its points as float64 (N, 2) px as given, the same mapped by
+    ``to_model`` (the user's pixels -> the model's pinhole pixels) before the spread rule, and (N, 3)
+    mm, with the ``covariance_invariants`` of the 3D points; or InputError naming the problem."""
     p2 = real_array(points_2d, "points_2d", "(N, 2)", 2, 2)
     p3 = real_array(points_3d, "points_3d", "(N, 3)", 2, 3)
     n = len(p2)
@@ -263,11 +282,12 @@ def validated_frame(image: ImageBounds, points_2d, points_3d) -> tuple[np.ndarra
         raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
     if not all_inside(image, p2, p3):
         image.raise_bad_values(p2, p3, True, "")
+    p2_image, p2 = p2, to_model(p2)
     invariants_3d = check_spread(p2, p3)
     distinct = too_few_distinct(p2, p3, MIN_POINTS)
     if distinct is not None:
         raise InputError(f"{distinct} distinct points of {n}: rectification needs at least {MIN_POINTS}")
-    return p2, p3, invariants_3d
+    return p2_image, p2, p3, invariants_3d
 
 
 @dataclass(frozen=True)
@@ -288,7 +308,7 @@ class Frames:
 
 
 def validated_batch(
-    image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d, valid, infer_mask
+    image: ImageBounds, to_model: Callable[..., np.ndarray], points_2d, points_3d, valid, infer_mask
 ) -> Frames:
     """The input rules on B frames (those of ``validated_frame`` on each frame's valid points, and
     infer_mask a subset of valid), the 2D points mapped by ``to_model`` (the user's pixels -> the
@@ -317,7 +337,7 @@ def validated_batch(
     if not inside:
         for b in np.flatnonzero(np.any(valid & ~image.inside(p2, p3), 1)):
             image.raise_bad_values(p2[b], p3[b], valid[b], f"frame {b}: ")
-    p2_image, p2 = p2, to_model(p2)
+    p2_image, p2 = p2, to_model(p2, valid)
     frames = [(p2[b], p3[b]) if every else (p2[b][valid[b]], p3[b][valid[b]]) for b in range(len(p2))]
     spread_3d, invariants_3d = spread_frames(p3, mask)
     spread = spread_3d & spread_frames(p2, mask)[0]

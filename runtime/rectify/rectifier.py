@@ -136,8 +136,7 @@ class Rectifier:
         rules.
         """
         lap, cam = Lap(), self._cam
-        p2_image, p3, invariants_3d = validated_frame(cam.image, points_2d, points_3d)
-        p2 = cam.to_model(p2_image)
+        p2_image, p2, p3, invariants_3d = validated_frame(cam.image, cam.to_model, points_2d, points_3d)
         lap("validate")
         rvec_c0, tvec_c0 = pnp(p2, p3, cam.K_c)
         lap("pnp_kc")

@@ -27,6 +27,7 @@ from dimenet.runtime.rectify.checks import (
     Frames,
     ImageBounds,
     behind_camera_error,
+    check_undistorted,
     implausible_reason,
     in_frame,
     loses_to_k_c,
@@ -86,11 +87,14 @@ class ModelCamera:
             K_c_user=K_c_user,
         )
 
-    def to_model(self, points_2d: np.ndarray) -> np.ndarray:
-        """(..., 2) points in the user's pixels (distorted by the lens) -> the model's pinhole pixels."""
+    def to_model(self, points_2d: np.ndarray, valid=True) -> np.ndarray:
+        """(N, 2) or (B, N, 2) points in the user's pixels (distorted by the lens) -> the model's pinhole
+        pixels; InputError naming a ``valid`` point whose undistortion is not finite."""
+        pinhole = points_2d
         if self.dist_coeffs is not None:
-            points_2d = undistort_points(points_2d, self.lens_K, self.dist_coeffs)
-        return points_2d if self.pixels is None else self.pixels.points_to_model(points_2d)
+            pinhole = undistort_points(points_2d, self.lens_K, self.dist_coeffs)
+            check_undistorted(pinhole, points_2d, valid)
+        return pinhole if self.pixels is None else self.pixels.points_to_model(pinhole)
 
     def user_k(self, k) -> np.ndarray:
         """(4,) (fx, fy, cx, cy) model px -> the user's px (for the reasons)."""

@@ -4,6 +4,7 @@ measured in the distorted image the points came from (checked against cv2.projec
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import cv2
@@ -12,7 +13,7 @@ import pytest
 from helpers import constant_uncertainty, model_spec
 from test_rectifier_camera import linear_model, rig_frames
 
-from dimenet.runtime.errors import CameraError
+from dimenet.runtime.errors import CameraError, InputError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, dataset_camera
 from dimenet.runtime.evaluation.metrics import reduction_ratio
 from dimenet.runtime.geometry.distortion import distort_points, mean_distorted_error, undistort_points
@@ -117,3 +118,52 @@ def test_rho_on_distorted_frames_is_that_of_their_undistorted_twins(lens):
                 reduction_ratio(r.reprojection_error_kc_px.mean(), r.reprojection_error_px.mean(), e_star[t].mean())
             )
         assert t.sum() >= 25 and abs(rho[0] - rho[1]) < 0.01, (scene, rho)
+
+
+def _outcome(call, *args):
+    """("fallback", the result's fallback: one, or a tuple per frame) or ("refused", the InputError's message)."""
+    try:
+        return "fallback", call(*args).fallback
+    except InputError as exc:
+        return "refused", str(exc)
+
+
+def test_batch_and_single_agree_frame_by_frame_on_random_lenses(setup):
+    """Issue 33: a lens whose undistortion is not finite for some points (p1 = p2 = 1, a rational
+    k4 = 50, or random coefficients of 0.5) raised numpy's LinAlgError from rectify_batch; every lens
+    now gives the single path's answer: its fallbacks, or its InputError naming the frame."""
+    model, camera, _, p2, p3, valid = setup
+    p2 = np.where(valid[..., None], p2, 0.0)
+    rng = np.random.default_rng(4)
+    lenses = [np.array([0.0, 0.0, 1.0, 1.0]), np.array([0.0, 0.0, 1.0, 1.0, 0.0, 50.0, 0.0, 0.0])]
+    lenses += [rng.normal(0.0, rng.choice([0.05, 0.5]), rng.choice([4, 5, 8, 12, 14])) for _ in range(30)]
+    refused = 0
+    for dist in lenses:
+        lens = Rectifier(model, "dimenet", Camera(camera.K, camera.image_size, dist))
+        x, X, v = p2[:4], p3[:4], valid[:4]  # the photo's points, whatever the lens file says
+        single = [_outcome(lens.rectify, x[b][v[b]], X[b][v[b]]) for b in range(len(x))]
+        batch = _outcome(lens.rectify_batch, x, X, v)
+        errors = [(b, message) for b, (kind, message) in enumerate(single) if kind == "refused"]
+        if errors:  # the batch refuses with one refused frame's own message (its rules run rule by rule)
+            refused += 1
+            unindexed = [re.sub(r"point \d+ at", "point at", f"frame {b}: {message}") for b, message in errors]
+            assert batch[0] == "refused"
+            assert re.sub(r"point \d+ at", "point at", batch[1]) in unindexed  # a batch counts points along P
+        else:
+            assert batch == ("fallback", tuple(fallback for _, fallback in single))
+    assert refused >= 2  # the two lenses with no inverse at these points, at least
+
+
+def test_a_lens_without_an_inverse_at_the_points_is_one_line_from_dataset_rectify(tmp_path, capsys):
+    from dimenet.runtime.cli.main import main
+    from dimenet.runtime.formats.camera import write_camera
+    from dimenet.runtime.formats.dataset import write_dataset
+
+    ds = simulate("galaxy-s8", seed=1)
+    write_dataset(ds, tmp_path / "s8.npz")
+    cal = calibrate_dataset(ds)
+    bad = checked_camera(cal.K_c, tuple(int(v) for v in ds.image_size), "test", [0, 0, 1.0, 1.0, 0, 50.0, 0, 0])
+    write_camera(tmp_path / "cam.json", bad, "json")
+    assert main(["rectify", str(tmp_path / "s8.npz"), "--camera", str(tmp_path / "cam.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "lens model has no inverse" in err and "Traceback" not in err
