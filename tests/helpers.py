@@ -30,7 +30,7 @@ DEVICE_MODEL = Path(__file__).parent / "data" / "device_model_galaxy_s8.onnx"
 def example_camera():
     """The bundled example frames' camera (runtime/assets/example_camera.json)."""
     from dimenet.runtime.assets import asset
-    from dimenet.runtime.formats.camera import read_camera
+    from dimenet.runtime.formats.camera_file import read_camera
 
     with resources.as_file(asset("example_camera.json")) as path:
         return read_camera(path)

@@ -14,8 +14,8 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project
-from dimenet.runtime.rectify.camera import Camera, generic_pixel_map
 from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.rectify.user_camera import Camera, generic_pixel_map
 
 from .config import TrainConfig
 
@@ -135,7 +135,7 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
 @dataclass(frozen=True)
 class Unit:
     """One camera's training frames, in the model's pixels (a generic model's canonical camera,
-    ``rectify.camera``): fit and val the fitting and early-stopping frames, truth and
+    ``rectify.user_camera``): fit and val the fitting and early-stopping frames, truth and
     val_truth their calibration, camera the camera the predictor serves (K_c, its prior, and
     the image size, in the model's pixels), train_K_star (T, 3, 3) px every train frame's K*."""
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import DimenetError
-from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import load_rig

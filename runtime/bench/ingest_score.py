@@ -15,8 +15,7 @@ from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import oracle_fit
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.render_truth import Truth
-from dimenet.runtime.geometry import k_params
-from dimenet.runtime.geometry.distortion import undistort_points
+from dimenet.runtime.geometry import k_params, undistort_points
 
 IDENTITY_TOLERANCE_PX = 5.0  # a found board further than this (RMS) from its true corners has the wrong identity
 

@@ -33,11 +33,15 @@ from dimenet.runtime.evaluation.multiview import distortion_coefficients, joint_
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.dataset import LENS_KEYS, Dataset
 from dimenet.runtime.formats.npz import read_npz
-from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
-from dimenet.runtime.geometry.distortion import undistort_points
-from dimenet.runtime.geometry.least_squares import calibrate
-from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
-from dimenet.runtime.rectify.camera import Camera, checked_camera, checked_dist_coeffs
+from dimenet.runtime.geometry import (
+    calibrate,
+    fit_lens_bundle,
+    k_matrix,
+    k_params,
+    mean_reprojection_error,
+    undistort_points,
+)
+from dimenet.runtime.rectify.user_camera import Camera, checked_camera, checked_dist_coeffs
 
 CALIBRATION_KEYS = ("K_c", "K_star", "rvec", "tvec", "e_star")
 # Optional keys: the lens (LENS_KEYS, both or neither) and why a frame has no K* ('' where it has one).

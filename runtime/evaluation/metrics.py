@@ -13,8 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from dimenet.runtime.geometry import mean_reprojection_error
-from dimenet.runtime.geometry.least_squares import solve_pnp
+from dimenet.runtime.geometry import mean_reprojection_error, solve_pnp
 
 
 def reprojection_error_under_k(points_2d, points_3d, valid, K) -> np.ndarray:

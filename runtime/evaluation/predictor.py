@@ -19,11 +19,11 @@ from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
 from dimenet.runtime.plugins import entry_points
-from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.inference import network_k, network_statistics
 from dimenet.runtime.rectify.model import load_onnx_model
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera
 from dimenet.runtime.rectify.uncertainty import STATISTICS
+from dimenet.runtime.rectify.user_camera import Camera
 
 
 @dataclass(frozen=True)

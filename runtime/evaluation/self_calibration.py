@@ -15,8 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import MIN_POINTS, k_params
-from dimenet.runtime.geometry.least_squares import calibrate
+from dimenet.runtime.geometry import MIN_POINTS, calibrate, k_params
 
 
 @dataclass(frozen=True)

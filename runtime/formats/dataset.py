@@ -23,10 +23,9 @@ import numpy as np
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.npz import read_npz
-from dimenet.runtime.geometry import MAX_COORDINATE, MIN_POINTS
-from dimenet.runtime.geometry.distortion import undistort_points
+from dimenet.runtime.geometry import MAX_COORDINATE, MIN_POINTS, undistort_points
 from dimenet.runtime.json_text import JsonProblem, parse_json
-from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
+from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
 
 FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")

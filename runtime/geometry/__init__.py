@@ -1,15 +1,37 @@
 """Pinhole geometry, the one home of projection, rotation, PnP starts and least squares.
 
-Pure numpy/OpenCV functions; conventions in models_spec/conventions.md. The package exports
-the functions of its modules (camera, rotation, spread, pnp, normal_equations);
-``least_squares`` (the batched LM core) is imported as a module.
+Pure numpy/OpenCV functions; conventions in models_spec/conventions.md. Everything outside
+geometry imports from this package (``from dimenet.runtime.geometry import project``): it hands
+on the public functions of its modules (projection, rotation, spread, pnp, normal_equations,
+distortion, least_squares, lens_bundle); ``least_squares`` and ``lens_division``, whose names
+are generic (``fit``, ``distort``), are also taken as modules.
 """
 
-from dimenet.runtime.geometry.camera import (
+from dimenet.runtime.geometry.distortion import (
+    distort_points,
+    distort_points_with_jacobians,
+    mean_distorted_error,
+    undistort_points,
+)
+from dimenet.runtime.geometry.least_squares import calibrate, solve_pnp
+from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
+from dimenet.runtime.geometry.normal_equations import frame_normal_equations
+from dimenet.runtime.geometry.pnp import (
+    MIN_POINTS,
+    MIN_POSE_POINTS,
+    check_not_degenerate,
+    dlt_camera,
+    planar_focal,
+    solve_pnp_start,
+)
+from dimenet.runtime.geometry.projection import (
     MIN_DEPTH_MM,
     camera_centre,
     camera_xy_inverse_depth,
     facing,
+    frame_error_and_depth,
+    frame_mean_norm,
+    frame_residuals,
     k_matrix,
     k_params,
     mean_over,
@@ -24,15 +46,6 @@ from dimenet.runtime.geometry.camera import (
     rescaled_px,
     residual_norms,
     to_camera,
-)
-from dimenet.runtime.geometry.normal_equations import frame_normal_equations
-from dimenet.runtime.geometry.pnp import (
-    MIN_POINTS,
-    MIN_POSE_POINTS,
-    check_not_degenerate,
-    dlt_camera,
-    planar_focal,
-    solve_pnp_start,
 )
 from dimenet.runtime.geometry.rotation import (
     FEW_POSES,
@@ -52,6 +65,16 @@ from dimenet.runtime.geometry.spread import (
 )
 
 __all__ = [
+    "distort_points",
+    "distort_points_with_jacobians",
+    "mean_distorted_error",
+    "undistort_points",
+    "calibrate",
+    "solve_pnp",
+    "fit_lens_bundle",
+    "frame_error_and_depth",
+    "frame_mean_norm",
+    "frame_residuals",
     "MIN_DEPTH_MM",
     "k_params",
     "k_matrix",

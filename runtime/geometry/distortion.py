@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from dimenet.runtime.geometry.camera import mean_over, project
+from dimenet.runtime.geometry.projection import mean_over, project
 
 # Undistortion is iterative: to this step (in normalised image coordinates, i.e. 1e-12 f px)
 # or this many iterations. OpenCV's default (5 iterations) leaves up to 0.1 px at an image

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dimenet.runtime.errors import CalibrationError
-from dimenet.runtime.geometry.camera import MIN_DEPTH_MM, k_matrix, k_params
 from dimenet.runtime.geometry.pnp import dlt_camera, solve_pnp_start
+from dimenet.runtime.geometry.projection import MIN_DEPTH_MM, k_matrix, k_params
 from dimenet.runtime.geometry.rotation import matrix_to_rvec, rotation_matrices, rvec_to_matrix
 
 

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dimenet.runtime.geometry.camera import k_matrix, k_params
 from dimenet.runtime.geometry.distortion import distort_points_with_jacobians
 from dimenet.runtime.geometry.least_squares import DAMPING_MAX, DAMPING_START, damped, jacobian, next_damping, residuals
+from dimenet.runtime.geometry.projection import k_matrix, k_params
 from dimenet.runtime.geometry.rotation import matrix_to_rvec, rvec_to_matrix
 
 

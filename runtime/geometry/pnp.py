@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import CalibrationError, InputError
-from dimenet.runtime.geometry.camera import k_matrix, k_params
+from dimenet.runtime.geometry.projection import k_matrix, k_params
 from dimenet.runtime.geometry.rotation import matrix_to_rvec
 from dimenet.runtime.geometry.spread import spans_3d
 

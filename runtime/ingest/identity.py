@@ -34,8 +34,15 @@ import numpy as np
 
 from dimenet.runtime.errors import CalibrationError, IdentificationError, InputError
 from dimenet.runtime.formats.rig import Rig
-from dimenet.runtime.geometry import k_matrix, least_squares, project, reprojection_errors, solve_pnp_start
-from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
+from dimenet.runtime.geometry import (
+    RIG_VIEW_RATIO,
+    k_matrix,
+    least_squares,
+    project,
+    reprojection_errors,
+    solve_pnp_start,
+    spans_3d,
+)
 from dimenet.runtime.ingest.detection import Detection
 from dimenet.runtime.ingest.grid import placements
 

@@ -39,8 +39,7 @@ from dimenet.runtime.errors import DimenetError, IngestError, LabelsError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, NaturalObject
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
-from dimenet.runtime.geometry import MIN_POINTS, k_params, project
-from dimenet.runtime.geometry.distortion import undistort_points
+from dimenet.runtime.geometry import MIN_POINTS, k_params, project, undistort_points
 from dimenet.runtime.ingest.detection import BoardSearch, detect_boards
 from dimenet.runtime.ingest.identity import Identification, check_unambiguous, label, label_planar, refit, rough_k
 from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
@@ -48,7 +47,7 @@ from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 from dimenet.runtime.ingest.placement import boards_in_view, place
 from dimenet.runtime.ingest.predicted import search_predicted
 from dimenet.runtime.jobs.workers import run_shared
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 GENERATOR = "dimenet.ingest"
 MIN_BOARDS = 2  # boards a rig photo needs (a rig of 2 or more boards): two planes make K observable from the photo

@@ -22,8 +22,16 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.rig import Rig
-from dimenet.runtime.geometry import k_matrix, planar_focal, project, project_camera, solve_pnp_start, to_camera
-from dimenet.runtime.geometry.camera import camera_centre, facing
+from dimenet.runtime.geometry import (
+    camera_centre,
+    facing,
+    k_matrix,
+    planar_focal,
+    project,
+    project_camera,
+    solve_pnp_start,
+    to_camera,
+)
 from dimenet.runtime.ingest.detection import PLACE_TOLERANCE, Detection, confirm, settle
 from dimenet.runtime.ingest.grid import corner_spacing, fit_model
 from dimenet.runtime.ingest.identity import candidates, refit, rough_k

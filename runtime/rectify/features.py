@@ -13,7 +13,7 @@ Scale-free depth (``FeatureSpec.depth_mm``, spec >= 1.5): each frame's {C0} poin
 scaled by depth_mm / Z_mean, Z_mean the mean depth of its inference points, so X, Y and 1/Z
 no longer depend on the world unit (mm, m, inches) nor on how far the scene is: they read as
 millimetres of a scene depth_mm away. With the PMD measured in a canonical camera's pixels
-(``rectify.camera``), the whole feature is then scale free.
+(``rectify.user_camera``), the whole feature is then scale free.
 
 Variants (paper Table 3): A all five channels; B PMD only; C PMD + 1/Z; D PMD + X, Y;
 E X, Y, 1/Z only.

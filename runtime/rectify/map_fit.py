@@ -30,11 +30,11 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     camera_xy_inverse_depth,
     frame_normal_equations,
+    frame_residuals,
     k_matrix,
     left_update,
     solve_pnp_start,
 )
-from dimenet.runtime.geometry.camera import frame_residuals
 from dimenet.runtime.rectify.spec import frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 

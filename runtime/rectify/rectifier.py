@@ -25,7 +25,7 @@ The camera: a device model serves its own camera, or a rescale or crop of it; a 
 any camera, given to ``load``. A camera with lens distortion (``dist_coeffs``) has its points
 undistorted to the pinhole camera of K_c after validation (``geometry.distortion``); K and the
 poses are that pinhole camera's, and e and e_c are measured in the distorted image the points
-came from. The stages run in the model's pixel frame (``rectify.camera``):
+came from. The stages run in the model's pixel frame (``rectify.user_camera``):
 the points are mapped onto it after validation and K, Delta K, K_cov and the errors back
 (nothing is mapped when the camera is the model's own).
 """
@@ -39,16 +39,15 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.errors import CameraError, InputError
-from dimenet.runtime.geometry import mean_reprojection_error
+from dimenet.runtime.geometry import frame_error_and_depth, mean_reprojection_error
 from dimenet.runtime.geometry import solve_pnp_start as pnp
-from dimenet.runtime.geometry.camera import frame_error_and_depth
 from dimenet.runtime.rectify import stages
-from dimenet.runtime.rectify.camera import Camera, PixelMap, checked_camera
 from dimenet.runtime.rectify.checks import validated_batch, validated_frame
 from dimenet.runtime.rectify.inference import network_k
 from dimenet.runtime.rectify.model import OnnxModel, load_model
 from dimenet.runtime.rectify.results import BatchRectification, Lap, Rectification
 from dimenet.runtime.rectify.spec import ModelSpec, frame_within_bounds
+from dimenet.runtime.rectify.user_camera import Camera, PixelMap, checked_camera
 
 MODES = ("dimenet", "map")
 

@@ -21,9 +21,9 @@ import numpy as np
 from dimenet.runtime.errors import CameraError, ModelError
 from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.json_text import JsonProblem, integer, is_number, numbers, parse_json, required, shown
-from dimenet.runtime.rectify.camera import MAX_IMAGE_SIDE_PX, Camera, PixelMap, device_pixel_map, generic_pixel_map
 from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.uncertainty import PARAMETERS, Uncertainty
+from dimenet.runtime.rectify.user_camera import MAX_IMAGE_SIDE_PX, Camera, PixelMap, device_pixel_map, generic_pixel_map
 
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version and reads every 1.x (the minor
@@ -109,7 +109,7 @@ def _checked(d: dict) -> dict:
 @dataclass(frozen=True)
 class GenericCamera:
     """What makes a model generic (spec >= 1.5): it infers K in a canonical camera of fx =
-    focal_px (``rectify.camera.generic_pixel_map``) and has no camera of its own; delta_bounds
+    focal_px (``rectify.user_camera.generic_pixel_map``) and has no camera of its own; delta_bounds
     (4, 2) [low, high] the plausible Delta K (fx, fy, cx, cy) in canonical px."""
 
     focal_px: float
@@ -124,7 +124,7 @@ class ModelSpec:
     """features: the grid feature; K_c (3, 3) px; image_size (width, height) px; K_bounds: per
     parameter (fx, fy, cx, cy) the [low, high] px range of plausible K (outside it, the runtime
     falls back to K_c); generic: None for a device model; for a generic one (spec >= 1.5) its
-    canonical camera, and K_c, image_size and K_bounds are None until ``rectify.camera``
+    canonical camera, and K_c, image_size and K_bounds are None until ``rectify.user_camera``
     resolves the spec for a camera (in canonical px); uncertainty: the model of the network's
     Delta K covariance (None in 1.0 specs); provenance: dataset sha256, seed, versions, command; weights_sha256: the
     integrity hash the model file's spec declared (None for a spec on its own or before 1.4).
@@ -196,7 +196,7 @@ class ModelSpec:
     def for_camera(self, camera: Optional[Camera], source: str = "model") -> ServedCamera:
         """This spec serving the user's ``camera`` (None: a device model's own camera).
         CameraError naming ``source`` for a generic model without a camera, or a camera a
-        device model cannot serve (``rectify.camera.device_pixel_map``)."""
+        device model cannot serve (``rectify.user_camera.device_pixel_map``)."""
         if self.generic is None:
             if camera is None:
                 return ServedCamera(self, None, self.K_c, tuple(self.image_size), self.K_bounds)

@@ -16,11 +16,18 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, mean_reprojection_error, min_depths
+from dimenet.runtime.geometry import (
+    MIN_POINTS,
+    frame_error_and_depth,
+    frame_mean_norm,
+    k_matrix,
+    k_params,
+    mean_distorted_error,
+    mean_reprojection_error,
+    min_depths,
+    undistort_points,
+)
 from dimenet.runtime.geometry import solve_pnp_start as pnp
-from dimenet.runtime.geometry.camera import frame_error_and_depth, frame_mean_norm
-from dimenet.runtime.geometry.distortion import mean_distorted_error, undistort_points
-from dimenet.runtime.rectify.camera import Camera, PixelMap
 from dimenet.runtime.rectify.checks import (
     BEHIND_REASON,
     NO_POSE_REASON,
@@ -41,6 +48,7 @@ from dimenet.runtime.rectify.map_fit import map_rectify
 from dimenet.runtime.rectify.results import BatchRectification, Rectification
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera, frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import occupied_cells, thickness
+from dimenet.runtime.rectify.user_camera import Camera, PixelMap
 
 
 @dataclass(frozen=True, eq=False)

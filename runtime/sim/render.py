@@ -35,10 +35,17 @@ from dimenet.runtime import __version__
 from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.rig import Board, Rig, rig_to_dict
-from dimenet.runtime.geometry import matrix_to_rvec, project, rvec_to_matrix, to_camera
-from dimenet.runtime.geometry.camera import camera_centre, facing
-from dimenet.runtime.geometry.distortion import undistort_points
-from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO, spans_3d
+from dimenet.runtime.geometry import (
+    RIG_VIEW_RATIO,
+    camera_centre,
+    facing,
+    matrix_to_rvec,
+    project,
+    rvec_to_matrix,
+    spans_3d,
+    to_camera,
+    undistort_points,
+)
 from dimenet.runtime.sim.drawing import clutter, draw_board, paper_rect_mm, sensor
 from dimenet.runtime.sim.profiles import DeviceProfile
 from dimenet.runtime.sim.simulator import (

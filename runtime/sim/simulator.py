@@ -30,10 +30,18 @@ from dimenet.runtime import __version__
 from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.rig import Board, Rig, paper_rig, rig_to_dict
-from dimenet.runtime.geometry import camera_centre, facing, matrix_to_rvec, project, spans_3d, to_camera
-from dimenet.runtime.geometry.distortion import distort_points, undistort_points
-from dimenet.runtime.geometry.spread import RIG_VIEW_RATIO
-from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
+from dimenet.runtime.geometry import (
+    RIG_VIEW_RATIO,
+    camera_centre,
+    distort_points,
+    facing,
+    matrix_to_rvec,
+    project,
+    spans_3d,
+    to_camera,
+    undistort_points,
+)
+from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
 from dimenet.runtime.sim.platform import platform_matrices, platform_meta, platform_rng
 from dimenet.runtime.sim.profiles import DeviceProfile, get_profile
 

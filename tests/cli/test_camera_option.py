@@ -13,7 +13,7 @@ from helpers import DEVICE_MODEL, example_camera
 from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.evaluation.calibration import read_calibration
-from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.model import DEFAULT_MODEL

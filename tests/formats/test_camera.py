@@ -12,8 +12,8 @@ import pytest
 
 from dimenet.runtime import CameraError as ExportedCameraError
 from dimenet.runtime.errors import CameraError, DimenetError
-from dimenet.runtime.formats.camera import MAX_CAMERA_BYTES, read_camera
-from dimenet.runtime.rectify.camera import Camera, checked_camera
+from dimenet.runtime.formats.camera_file import MAX_CAMERA_BYTES, read_camera
+from dimenet.runtime.rectify.user_camera import Camera, checked_camera
 
 K = [[3000.0, 0.0, 2015.5], [0.0, 3010.0, 1511.5], [0.0, 0.0, 1.0]]
 GOOD = {"K": K, "image_size": [4032, 3024]}

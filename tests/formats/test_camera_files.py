@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from dimenet.runtime.errors import CameraError
-from dimenet.runtime.formats.camera import (
+from dimenet.runtime.formats.camera_file import (
     FORMATS,
     MAX_CAMERA_BYTES,
     format_for_suffix,
@@ -23,7 +23,7 @@ from dimenet.runtime.formats.camera import (
     write_camera,
 )
 from dimenet.runtime.formats.cameras import mrcal, opencv, values
-from dimenet.runtime.rectify.camera import checked_camera
+from dimenet.runtime.rectify.user_camera import checked_camera
 
 K = np.array([[3059.61436426714, 0.0, 2023.8328146289948], [0.0, 3059.622856598851, 1508.4933376453093], [0, 0, 1]])
 SIZE = (4032, 3024)

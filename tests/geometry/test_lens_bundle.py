@@ -12,8 +12,7 @@ import pytest
 
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, oracle_fit
 from dimenet.runtime.evaluation.multiview import joint_fit
-from dimenet.runtime.geometry import k_params, project
-from dimenet.runtime.geometry.distortion import distort_points, distort_points_with_jacobians, undistort_points
+from dimenet.runtime.geometry import distort_points, distort_points_with_jacobians, k_params, project, undistort_points
 from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.simulator import simulate
 

@@ -6,16 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dimenet.runtime.geometry.lens_division import (
-    K_RANGE,
-    K_TOLERANCE,
-    brent,
-    coefficients,
-    distort,
-    fit_coefficients,
-    gauss_newton,
-    undistort,
-)
+from dimenet.runtime.geometry import lens_division as ld
 
 CENTRE = np.array([1999.5, 1499.5])
 SCALE = 2000.0
@@ -25,32 +16,32 @@ def test_the_division_model_by_hand_and_its_inverse():
     """A pixel at r_d = 1 (one half-side from the centre) under k1 = 0.1: u - c = (d - c) / 1.1; the
     centre stays; two terms r_d = 0.5: 1 + k1 / 4 + k2 / 16."""
     d = CENTRE + np.array([[SCALE, 0.0], [0.0, 0.0], [0.0, -SCALE / 2]])
-    u = undistort(d, (0.1, 0.0), CENTRE, SCALE)
+    u = ld.undistort(d, (0.1, 0.0), CENTRE, SCALE)
     np.testing.assert_allclose(u[0], CENTRE + [SCALE / 1.1, 0.0], rtol=0, atol=1e-9)
     np.testing.assert_array_equal(u[1], CENTRE)
-    two = undistort(d, (0.1, -0.05), CENTRE, SCALE)
+    two = ld.undistort(d, (0.1, -0.05), CENTRE, SCALE)
     np.testing.assert_allclose(two[2], CENTRE + [0.0, -SCALE / 2 / (1 + 0.1 / 4 - 0.05 / 16)], rtol=0, atol=1e-9)
     for k in ((0.1, 0.0), (0.1, -0.05), (-0.2, 0.03)):
-        np.testing.assert_allclose(distort(undistort(d, k, CENTRE, SCALE), k, CENTRE, SCALE), d, atol=1e-9)
+        np.testing.assert_allclose(ld.distort(ld.undistort(d, k, CENTRE, SCALE), k, CENTRE, SCALE), d, atol=1e-9)
 
 
 def test_gauss_newton_fits_two_terms_within_their_bounds_and_fit_coefficients_starts_it_from_one_term():
     """A misfit whose zero is (0.12, -0.04) is found to K_TOLERANCE; a bound keeps a coefficient inside it."""
     rng = np.random.default_rng(0)
     d = CENTRE + rng.uniform(-1500, 1500, (40, 2))
-    target = undistort(d, (0.12, -0.04), CENTRE, SCALE)
+    target = ld.undistort(d, (0.12, -0.04), CENTRE, SCALE)
 
     def misfit(k):  # k: k1 alone (one term) or (k1, k2)
-        return (undistort(d, coefficients(k), CENTRE, SCALE) - target).ravel()
+        return (ld.undistort(d, ld.coefficients(k), CENTRE, SCALE) - target).ravel()
 
-    found = gauss_newton(misfit, np.array([0.0, 0.0]), np.array([K_RANGE, (-0.25, 0.25)]))
-    np.testing.assert_allclose(found, [0.12, -0.04], atol=K_TOLERANCE)
-    held = gauss_newton(misfit, np.array([0.0, 0.0]), np.array([K_RANGE, (-0.01, 0.25)]))
+    found = ld.gauss_newton(misfit, np.array([0.0, 0.0]), np.array([ld.K_RANGE, (-0.25, 0.25)]))
+    np.testing.assert_allclose(found, [0.12, -0.04], atol=ld.K_TOLERANCE)
+    held = ld.gauss_newton(misfit, np.array([0.0, 0.0]), np.array([ld.K_RANGE, (-0.01, 0.25)]))
     assert held[1] == pytest.approx(-0.01)
-    k1, k2 = fit_coefficients(misfit, 2)
-    assert abs(k1 - 0.12) < K_TOLERANCE and abs(k2 + 0.04) < K_TOLERANCE
-    one = fit_coefficients(misfit, 1)
-    assert one[1] == 0.0 and K_RANGE[0] < one[0] < K_RANGE[1]
+    k1, k2 = ld.fit_coefficients(misfit, 2)
+    assert abs(k1 - 0.12) < ld.K_TOLERANCE and abs(k2 + 0.04) < ld.K_TOLERANCE
+    one = ld.fit_coefficients(misfit, 1)
+    assert one[1] == 0.0 and ld.K_RANGE[0] < one[0] < ld.K_RANGE[1]
 
 
 def test_brent_finds_the_minimiser_to_the_tolerance_in_fewer_steps_than_golden_section():
@@ -60,10 +51,12 @@ def test_brent_finds_the_minimiser_to_the_tolerance_in_fewer_steps_than_golden_s
         calls.append(x)
         return (x - 0.237) ** 2 + 3.0 * (x - 0.237) ** 4
 
-    assert brent(f, *K_RANGE, K_TOLERANCE) == pytest.approx(0.237, abs=K_TOLERANCE / 2)
+    assert ld.brent(f, *ld.K_RANGE, ld.K_TOLERANCE) == pytest.approx(0.237, abs=ld.K_TOLERANCE / 2)
     assert len(calls) <= 10  # golden section needs 17 to shrink [-0.5, 0.5] to 1e-3
     calls.clear()
-    assert brent(lambda x: f(x + 1.0), *K_RANGE, K_TOLERANCE) == pytest.approx(K_RANGE[0], abs=K_TOLERANCE / 2)
-    assert brent(lambda x: abs(x - 0.1) if x < 0.3 else np.inf, *K_RANGE, K_TOLERANCE) == pytest.approx(
-        0.1, abs=K_TOLERANCE / 2
+    assert ld.brent(lambda x: f(x + 1.0), *ld.K_RANGE, ld.K_TOLERANCE) == pytest.approx(
+        ld.K_RANGE[0], abs=ld.K_TOLERANCE / 2
+    )
+    assert ld.brent(lambda x: abs(x - 0.1) if x < 0.3 else np.inf, *ld.K_RANGE, ld.K_TOLERANCE) == pytest.approx(
+        0.1, abs=ld.K_TOLERANCE / 2
     )

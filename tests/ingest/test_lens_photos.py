@@ -12,13 +12,12 @@ import pytest
 from dimenet.runtime.bench.ingest_score import score
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.evaluation.calibration import read_calibration
-from dimenet.runtime.formats.camera import write_camera
+from dimenet.runtime.formats.camera_file import write_camera
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import paper_rig
-from dimenet.runtime.geometry import k_params, project
-from dimenet.runtime.geometry.distortion import distort_points, undistort_points
-from dimenet.runtime.rectify.camera import checked_camera
+from dimenet.runtime.geometry import distort_points, k_params, project, undistort_points
+from dimenet.runtime.rectify.user_camera import checked_camera
 from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, lens_warp, scaled_profile
 

@@ -12,10 +12,10 @@ import pytest
 from helpers import constant_uncertainty, model_spec
 from test_rectifier_camera import linear_model, rig_frames, to_half
 
-from dimenet.runtime.geometry.distortion import distort_points
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.geometry import distort_points
 from dimenet.runtime.rectify.model import load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.user_camera import Camera
 
 DIST = np.array([-0.12, 0.05, 0.0004, -0.0003, -0.01])
 NOISY_FRAME = 2  # gets 60 px of noise: beyond the model's range, so it falls back to K_c

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 from helpers import constant_uncertainty, random_frames
 
-from dimenet.runtime.geometry import k_matrix, k_params, project, solve_pnp_start
-from dimenet.runtime.geometry.least_squares import calibrate
+from dimenet.runtime.geometry import calibrate, k_matrix, k_params, project, solve_pnp_start
 from dimenet.runtime.rectify.map_fit import map_fit, map_rectify, turned_to_principal_point
 from dimenet.runtime.rectify.uncertainty import NOISE_SCALE_PX
 

@@ -1,4 +1,4 @@
-"""The camera at run time (rectify.camera and ModelSpec.for_camera): the pixel map between the
+"""The camera at run time (rectify.user_camera and ModelSpec.for_camera): the pixel map between the
 user's camera and the model's pixels, the device model's rescale-or-crop rule, and generic specs."""
 
 from __future__ import annotations
@@ -11,15 +11,15 @@ from helpers import K_TEST
 
 from dimenet.runtime.errors import CameraError, ModelError
 from dimenet.runtime.geometry import k_matrix, k_params, project
-from dimenet.runtime.rectify.camera import (
+from dimenet.runtime.rectify.features import FeatureSpec
+from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
+from dimenet.runtime.rectify.user_camera import (
     Camera,
     PixelMap,
     checked_camera,
     device_pixel_map,
     generic_pixel_map,
 )
-from dimenet.runtime.rectify.features import FeatureSpec
-from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
 
 SIZE = (4032, 3024)
 

@@ -20,9 +20,9 @@ from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
 from dimenet.runtime.geometry import check_not_degenerate, covariance_invariants, k_matrix, k_params
 from dimenet.runtime.rectify import checks
 from dimenet.runtime.rectify import model as model_module
-from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.features import grid_features
 from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.user_camera import Camera
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,8 @@ from test_pixel_map import generic_spec, half
 
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.rectifier import Rectifier, _camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 
 def linear_model(spec, seed=0, scale=0.02):

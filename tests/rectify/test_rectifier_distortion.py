@@ -16,10 +16,10 @@ from test_rectifier_camera import linear_model, rig_frames
 from dimenet.runtime.errors import CameraError, InputError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, dataset_camera
 from dimenet.runtime.evaluation.metrics import reduction_ratio
-from dimenet.runtime.geometry.distortion import distort_points, mean_distorted_error, undistort_points
-from dimenet.runtime.rectify.camera import Camera, checked_camera
+from dimenet.runtime.geometry import distort_points, mean_distorted_error, undistort_points
 from dimenet.runtime.rectify.model import load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.user_camera import Camera, checked_camera
 from dimenet.runtime.sim.simulator import simulate
 
 # A phone main camera's barrel distortion (k1, k2, p1, p2, k3): ~90 px at a 12 MP corner.
@@ -156,7 +156,7 @@ def test_batch_and_single_agree_frame_by_frame_on_random_lenses(setup):
 
 def test_a_lens_without_an_inverse_at_the_points_is_one_line_from_dataset_rectify(tmp_path, capsys):
     from dimenet.runtime.cli.main import main
-    from dimenet.runtime.formats.camera import write_camera
+    from dimenet.runtime.formats.camera_file import write_camera
     from dimenet.runtime.formats.dataset import write_dataset
 
     ds = simulate("galaxy-s8", seed=1)

@@ -1,4 +1,4 @@
-"""Each hot-path twin of the rectifier (beside its reference: geometry.camera, rectify.checks,
+"""Each hot-path twin of the rectifier (beside its reference: geometry.projection, rectify.checks,
 rectify.spec) against that numpy reference, on ordinary and edge inputs."""
 
 import cv2
@@ -7,7 +7,7 @@ import pytest
 from helpers import random_frames
 
 from dimenet.runtime import geometry as g
-from dimenet.runtime.geometry.camera import frame_error_and_depth, frame_mean_norm, frame_residuals
+from dimenet.runtime.geometry import frame_error_and_depth, frame_mean_norm, frame_residuals
 from dimenet.runtime.rectify.checks import ImageBounds, all_inside
 from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.spec import ModelSpec, frame_within_bounds

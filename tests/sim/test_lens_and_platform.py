@@ -12,8 +12,7 @@ import pytest
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import read_dataset
-from dimenet.runtime.geometry import k_params
-from dimenet.runtime.geometry.distortion import undistort_points
+from dimenet.runtime.geometry import k_params, undistort_points
 from dimenet.runtime.sim.family import family_member, family_profiles
 from dimenet.runtime.sim.platform import LENS_POSITION_SIGMA_UM, MODEL, platform_sigma_px
 from dimenet.runtime.sim.profiles import get_profile

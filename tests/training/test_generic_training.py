@@ -14,7 +14,7 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.config import TrainConfig
 from dimenet.training.init_weights import initial_weights

@@ -16,9 +16,9 @@ from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.camera import Camera
 from dimenet.runtime.rectify.model import OnnxModel, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import hfov_deg, simulate_family
 
 from ..config import ReproduceConfig, TrainConfig

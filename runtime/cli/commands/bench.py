@@ -17,7 +17,7 @@ from dimenet.runtime.bench.latency import format_report, run_bench
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism, seed
 from dimenet.runtime.cli.commands.render import MAX_PHOTOS
 from dimenet.runtime.cli.main import CliError, Command
-from dimenet.runtime.geometry.pnp import MIN_POINTS
+from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.sim.profiles import PROFILES
 
@@ -176,7 +176,7 @@ def _run_stream(args: argparse.Namespace) -> int:
     from dimenet.runtime.assets import asset
     from dimenet.runtime.bench.streaming import format_stream_report, run_stream_bench
     from dimenet.runtime.cli.commands.rectify import EXAMPLE_CAMERA, EXAMPLE_DATA
-    from dimenet.runtime.formats.camera import read_camera
+    from dimenet.runtime.formats.camera_file import read_camera
     from dimenet.runtime.formats.dataset import read_dataset
 
     _options(args, STREAM)

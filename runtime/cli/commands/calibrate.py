@@ -12,10 +12,10 @@ from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, write_calibration
 from dimenet.runtime.evaluation.multiview import DISTORTION_MODELS
-from dimenet.runtime.formats.camera import FORMATS, SUFFIX_FORMATS, format_for_suffix, write_camera
+from dimenet.runtime.formats.camera_file import FORMATS, SUFFIX_FORMATS, format_for_suffix, write_camera
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.rectify.camera import checked_camera
+from dimenet.runtime.rectify.user_camera import checked_camera
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

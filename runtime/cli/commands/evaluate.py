@@ -11,16 +11,16 @@ import json
 import numpy as np
 
 from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, noise_sigma, nonempty_path, seed
-from dimenet.runtime.cli.camera import add_camera_argument, served_camera
+from dimenet.runtime.cli.camera_option import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
 from dimenet.runtime.evaluation.methods import ALL_METHODS, MODEL_METHODS, evaluate, format_table, require_platform
 from dimenet.runtime.evaluation.predictor import load_predictor
-from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
-from dimenet.runtime.geometry.pnp import MIN_POINTS
+from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.rectify.grid import Grid
 
 MAX_DROP = 10**6  # points kept per frame; more than a frame has keeps them all

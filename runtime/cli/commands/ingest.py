@@ -12,7 +12,7 @@ from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.atomic import atomic_write_text
-from dimenet.runtime.formats.camera import camera_file, read_camera
+from dimenet.runtime.formats.camera_file import camera_file, read_camera
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.rig import MAX_RIG_POINTS, PAPER_RIG_NAME, rig_from_argument

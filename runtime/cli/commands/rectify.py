@@ -21,13 +21,13 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.arguments import nonempty_path
-from dimenet.runtime.cli.camera import add_camera_argument, served_camera
+from dimenet.runtime.cli.camera_option import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.evaluation.rectify_points import rectified_records
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.camera import camera_file, read_camera
+from dimenet.runtime.formats.camera_file import camera_file, read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.formats.points import PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
@@ -156,7 +156,7 @@ def _frames(args: argparse.Namespace) -> Dataset:
 
 
 def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
-    """The model serving the dataset's camera (``cli.camera.served_camera``; the bundled example's
+    """The model serving the dataset's camera (``cli.camera_option.served_camera``; the bundled example's
     own camera file with --example)."""
     model = load_model(args.model)
     camera_file = args.camera

@@ -1,8 +1,8 @@
 """Camera files in the ecosystem's formats, one module per format.
 
-Each module reads a file's text into a ``rectify.camera.Camera`` (K 3x3 px and the image size
+Each module reads a file's text into a ``rectify.user_camera.Camera`` (K 3x3 px and the image size
 (width, height) px in OpenCV's pixel convention, and OpenCV's distortion coefficients) and
-writes one back. ``formats.camera`` is the front door: it reads the file, tells the format
+writes one back. ``formats.camera_file`` is the front door: it reads the file, tells the format
 from its content and picks a camera out of a multi-camera file. Specified in
 ``models_spec/camera-files.md``.
 

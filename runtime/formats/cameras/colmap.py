@@ -19,7 +19,7 @@ from typing import Optional
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.cameras import values
 from dimenet.runtime.geometry import k_matrix, k_params
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 COLMAP_SHIFT_PX = 0.5  # x_COLMAP = x_OpenCV + 0.5 (and y)
 MODELS = {

@@ -11,7 +11,7 @@ from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.cameras import values
 from dimenet.runtime.json_text import JsonProblem, an_object, integer, parse_json, required, shown
 from dimenet.runtime.json_text import numbers as json_numbers
-from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, MAX_IMAGE_SIDE_PX, Camera
+from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, MAX_IMAGE_SIDE_PX, Camera
 
 
 def parsed(text: str, source: str, max_chars: int) -> Any:

@@ -17,7 +17,7 @@ from typing import Any, Optional
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.cameras import values
 from dimenet.runtime.geometry import k_matrix, k_params
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 DISTORTIONS = {"radtan": (4,), "none": (0,)}  # distortion_model -> distortion_coeffs counts
 CAMERA = "cam0"  # the camera written

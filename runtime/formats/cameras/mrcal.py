@@ -23,7 +23,7 @@ from typing import Any
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.cameras import values
 from dimenet.runtime.geometry import k_matrix, k_params
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 MODELS = {
     "LENSMODEL_PINHOLE": 0,

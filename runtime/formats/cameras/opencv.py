@@ -31,7 +31,7 @@ import numpy as np
 
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.cameras import values
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 K_KEYS = ("camera_matrix", "cameraMatrix", "K")
 DIST_KEYS = ("distortion_coefficients", "dist_coeffs", "distCoeffs", "D")

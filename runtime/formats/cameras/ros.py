@@ -18,7 +18,7 @@ import numpy as np
 
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.formats.cameras import values
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 # distortion_model -> the coefficient counts read (0: an empty list, no distortion), and written
 MODELS = {"plumb_bob": (0, 4, 5), "rational_polynomial": (8,)}

@@ -18,7 +18,7 @@ import yaml
 
 from dimenet.runtime.errors import CameraError
 from dimenet.runtime.json_text import is_number
-from dimenet.runtime.rectify.camera import DIST_COEFF_COUNTS, Camera, checked_camera
+from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, Camera, checked_camera
 
 # YAML text is at most this long: PyYAML (pure Python, 3.5 s per MiB) parses 64 KiB in ~0.2 s,
 # and a ROS or Kalibr file is ~1 KiB.
@@ -158,7 +158,7 @@ def shortest(dist_coeffs: Optional[np.ndarray]) -> Optional[np.ndarray]:
 
 
 def camera(K: Any, image_size: Any, source: str, dist_coeffs: Any = None) -> Camera:
-    """The checked Camera (``rectify.camera.checked_camera``), its distortion in shortest form,
+    """The checked Camera (``rectify.user_camera.checked_camera``), its distortion in shortest form,
     with fx and fy within FOCAL_PER_SIDE of the image's larger side."""
     checked = checked_camera(K, image_size, source, shortest(dist_coeffs))
     side = max(checked.image_size)

@@ -5,7 +5,7 @@ Specified in ``models_spec/camera-files.md``; one module per format in ``formats
 Every camera is in OpenCV's pixel convention (the centre of the top-left pixel at (0, 0);
 COLMAP's 0.5 px shift is applied on the way in and out) with OpenCV's distortion coefficients
 (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]]), checked as a camera given in memory
-is (``rectify.camera.checked_camera``), its distortion in shortest form (trailing zeros dropped
+is (``rectify.user_camera.checked_camera``), its distortion in shortest form (trailing zeros dropped
 down to 4, 5, 8 or 12 coefficients; none when all are 0).
 
 ``read_camera`` tells the format from the file's content, not its suffix. A file holding
@@ -27,7 +27,7 @@ from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.cameras import colmap, json_file, kalibr, mrcal, opencv, ros, values
 from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.json_text import JsonProblem, parse_json
-from dimenet.runtime.rectify.camera import Camera
+from dimenet.runtime.rectify.user_camera import Camera
 
 # A camera file is at most 16 MiB: a mrcal model carries its optimization inputs (MBs of
 # base-85), an OpenCV calibration its image points; a pinhole camera alone is ~1 KiB.

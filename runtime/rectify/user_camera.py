@@ -170,7 +170,7 @@ def checked_camera(
     height) integers px in [1, MAX_IMAGE_SIDE_PX]; dist_coeffs None or OpenCV's 4/5/8/12/14
     coefficients (all zero: None), dist_K None or a K as K is (the distortion's own K). Raises
     CameraError naming ``source`` and the field.
-    (``formats.camera.read_camera`` reads a camera file into this.)"""
+    (``formats.camera_file.read_camera`` reads a camera file into this.)"""
     array = _array_k(K, source)
     width, height = _array_size(image_size, source)
     dist = checked_dist_coeffs(dist_coeffs, source)

@@ -8,10 +8,10 @@ from typing import Optional
 from dimenet.runtime.cli.arguments import nonempty_path
 from dimenet.runtime.cli.main import CliError
 from dimenet.runtime.evaluation.calibration import dataset_camera
-from dimenet.runtime.formats.camera import read_camera
+from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.rectify.camera import Camera, checked_camera
 from dimenet.runtime.rectify.spec import ModelSpec
+from dimenet.runtime.rectify.user_camera import Camera, checked_camera
 
 
 def add_camera_argument(p: argparse.ArgumentParser) -> None:
