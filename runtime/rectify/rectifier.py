@@ -32,6 +32,7 @@ the points are mapped onto it after validation and K, Delta K, K_cov and the err
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Optional
@@ -45,11 +46,26 @@ from dimenet.runtime.rectify import stages
 from dimenet.runtime.rectify.checks import validated_batch, validated_frame
 from dimenet.runtime.rectify.inference import network_k
 from dimenet.runtime.rectify.model import OnnxModel, load_model
-from dimenet.runtime.rectify.results import BatchRectification, Lap, Rectification
+from dimenet.runtime.rectify.results import BatchRectification, Rectification
 from dimenet.runtime.rectify.spec import ModelSpec, frame_within_bounds
 from dimenet.runtime.rectify.user_camera import Camera, PixelMap, checked_camera
 
 MODES = ("dimenet", "map")
+
+
+class Lap:
+    """Microseconds per stage: each call closes the stage that ran since the previous call."""
+
+    __slots__ = ("timings", "_last")
+
+    def __init__(self) -> None:
+        self.timings: dict = {}
+        self._last = time.perf_counter_ns()
+
+    def __call__(self, stage: str) -> None:
+        now = time.perf_counter_ns()
+        self.timings[stage] = (now - self._last) / 1e3
+        self._last = now
 
 
 def _camera(model: OnnxModel, K_c, image_size) -> Optional[Camera]:

@@ -1,9 +1,7 @@
-"""What the rectifier returns: one frame's ``Rectification``, B frames' ``BatchRectification``,
-and the lap timer that fills a frame's ``timings_us``."""
+"""What the rectifier returns: one frame's ``Rectification`` and B frames' ``BatchRectification``."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Callable, Optional
@@ -55,18 +53,3 @@ class BatchRectification:
     fallback: tuple
     K_c: np.ndarray
     K_cov: Optional[np.ndarray] = None
-
-
-class Lap:
-    """Microseconds per stage: each call closes the stage that ran since the previous call."""
-
-    __slots__ = ("timings", "_last")
-
-    def __init__(self) -> None:
-        self.timings: dict = {}
-        self._last = time.perf_counter_ns()
-
-    def __call__(self, stage: str) -> None:
-        now = time.perf_counter_ns()
-        self.timings[stage] = (now - self._last) / 1e3
-        self._last = now
