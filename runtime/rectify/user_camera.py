@@ -73,6 +73,12 @@ def _fail(source: str, field: str, problem: str) -> CameraError:
     return CameraError(f"{source}: {field} {problem}")
 
 
+# fx and fy lie within these multiples of the image's larger side: a horizontal field of view from
+# 2 * atan(50) = 178.9 deg down to 2 * atan(1 / 2000) = 0.057 deg. Past them a pinhole model means
+# nothing (and 5e-324 px or 1e300 px break the pixel map's inverse).
+FOCAL_PER_SIDE = (0.01, 1000.0)
+
+
 def _checked_k(K: np.ndarray, width: int, height: int, source: str) -> np.ndarray:
     """K (3, 3) float64 of finite numbers -> itself, read-only, after the pinhole-form checks."""
     for (r, c), expected in {(1, 0): 0.0, (2, 0): 0.0, (2, 1): 0.0, (2, 2): 1.0}.items():
@@ -83,6 +89,14 @@ def _checked_k(K: np.ndarray, width: int, height: int, source: str) -> np.ndarra
     fx, fy, cx, cy = (float(K[r, c]) for r, c in ((0, 0), (1, 1), (0, 2), (1, 2)))
     if not (fx > 0 and fy > 0):
         raise _fail(source, "K", f"must have fx, fy > 0 px, got fx = {fx!r}, fy = {fy!r}")
+    low, high = (max(width, height) * r for r in FOCAL_PER_SIDE)
+    if not (low <= fx <= high and low <= fy <= high):
+        raise _fail(
+            source,
+            "K",
+            f"must have fx, fy within {FOCAL_PER_SIDE[0]:g} to {FOCAL_PER_SIDE[1]:g} times the image's larger side "
+            f"({low:g} to {high:g} px for {width}x{height} px), got fx = {fx!r}, fy = {fy!r}",
+        )
     low, high = ASPECT_RANGE
     if not low <= fy / fx <= high:
         raise _fail(

@@ -23,7 +23,7 @@ from dimenet.runtime.formats.camera_file import (
     write_camera,
 )
 from dimenet.runtime.formats.cameras import mrcal, opencv, values
-from dimenet.runtime.rectify.user_camera import checked_camera
+from dimenet.runtime.rectify.user_camera import FOCAL_PER_SIDE, checked_camera
 
 K = np.array([[3059.61436426714, 0.0, 2023.8328146289948], [0.0, 3059.622856598851, 1508.4933376453093], [0, 0, 1]])
 SIZE = (4032, 3024)
@@ -891,7 +891,7 @@ def test_a_camera_selector_of_non_ascii_digits_names_no_camera(tmp_path, selecto
 
 
 def test_the_focal_bound_is_relative_to_the_larger_side(tmp_path):
-    assert values.FOCAL_PER_SIDE == (0.01, 1000.0)
+    assert FOCAL_PER_SIDE == (0.01, 1000.0)
     for f in (6.4, 640_000.0):  # 0.01 and 1000 times 640 px: the bounds themselves pass
         assert read_camera(write(tmp_path, JSON_K.format(f=f), "cam.json")).K[0, 0] == f
 

@@ -12,6 +12,7 @@ from helpers import K_TEST
 from dimenet.runtime.errors import CameraError, ModelError
 from dimenet.runtime.geometry import k_matrix, k_params, project
 from dimenet.runtime.rectify.features import FeatureSpec
+from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
 from dimenet.runtime.rectify.user_camera import (
     Camera,
@@ -132,3 +133,13 @@ def test_generic_specs_are_checked_like_any_other():
 def test_checked_camera_refuses_bad_values(K, size, message):
     with pytest.raises(CameraError, match=message):
         checked_camera(K, size, "Rectifier.load")
+
+
+@pytest.mark.parametrize("f", [5e-324, 1e-300, 0.001, 4.25, 1e300])
+def test_a_camera_given_in_memory_keeps_the_focal_bound_of_camera_files(f):
+    """Issue 33: the bound lived in the file readers only; ``Rectifier.load(K_c=...)`` took any f."""
+    K = np.array([[f, 0.0, 2015.5], [0.0, f, 1511.5], [0.0, 0.0, 1.0]])
+    with pytest.raises(CameraError, match="times the image's larger side"):
+        checked_camera(K, (4032, 3024), "K_c")
+    with pytest.raises(CameraError, match="times the image's larger side"):
+        Rectifier.load(K_c=K, image_size=(4032, 3024))

@@ -24,10 +24,6 @@ from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, Camera, check
 # and a ROS or Kalibr file is ~1 KiB.
 MAX_PARSED_CHARS = 64 << 10
 MAX_LISTED_NAMES = 8  # a multi-camera file's error lists this many of its camera names
-# fx and fy of a camera file lie within these multiples of the image's larger side: a horizontal
-# field of view from 2 * atan(50) = 178.9 deg down to 2 * atan(1 / 2000) = 0.057 deg. Past them
-# a pinhole model means nothing (and 5e-324 px or 1e300 px break the pixel map's inverse).
-FOCAL_PER_SIDE = (0.01, 1000.0)
 
 # A value in a message: parsed YAML may share one list a billion times over ("billion laughs"),
 # so its repr is bounded in depth and length, never the whole.
@@ -158,21 +154,9 @@ def shortest(dist_coeffs: Optional[np.ndarray]) -> Optional[np.ndarray]:
 
 
 def camera(K: Any, image_size: Any, source: str, dist_coeffs: Any = None) -> Camera:
-    """The checked Camera (``rectify.user_camera.checked_camera``), its distortion in shortest form,
-    with fx and fy within FOCAL_PER_SIDE of the image's larger side."""
-    checked = checked_camera(K, image_size, source, shortest(dist_coeffs))
-    side = max(checked.image_size)
-    low, high = (side * r for r in FOCAL_PER_SIDE)
-    fx, fy = float(checked.K[0, 0]), float(checked.K[1, 1])
-    if not (low <= fx <= high and low <= fy <= high):
-        raise fail(
-            source,
-            "K",
-            f"must have fx, fy within {FOCAL_PER_SIDE[0]:g} to {FOCAL_PER_SIDE[1]:g} times the image's larger side "
-            f"({low:g} to {high:g} px for {checked.image_size[0]}x{checked.image_size[1]} px), "
-            f"got fx = {fx!r}, fy = {fy!r}",
-        )
-    return checked
+    """The checked Camera (``rectify.user_camera.checked_camera``: fx and fy within FOCAL_PER_SIDE
+    of the image's larger side, among its rules), its distortion in shortest form."""
+    return checked_camera(K, image_size, source, shortest(dist_coeffs))
 
 
 def padded(camera: Camera, counts: Sequence[int], source: str, form: str) -> list[float]:
