@@ -416,18 +416,8 @@ def frame_result(cam: ModelCamera, cand: Candidate, e_c: float, timings: dict, f
             p2_image[None], p3[None], None, np.stack([K, cam.K_c_user]), (cand.rvec, rvec_c0), (cand.tvec, tvec_c0)
         )
         e, e_c = float(errors[0, 0]), float(errors[1, 0])
-    return Rectification(
-        K=K,
-        rvec=cand.rvec,
-        tvec=cand.tvec,
-        reprojection_error_px=e,
-        reprojection_error_kc_px=e_c,
-        delta_k=cand.delta_k * to_user if pixels is not None else cand.delta_k,
-        fallback=cand.note,
-        timings_us=timings,
-        K_c=cam.K_c_user,
-        covariance=covariance,
-    )
+    delta_k = cand.delta_k * to_user if pixels is not None else cand.delta_k
+    return Rectification(K, cand.rvec, cand.tvec, e, e_c, delta_k, cand.note, timings, cam.K_c_user, covariance)
 
 
 def _covariance_to_user(pixels: PixelMap, covariance: Callable[[], np.ndarray]) -> np.ndarray:
