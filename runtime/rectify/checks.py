@@ -10,12 +10,13 @@ Fallback (K_c's own solution is returned and the result's ``fallback`` says why)
 points fit K_c worse than any frame the model was made for (mean error e(K_c) above
 MAX_KC_ERROR_F times K_c's focal length: wrong correspondences, another camera, resolution or
 unit); Delta K not finite or K outside the spec's ``K_bounds`` (``ModelSpec.k_within_bounds``); no
-pose under K, or one with a point behind the camera; or e(K) > (1 + WORSE_RELATIVE) e(K_c) +
-WORSE_ABSOLUTE_PX, i.e. the predicted K fits the frame's own points worse than K_c by more than
-5 % + 0.05 px; or the mismatch rule: e(K_c) above MISMATCH_KC_ERROR_F f and e(K) above
-MISMATCH_SHARE e(K_c), a large error under K_c that the predicted K hardly reduces, which an
-OIS state does not make (points of another resolution, K_c of another lens, 3D points in
-another unit; training/METHOD.md, "Camera mismatch").
+pose under K, or one with a point behind the camera; or e(K) > e(K_c): the predicted K fits the
+frame's own points worse than K_c (no margin: a rectified K never fits worse than K_c; e and e_c
+are the errors the result reports, in the lens's image when the camera has one); or the
+mismatch rule: e(K_c) above MISMATCH_KC_ERROR_F f and e(K) above MISMATCH_SHARE e(K_c), a large
+error under K_c that the predicted K hardly reduces, which an OIS state does not make (points of
+another resolution, K_c of another lens, 3D points in another unit; training/METHOD.md, "Camera
+mismatch").
 
 The values in the reasons are in the user's pixels (``user_px``: user px per model px).
 """
@@ -37,8 +38,6 @@ from dimenet.runtime.geometry import (
     covariance_invariants_batch,
 )
 
-WORSE_RELATIVE = 0.05
-WORSE_ABSOLUTE_PX = 0.05
 # Largest mean error under K_c (at its best pose) a frame may have, as a fraction of K_c's fx:
 # 0.006 f is 18 px on the paper's phones, twice the worst of their simulated rig, planar and
 # natural frames (8.4 px) and beyond 3 px noise on them; shuffled, flipped or other-camera
@@ -163,9 +162,9 @@ def spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> tuple[np.n
 
 
 def worse(e, e_c):
-    """e(K) beyond the fallback margin, 5 % + 0.05 px above e(K_c) (a NaN counts as worse):
-    floats -> bool, (B,) arrays -> (B,) bool."""
-    return np.logical_not(e <= (1.0 + WORSE_RELATIVE) * e_c + WORSE_ABSOLUTE_PX)
+    """e(K) above e(K_c), with no margin (a NaN counts as worse; training/METHOD.md, "Never worse than
+    K_c"): floats -> bool, (B,) arrays -> (B,) bool."""
+    return np.logical_not(e <= e_c)
 
 
 def mismatched(e, e_c, fx_c: float):
@@ -184,10 +183,7 @@ def worse_reason(e: float, e_c: float, fx_c: float, user_px: float = 1.0) -> str
     """Why ``loses_to_k_c``: the worse rule, else the mismatch rule (e, e_c, fx_c in model px;
     the reason in the user's, ``user_px`` per model px)."""
     if worse(e, e_c):
-        return (
-            f"the predicted K fits worse than K_c: {e * user_px:.3f} px vs {e_c * user_px:.3f} px "
-            f"(margin {100 * WORSE_RELATIVE:.0f} % + {WORSE_ABSOLUTE_PX * user_px:.3g} px)"
-        )
+        return f"the predicted K fits worse than K_c: {e * user_px:.3f} px vs {e_c * user_px:.3f} px over the points"
     return (
         f"the points do not fit this camera: the predicted K leaves {e * user_px:.1f} of their "
         f"{e_c * user_px:.1f} px mean error under K_c, which an OIS state does not make: points of another "

@@ -172,7 +172,7 @@ class Rectifier:
                 cand.rvec, cand.tvec = stages.refined(p2, p3, cand.K, cand.rvec, cand.tvec)
             e_c = frame_error_and_depth(p2, p3, cam.K_c, rvec_c0, tvec_c0)[0]
             lap("refine")
-        cand, reason = stages.frame_check(cam, p2, p3, cand, reason, e_c, rvec_c0, tvec_c0)
+        cand, reason = stages.frame_check(cam, p2, p3, cand, reason, e_c, (rvec_c0, tvec_c0), p2_image)
         lap("check")
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
@@ -215,5 +215,5 @@ class Rectifier:
                 if pending[b] and not cand.from_map[b]:
                     cand.rvec[b], cand.tvec[b] = stages.refined(x, X, cand.K[b], cand.rvec[b], cand.tvec[b])
             e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, cam.K_c, rvec_c0, tvec_c0)
-        e = stages.batch_errors(cam, cand, fr, pending, e_c)
+        e = stages.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0))
         return stages.batch_result(cam, cand, fr, e, e_c, (rvec_c0, tvec_c0))

@@ -355,15 +355,24 @@ def frame_pose(p2, p3, cand: Candidate) -> Optional[str]:
 # -- check: the errors and the one fallback rule ------------------------------------------------
 
 
-def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, rvec_c0, tvec_c0) -> tuple:
-    """e(K) over the frame's points, the cheirality and worse-than-K_c rules; on a refusal (``reason``
-    or one of these) K_c's own solution. -> (the candidate standing, the reason or None)."""
+def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c0_pose, p2_image) -> tuple:
+    """e(K) over the frame's points, the cheirality and worse-than-K_c rules (on the errors the result
+    reports: in the lens's image from ``p2_image`` when the camera has one); on a refusal (``reason``
+    or one of these) K_c's own solution at ``c0_pose``. -> (the candidate standing, the reason or None)."""
+    rvec_c0, tvec_c0 = c0_pose
     if reason is None and cand.e is None:
         cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
         if depth <= 0:
             reason = BEHIND_REASON
-    if reason is None and loses_to_k_c(cand.e, e_c, cam.fx_c):
-        reason = worse_reason(cand.e, e_c, cam.fx_c, cam.user_px)
+    if reason is None:
+        e, e_c_rule = cand.e, e_c
+        if cam.dist_coeffs is not None:  # in model px, as fx_c
+            K_user = cand.K if cam.pixels is None else cam.pixels.K_to_user(cand.K)
+            K = np.stack([K_user, cam.K_c_user])
+            image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, tvec_c0))
+            e, e_c_rule = image[:, 0] / cam.user_px
+        if loses_to_k_c(e, e_c_rule, cam.fx_c):
+            reason = worse_reason(e, e_c_rule, cam.fx_c, cam.user_px)
     if reason is not None:
         cand = Candidate(
             K=cam.K_c_user.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
@@ -371,9 +380,10 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, r
     return cand, reason
 
 
-def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c) -> np.ndarray:
+def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses) -> np.ndarray:
     """e(K) over each frame's valid points (e_c where not pending), and the cheirality and
-    worse-than-K_c rules into ``cand.reasons``."""
+    worse-than-K_c rules into ``cand.reasons`` (on the errors the result reports: in the lens's image
+    when the camera has one, K_c's at the C0 poses ``c0_poses`` (rvec_c0, tvec_c0))."""
     e = e_c.copy()
     if pending.any():
         mask = None if fr.mask is None else fr.mask[pending]
@@ -390,8 +400,19 @@ def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e
             cand.rvec[pending],
             cand.tvec[pending],
         )
-    for b in np.flatnonzero(pending & loses_to_k_c(e, e_c, cam.fx_c)):
-        cand.reasons[b] = worse_reason(e[b], e_c[b], cam.fx_c, cam.user_px)
+    e_rule, e_c_rule = e, e_c
+    if cam.dist_coeffs is not None and pending.any():  # the errors in the lens's image, in model px as fx_c
+        e_rule, e_c_rule = e.copy(), e_c.copy()
+        rows = np.flatnonzero(pending)
+        K_user = cand.K[rows] if cam.pixels is None else cam.pixels.K_to_user(cand.K[rows])
+        K = np.stack([K_user, np.broadcast_to(cam.K_c_user, K_user.shape)])
+        p3 = np.where(fr.valid[rows, :, None], fr.points_3d[rows], 0.0)
+        mask = None if fr.mask is None else fr.mask[rows]
+        poses = (cand.rvec[rows], c0_poses[0][rows]), (cand.tvec[rows], c0_poses[1][rows])
+        image = cam.image_errors(fr.points_2d_image[rows], p3, mask, K, *poses) / cam.user_px
+        e_rule[rows], e_c_rule[rows] = image
+    for b in np.flatnonzero(pending & loses_to_k_c(e_rule, e_c_rule, cam.fx_c)):
+        cand.reasons[b] = worse_reason(e_rule[b], e_c_rule[b], cam.fx_c, cam.user_px)
     return e
 
 

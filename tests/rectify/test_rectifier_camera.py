@@ -60,7 +60,8 @@ def test_a_generic_model_is_free_of_resolution_and_world_unit(frames, K_c, mode)
     halved = Rectifier(model, mode, Camera(half(K_c), (2016, 1512)))
     p2, p3, valid = rig_frames(frames)
     rf = full.rectify_batch(p2, p3, valid)
-    assert not any(rf.fallback) and np.abs(rf.delta_k).max() > 0.1  # the stand-in network does move K
+    # the stand-in network moves K; a frame its K fits worse than K_c keeps K_c, in both cameras alike
+    assert sum(f is None for f in rf.fallback) >= len(rf.fallback) // 2 and np.abs(rf.delta_k).max() > 0.1
     rh = halved.rectify_batch(np.where(valid[..., None], to_half(p2), 0.0), p3, valid)
     np.testing.assert_allclose(up(k_params(rh.K)), k_params(rf.K), atol=1e-6)
     np.testing.assert_allclose(2 * rh.reprojection_error_px, rf.reprojection_error_px, rtol=1e-6)
@@ -86,7 +87,7 @@ def test_a_device_model_serves_a_rescale_of_its_camera(frames):
     np.testing.assert_allclose(halved.K_c, half(spec.K_c), atol=1e-9)
     rh = halved.rectify_batch(np.where(valid[..., None], to_half(p2), 0.0), p3, valid)
     np.testing.assert_allclose(up(k_params(rh.K)), k_params(rf.K), atol=1e-6)
-    assert rh.fallback == rf.fallback
+    assert [f is None for f in rh.fallback] == [f is None for f in rf.fallback]  # the reasons' px are each camera's
 
 
 def test_a_generic_model_needs_the_camera_named(frames):

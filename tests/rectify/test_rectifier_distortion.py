@@ -60,7 +60,7 @@ def test_k_and_pose_are_the_pinhole_frames_and_errors_the_distorted_images(setup
         want, got = plain.rectify(p2[b][m], p3[b][m]), lens.rectify(distorted[b][m], p3[b][m])
         np.testing.assert_allclose(got.K, want.K, atol=1e-6)
         np.testing.assert_allclose(got.tvec, want.tvec, atol=1e-6)
-        assert got.fallback == want.fallback
+        assert (got.fallback is None) == (want.fallback is None)  # the reasons' errors: each image's own
         # e_c against OpenCV's own distorted projection under K_c and the C0 pose.
         _, rvec_c0, tvec_c0 = cv2.solvePnP(p3[b][m], p2[b][m], camera.K, None, flags=cv2.SOLVEPNP_SQPNP)
         image = cv2.projectPoints(p3[b][m], rvec_c0, tvec_c0, camera.K, DIST)[0].reshape(-1, 2)
