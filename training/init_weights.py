@@ -26,14 +26,20 @@ import torch
 from onnx import helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
+from dimenet.runtime.rectify.model import (
+    DEFAULT_NAME,
+    OnnxModel,
+    default_model_bytes,
+    onnx_model_from_bytes,
+    read_model_file,
+)
 from dimenet.runtime.rectify.model import DEFAULT_SOURCE as BUNDLED_SOURCE
-from dimenet.runtime.rectify.model import OnnxModel, default_model_bytes, onnx_model_from_bytes, read_model_file
 from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import OUTPUT_SCALE_PX, DimeNet
 from .run_dir import load_run
 
-DEFAULT_SOURCE = "default"  # names the bundled default model (a folder of that name: pass "./default")
+DEFAULT_SOURCE = DEFAULT_NAME  # names the bundled default model (a folder of that name: pass "./default")
 LAYERS = ("fc1", "fc2", "fc3")
 # Largest |Delta K| difference allowed between torch on the recovered weights and ONNX Runtime
 # on the graph, on PROBE_FRAMES normal probe features: as export's parity check.

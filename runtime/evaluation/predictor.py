@@ -20,7 +20,7 @@ from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
 from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.rectify.inference import network_k, network_statistics
-from dimenet.runtime.rectify.model import load_onnx_model
+from dimenet.runtime.rectify.model import DEFAULT_NAME, OnnxModel, load_model, load_onnx_model
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera
 from dimenet.runtime.rectify.uncertainty import STATISTICS
 from dimenet.runtime.rectify.user_camera import Camera
@@ -115,7 +115,10 @@ class Predictor:
 
 
 def load_predictor(path: str | Path) -> Predictor:
-    """A predictor from a model path: a RUN_DIR (needs the train extra) or an exported .onnx."""
+    """A predictor from a model path: a RUN_DIR (needs the train extra), an exported .onnx, or
+    ``DEFAULT_NAME`` ("default") for the bundled default model."""
+    if str(path) == DEFAULT_NAME:
+        return _predictor(load_model())
     path = Path(path)
     if not path.exists():
         raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")
@@ -128,5 +131,8 @@ def load_predictor(path: str | Path) -> Predictor:
 
 def load_onnx_predictor(path: str | Path) -> Predictor:
     """Entry point ``onnx`` of ``dimenet.predictors``: a .onnx file as a Predictor."""
-    model = load_onnx_model(path)
+    return _predictor(load_onnx_model(path))
+
+
+def _predictor(model: OnnxModel) -> Predictor:
     return Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)

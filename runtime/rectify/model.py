@@ -35,6 +35,7 @@ from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_KEY, WEIGH
 
 DEFAULT_MODEL = "default_model.onnx"  # the bundled default, in dimenet.runtime.assets
 DEFAULT_SOURCE = f"bundled default model ({DEFAULT_MODEL})"  # how errors and reports name it
+DEFAULT_NAME = "default"  # names the bundled default model wherever a model path is taken ("./default": a file)
 # Most ONNX Runtime intra-op threads a session may ask for: more only contend for the cores (the CLI's
 # --threads and --workers take the same cap); 10**6 threads crash the process, 10**5 spin for minutes.
 MAX_THREADS = 4 * (os.cpu_count() or 1)
@@ -244,9 +245,9 @@ def read_model_file(path: Path) -> bytes:
 
 
 def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers=None) -> OnnxModel:
-    """A ``dimenet-model/1`` .onnx file, or without a path the bundled default model (ModelError
-    when this installation has none)."""
-    if path is not None:
+    """A ``dimenet-model/1`` .onnx file, or without a path (or with DEFAULT_NAME) the bundled default
+    model (ModelError when this installation has none)."""
+    if path is not None and str(path) != DEFAULT_NAME:
         return load_onnx_model(path, threads=threads, providers=providers)
     return onnx_model_from_bytes(default_model_bytes(), DEFAULT_SOURCE, threads=threads, providers=providers)
 

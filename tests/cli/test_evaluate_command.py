@@ -35,3 +35,19 @@ def test_evaluate_methods_errors_exit_2(tmp_path, capsys):
         assert main(["evaluate", str(data), *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_default_names_the_bundled_model_wherever_a_model_is_taken(tmp_path, capsys):
+    """Issue 34: `train --init default` was accepted while `evaluate --model default` was refused."""
+    from dimenet.runtime.evaluation.predictor import load_predictor
+    from dimenet.runtime.rectify.model import DEFAULT_SOURCE, load_model
+
+    data = write_dataset(simulate("galaxy-s8", seed=1), tmp_path / "d.npz")
+    assert main(["evaluate", str(data), "--model", "default", "--json"]) == 0
+    rho = json.loads(capsys.readouterr().out)["overall"]["rho"]
+    assert 0.5 < rho <= 1.0
+    assert load_predictor("default").source == load_model("default").source == DEFAULT_SOURCE
+    assert main(["rectify", str(data), "--model", "default"]) == 0
+    assert "default_model.onnx" in capsys.readouterr().out
+    (tmp_path / "default").mkdir()  # a folder of that name is reached as ./default
+    assert main(["evaluate", str(data), "--model", str(tmp_path / "default")]) == 2

@@ -34,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--model",
         type=nonempty_path,
-        help="trained model: a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`",
+        help="trained model: a RUN_DIR from `dimenet train`, a .onnx from `dimenet export`, or default "
+        "(the bundled model)",
     )
     add_camera_argument(p)
     p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")

@@ -57,7 +57,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)",
     )
-    p.add_argument("--model", type=nonempty_path, help="a .onnx from `dimenet export` (default: the bundled model)")
+    p.add_argument(
+        "--model", type=nonempty_path, help="a .onnx from `dimenet export`, or default: the bundled model (the default)"
+    )
     add_camera_argument(p)
     p.add_argument(
         "--mode",
