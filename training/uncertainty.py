@@ -19,6 +19,7 @@ from dimenet.runtime.rectify.uncertainty import Uncertainty
 from .config import TrainConfig
 from .model import DimeNet
 from .predictor import torch_predictor
+from .scene_limits import population_sigma, structure_limit
 from .units import augment, resynthesise
 
 # The uncertainty model is fitted on >= this many (frame, condition) samples: the val frames,
@@ -107,16 +108,23 @@ def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
 
 
 def uncertainty_fields(model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, init) -> dict:
-    """The spec's uncertainty model and its provenance: fitted on the early-stopping frames; a
+    """The spec's uncertainty model (with the population spread of K* - K_c), its structure
+    limit (``scene_limits``) and provenance: the uncertainty fitted on the early-stopping frames; a
     fine-tuned model keeps its init's when they are fewer than MIN_UNCERTAINTY_FRAMES or the fit
     breaks the spec's sigma range rule (a few frames cannot fit five slopes per parameter). A
     fit that breaks the rule with nothing to keep is a DatasetError: the model would not load."""
     inherited = init.spec.uncertainty if init is not None else None
     n_val = sum(u.val.n_frames for u in units)
+    structure_rng = np.random.default_rng(config.seed + 3)
+    limit = {"residual_structure_px": structure_limit(units, config, spec.features.grid, structure_rng)}
+    if inherited is not None:
+        provenance = {**spec.provenance, "uncertainty": f"from {init.source}"}
+        kept = {**limit, "uncertainty": inherited, "provenance": provenance}
     if inherited is not None and n_val < MIN_UNCERTAINTY_FRAMES:
-        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
+        return kept
     rng = np.random.default_rng(config.seed + 2)
     uncertainty, val_coverage = fit_network_uncertainty(model, spec, units, config, rng)
+    uncertainty = replace(uncertainty, population_sigma_px=population_sigma(units))
     try:
         Uncertainty.from_dict(uncertainty.to_dict(), spec.features.grid.n_cells)
     except ValueError as exc:
@@ -124,5 +132,6 @@ def uncertainty_fields(model: DimeNet, spec: ModelSpec, units: list, config: Tra
             raise DatasetError(
                 f"split: {n_val} early-stopping frames fit no usable uncertainty model ({exc})"
             ) from None
-        return {"uncertainty": inherited, "provenance": {**spec.provenance, "uncertainty": f"from {init.source}"}}
-    return {"uncertainty": uncertainty, "provenance": {**spec.provenance, "uncertainty_val_coverage": val_coverage}}
+        return kept
+    provenance = {**spec.provenance, "uncertainty_val_coverage": val_coverage}
+    return {**limit, "uncertainty": uncertainty, "provenance": provenance}

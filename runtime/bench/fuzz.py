@@ -105,7 +105,9 @@ def _judge_frame(rect: Rectifier, X: np.ndarray, res) -> tuple[str, str]:
     if not depth.min() > 0:
         return "silent-wrong", f"a point behind the camera at the returned pose (fallback {res.fallback!r})"
     if res.fallback is not None and not res.fallback.startswith("map:"):
-        same = np.array_equal(res.K, rect.K_c) and res.K_cov is None
+        population = rect.population_K_cov
+        kept_cov = res.K_cov is None if population is None else np.array_equal(res.K_cov, population)
+        same = np.array_equal(res.K, rect.K_c) and kept_cov
         return ("ok", "") if same else ("silent-wrong", f"fallback {res.fallback!r} without K_c's solution")
     k = np.array([res.K[0, 0], res.K[1, 1], res.K[0, 2], res.K[1, 2]])
     if not (np.isfinite(res.reprojection_error_px) and rect.k_within_bounds(k)):

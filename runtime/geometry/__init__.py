@@ -3,7 +3,7 @@
 Pure numpy/OpenCV functions; conventions in models_spec/conventions.md. Everything outside
 geometry imports from this package (``from dimenet.runtime.geometry import project``): it hands
 on the public functions of its modules (projection, rotation, spread, pnp, normal_equations,
-distortion, least_squares, lens_bundle); ``least_squares`` and ``lens_division``, whose names
+residual_structure, distortion, least_squares, lens_bundle); ``least_squares`` and ``lens_division``, whose names
 are generic (``fit``, ``distort``), are also taken as modules.
 """
 
@@ -47,6 +47,11 @@ from dimenet.runtime.geometry.projection import (
     residual_norms,
     to_camera,
 )
+from dimenet.runtime.geometry.residual_structure import (
+    MIN_STRUCTURE_POINTS,
+    ResidualStructure,
+    residual_structure,
+)
 from dimenet.runtime.geometry.rotation import (
     FEW_POSES,
     left_update,
@@ -65,6 +70,9 @@ from dimenet.runtime.geometry.spread import (
 )
 
 __all__ = [
+    "MIN_STRUCTURE_POINTS",
+    "ResidualStructure",
+    "residual_structure",
     "distort_points",
     "distort_points_with_jacobians",
     "mean_distorted_error",

@@ -16,7 +16,10 @@ are the errors the result reports, in the lens's image when the camera has one);
 mismatch rule: e(K_c) above MISMATCH_KC_ERROR_F f and e(K) above MISMATCH_SHARE e(K_c), a large
 error under K_c that the predicted K hardly reduces, which an OIS state does not make (points of
 another resolution, K_c of another lens, 3D points in another unit; training/METHOD.md, "Camera
-mismatch").
+mismatch"); or the structure rule (``structured``): the frame's residuals under K_c hold smooth
+structure that neither OIS nor corner noise makes, which the network would read as OIS (a sheet
+that is not flat, a lens K_c leaves out). A frame that keeps K_c gets the population covariance
+as its K_cov when the model has one (``Uncertainty.population_sigma_px``).
 
 The values in the reasons are in the user's pixels (``user_px``: user px per model px).
 """
@@ -33,6 +36,7 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MAX_COORDINATE,
     MIN_POINTS,
+    ResidualStructure,
     check_not_degenerate,
     covariance_invariants,
     covariance_invariants_batch,
@@ -51,6 +55,13 @@ MISMATCH_SHARE = 0.8
 # Cheap sufficient test of a spread-out configuration (see clearly_spread): second largest over
 # largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
 # than check_not_degenerate's limits, which then decides the frames failing it.
+# The structure rule (``structured``; training/METHOD.md, "Residual structure"): a frame keeps
+# K_c when the smooth structure of its residuals under K_c is above the model's
+# residual_structure_px (models before spec 1.6: STRUCTURE_PX, model px) with an F statistic above
+# STRUCTURE_RATIO; the reason names the lens when RADIAL_SHARE of it or more is radial.
+STRUCTURE_PX = 0.5
+STRUCTURE_RATIO = 3.0
+RADIAL_SHARE = 0.5
 SPREAD_RATIO = 1e-4
 SPREAD_ABSOLUTE = 1e-10
 
@@ -198,6 +209,29 @@ def implausible_reason(delta_k, k) -> str:
         return "the model's Delta K is not finite"
     fx, fy, cx, cy = (float(v) for v in k)
     return f"implausible K (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px) outside the model's K_bounds"
+
+
+def structured(structure: ResidualStructure, limit_px: float) -> bool:
+    """The structure rule: the frame's residuals under K_c at the C0 pose hold smooth structure
+    (``geometry.residual_structure``, model px) above ``limit_px`` (the spec's
+    ``residual_structure_px``, else STRUCTURE_PX) and significant (its F statistic above
+    STRUCTURE_RATIO): what neither OIS nor corner noise made in the model's training frames."""
+    return structure.amplitude_px > limit_px and structure.ratio > STRUCTURE_RATIO
+
+
+def structure_reason(structure: ResidualStructure, user_px: float, lens_free: bool) -> str:
+    """Why ``structured``, in the user's px (``user_px`` per model px); with a radial share of at
+    least RADIAL_SHARE under a camera with no lens (``lens_free``), the lens is named."""
+    head = (
+        f"K_c kept: the points' residuals under K_c hold {structure.amplitude_px * user_px:.2f} px of smooth "
+        f"structure (F = {structure.ratio:.1f}) that neither OIS nor corner noise makes"
+    )
+    if lens_free and structure.radial_share >= RADIAL_SHARE:
+        return (
+            f"{head}, shaped like a radial lens error ({structure.radial_share:.0%} of it): give the camera its "
+            f"lens (`dimenet calibrate --distortion opencv5 --camera-out`, or dist_coeffs in the camera file)"
+        )
+    return f"{head}: a sheet that is not flat, a lens K_c leaves out, or a scene unlike the model's?"
 
 
 def out_of_range(e_c, fx_c: float):

@@ -8,15 +8,18 @@ timed into ``timings_us`` under its name:
    inside the camera's image, not degenerate);
 2. ``pnp_kc``: SQPnP pose {W}->{C0} under the prior K_c;
 3. ``features``: the grid feature (``rectify.features.grid_features``) at that pose;
-4. ``model``: one ONNX Runtime call, Delta K (px); the candidate K = K_c + Delta K, refused
+4. ``structure``: the structure rule on the residuals at that pose (``geometry.residual_structure``,
+   ``checks.structured``): a frame whose residuals hold smooth structure that neither OIS nor
+   corner noise makes keeps K_c, before the network reads it as OIS;
+5. ``model``: one ONNX Runtime call, Delta K (px); the candidate K = K_c + Delta K, refused
    outside ``K_bounds``, and its covariance when the spec has an uncertainty model;
-5. ``map`` (mode map only): the MAP fusion of that prior with the frame's points
+6. ``map`` (mode map only): the MAP fusion of that prior with the frame's points
    (``rectify.map_fit``, from the C0 pose turned to the network's principal point) replaces the
    candidate by its K, pose and posterior ``K_cov``; when it fails its checks, the DIME-Net
    candidate stands and ``fallback`` says why;
-6. ``pnp_k``: SQPnP pose under the candidate K (unless map gave one);
-7. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of the PnP poses;
-8. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, and the one
+7. ``pnp_k``: SQPnP pose under the candidate K (unless map gave one);
+8. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of the PnP poses;
+9. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, and the one
    fallback rule: a refused candidate gives way to K_c's own solution (``rectify.checks``).
 
 ``rectify_batch`` runs the same stages over B frames at once (the model once for all).
@@ -139,6 +142,12 @@ class Rectifier:
         """The model's own spec (a generic model's has no camera: see ``K_c``, ``image_size``)."""
         return self.model.spec
 
+    @property
+    def population_K_cov(self) -> Optional[np.ndarray]:
+        """(4, 4) px^2, the K_cov of a frame that keeps K_c: the spread of K* - K_c over the model's
+        training frames in the camera's pixels (None: the model has none, spec < 1.6)."""
+        return self._cam.population_cov_user
+
     def k_within_bounds(self, k: np.ndarray) -> bool:
         """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""
         return frame_within_bounds(list(k), self.K_bounds.tolist())
@@ -157,9 +166,12 @@ class Rectifier:
         lap("pnp_kc")
         feats, e_c = stages.frame_features(cam, p2, p3, rvec_c0, tvec_c0)
         lap("features")
-        delta_k = self.model.frame_delta_k(feats)
-        lap("model")
-        cand, reason = stages.frame_candidate(cam, delta_k, feats, len(p2), e_c, invariants_3d)
+        cand, reason = None, stages.frame_structure(cam, p2, p3, rvec_c0, tvec_c0, e_c)
+        lap("structure")
+        if reason is None:
+            delta_k = self.model.frame_delta_k(feats)
+            lap("model")
+            cand, reason = stages.frame_candidate(cam, delta_k, feats, len(p2), e_c, invariants_3d)
         if reason is None and self.mode == "map":
             cand = stages.frame_map(cam, p2, p3, cand, rvec_c0, tvec_c0)
             lap("map")
@@ -202,6 +214,7 @@ class Rectifier:
             e_c0 = pmd_px
         else:
             e_c0 = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, cam.K_c, rvec_c0, tvec_c0)
+        stages.batch_structures(cam, fr, infer, poses_i, e_c0, reasons)
         cand = stages.batch_candidates(cam, fr, net, rvec_c0, tvec_c0, e_c0, reasons)
         pending = cand.standing
         if cam.spec.uncertainty is not None:

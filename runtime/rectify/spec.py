@@ -28,7 +28,7 @@ from dimenet.runtime.rectify.user_camera import MAX_IMAGE_SIDE_PX, Camera, Pixel
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version and reads every 1.x (the minor
 # versions and what each added: models_spec/model-v1.md).
-VERSION = "1.5.0"
+VERSION = "1.6.0"
 METADATA_KEY = "dimenet_model_spec"
 # Spec >= 1.4, optional: the sha256 of the model file's bytes with this value replaced by
 # WEIGHTS_SHA256_PLACEHOLDER (model-v1.md, "Integrity"; written by export, checked by the runtime).
@@ -84,6 +84,15 @@ def _checked_camera(d: dict) -> dict:
     return {"features": features, "K_c": k_matrix(k_c), "image_size": image_size, "K_bounds": bounds}
 
 
+def _structure_px(value) -> Optional[float]:
+    """The optional ``residual_structure_px`` (spec >= 1.6): a positive number of px, or None."""
+    if value is None:
+        return None
+    if not (is_number(value) and 0 < value <= MAX_IMAGE_SIDE_PX):
+        raise JsonProblem(f"residual_structure_px must be a positive number of px, got {shown(value)}")
+    return float(value)
+
+
 def _checked(d: dict) -> dict:
     """The ModelSpec fields of a spec dict, every one checked (``JsonProblem`` names the field)."""
     camera = _checked_generic(d) if "generic" in d else _checked_camera(d)
@@ -102,6 +111,7 @@ def _checked(d: dict) -> dict:
         "hidden": tuple(integer(h, "hidden", 1) for h in hidden),
         "provenance": dict(provenance),
         "uncertainty": Uncertainty.from_dict(d["uncertainty"], features.grid.n_cells) if "uncertainty" in d else None,
+        "residual_structure_px": _structure_px(d.get("residual_structure_px")),
         "weights_sha256": weights_sha256,
     }
 
@@ -126,7 +136,10 @@ class ModelSpec:
     falls back to K_c); generic: None for a device model; for a generic one (spec >= 1.5) its
     canonical camera, and K_c, image_size and K_bounds are None until ``rectify.user_camera``
     resolves the spec for a camera (in canonical px); uncertainty: the model of the network's
-    Delta K covariance (None in 1.0 specs); provenance: dataset sha256, seed, versions, command; weights_sha256: the
+    Delta K covariance (None in 1.0 specs); residual_structure_px: the largest residual structure
+    (model px, ``geometry.residual_structure``) the model's training frames held, above which a
+    frame keeps K_c (None before spec 1.6: ``checks.STRUCTURE_PX``); provenance: dataset sha256,
+    seed, versions, command; weights_sha256: the
     integrity hash the model file's spec declared (None for a spec on its own or before 1.4).
     It belongs to one file, so ``to_dict`` leaves it out unless given one (export stamps it)."""
 
@@ -138,6 +151,7 @@ class ModelSpec:
     provenance: dict = field(default_factory=dict)
     generic: Optional[GenericCamera] = None
     uncertainty: Optional[Uncertainty] = None
+    residual_structure_px: Optional[float] = None
     weights_sha256: Optional[str] = field(default=None, compare=False)
 
     def to_dict(self, *, weights_sha256: Optional[str] = None) -> dict:
@@ -151,6 +165,8 @@ class ModelSpec:
         d["hidden"], d["provenance"] = list(self.hidden), self.provenance
         if self.uncertainty is not None:
             d["uncertainty"] = self.uncertainty.to_dict()
+        if self.residual_structure_px is not None:
+            d["residual_structure_px"] = self.residual_structure_px
         if weights_sha256 is not None:
             d[WEIGHTS_SHA256_KEY] = weights_sha256
         return d

@@ -18,6 +18,7 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MIN_POINTS,
+    MIN_STRUCTURE_POINTS,
     frame_error_and_depth,
     frame_mean_norm,
     k_matrix,
@@ -25,12 +26,14 @@ from dimenet.runtime.geometry import (
     mean_distorted_error,
     mean_reprojection_error,
     min_depths,
+    residual_structure,
     undistort_points,
 )
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import (
     BEHIND_REASON,
     NO_POSE_REASON,
+    STRUCTURE_PX,
     Frames,
     ImageBounds,
     behind_camera_error,
@@ -40,6 +43,8 @@ from dimenet.runtime.rectify.checks import (
     loses_to_k_c,
     out_of_range,
     out_of_range_reason,
+    structure_reason,
+    structured,
     worse_reason,
 )
 from dimenet.runtime.rectify.features import grid_features
@@ -59,7 +64,9 @@ class ModelCamera:
     path; ``image`` the user's image (the input rule's bounds); ``pixels`` the map from the user's
     pixels onto the model's (None: the same) and ``user_px`` user px per model px; the lens
     (``lens_K`` (3, 3) px, ``dist_coeffs``; None without one); ``K_c_user`` (3, 3) the prior in the
-    user's pixels (read-only)."""
+    user's pixels (read-only); ``structure_px`` the structure rule's limit (model px);
+    ``population_cov`` (4, 4) model px^2 and ``population_cov_user`` user px^2 the K_cov of a frame
+    that keeps K_c (None: the model has none)."""
 
     spec: ModelSpec
     K_c: np.ndarray
@@ -73,6 +80,9 @@ class ModelCamera:
     lens_K: Optional[np.ndarray]
     dist_coeffs: Optional[np.ndarray]
     K_c_user: np.ndarray
+    structure_px: float
+    population_cov: Optional[np.ndarray]
+    population_cov_user: Optional[np.ndarray]
 
     @classmethod
     def build(cls, served: ServedCamera, camera: Optional[Camera]) -> ModelCamera:
@@ -80,6 +90,11 @@ class ModelCamera:
         k_c = k_params(spec.K_c)
         K_c_user = served.K_c.copy()
         K_c_user.setflags(write=False)
+        population = None if spec.uncertainty is None else spec.uncertainty.population_covariance()
+        population_user = population
+        if population is not None and served.pixels is not None:
+            population_user = served.pixels.covariance_to_user(population)
+        structure_px = spec.residual_structure_px
         return cls(
             spec=spec,
             K_c=np.ascontiguousarray(spec.K_c, dtype=np.float64),
@@ -93,6 +108,9 @@ class ModelCamera:
             lens_K=None if camera is None else camera.lens_K,
             dist_coeffs=None if camera is None else camera.dist_coeffs,
             K_c_user=K_c_user,
+            structure_px=STRUCTURE_PX if structure_px is None else structure_px,
+            population_cov=population,
+            population_cov_user=population_user,
         )
 
     def to_model(self, points_2d: np.ndarray, valid=True) -> np.ndarray:
@@ -228,6 +246,31 @@ def frame_features(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0) -> tuple[np.ndarr
     if not cv2.checkRange(points[0, 4], True, 0.0, np.inf)[0]:  # 1 / Z_C0 <= 0: a point behind the camera
         raise behind_camera_error(int(np.count_nonzero(points[0, 4] <= 0)), len(p2))
     return feats, frame_mean_norm(points[0, :2])
+
+
+# -- structure: the residuals under K_c at the C0 pose, before the network reads them ---------
+
+
+def frame_structure(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0, e_c: float) -> Optional[str]:
+    """The structure rule on one frame's points (model px) at its C0 pose: the reason, or None
+    (also for frames of fewer than MIN_STRUCTURE_POINTS points, which the test cannot read, and
+    for a mean error e_c (px) under K_c out of the model's range: the range rule names that)."""
+    if len(p2) < MIN_STRUCTURE_POINTS or out_of_range(e_c, cam.fx_c):
+        return None
+    structure = residual_structure(p2, p3, cam.K_c, rvec_c0, tvec_c0)
+    if not structured(structure, cam.structure_px):
+        return None
+    return structure_reason(structure, cam.user_px, cam.dist_coeffs is None)
+
+
+def batch_structures(cam: ModelCamera, fr: Frames, infer, poses_i, e_c0, reasons: list) -> None:
+    """The structure rule on each standing frame's inference points at their C0 pose, into
+    ``reasons`` (e_c0 (B,) px: the frames' mean errors under K_c)."""
+    for b in range(len(reasons)):
+        if reasons[b] is None:
+            m = infer[b]
+            x, X = fr.points_2d[b][m], fr.points_3d[b][m]
+            reasons[b] = frame_structure(cam, x, X, poses_i[0][b], poses_i[1][b], e_c0[b])
 
 
 # -- model's end: the range rule, the K-bounds rule and the network's covariance ----------------
@@ -374,9 +417,10 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
         if loses_to_k_c(e, e_c_rule, cam.fx_c):
             reason = worse_reason(e, e_c_rule, cam.fx_c, cam.user_px)
     if reason is not None:
-        cand = Candidate(
-            K=cam.K_c_user.copy(), delta_k=np.zeros(4), covariance=None, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason
-        )
+        covariance = None if cam.population_cov is None else partial(np.array, cam.population_cov)
+        zero = np.zeros(4)
+        K_c = cam.K_c_user.copy()
+        cand = Candidate(K=K_c, delta_k=zero, covariance=covariance, rvec=rvec_c0, tvec=tvec_c0, e=e_c, note=reason)
     return cand, reason
 
 
@@ -458,7 +502,7 @@ def batch_result(cam: ModelCamera, cand: BatchCandidates, fr: Frames, e, e_c, c0
         K_cov = None if K_cov is None else cam.pixels.covariance_to_user(K_cov)
     K[fell_back], delta_k[fell_back] = cam.K_c_user, 0.0
     if K_cov is not None:
-        K_cov[fell_back] = np.nan
+        K_cov[fell_back] = np.nan if cam.population_cov_user is None else cam.population_cov_user
     if cam.dist_coeffs is not None:
         p3 = np.where(fr.valid[..., None], fr.points_3d, 0.0)
         K_cs = np.broadcast_to(cam.K_c_user, K.shape)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -58,13 +58,16 @@ class Uncertainty:
     named in ``statistics``] (a subsequence of STATISTICS); correlation (4, 4): of the
     standardised residuals; data_correlation (4,): rho_p of the network's errors with the MAP
     data term's on noisy points, in [0, 1] (zeros: independent, as models before spec 1.3);
-    noise_scale_px: the s0 (px) of the noise weight w(s)."""
+    noise_scale_px: the s0 (px) of the noise weight w(s); population_sigma_px (4,) px or None
+    (before spec 1.6): the standard deviation of K* - K_c over the training frames, what is known
+    of a frame's K without the network (the K_cov of a frame that keeps K_c)."""
 
     coef: np.ndarray
     correlation: np.ndarray
     statistics: tuple = STATISTICS
     data_correlation: np.ndarray = field(default_factory=lambda: np.zeros(4))
     noise_scale_px: float = NOISE_SCALE_PX
+    population_sigma_px: Optional[np.ndarray] = None
 
     def __post_init__(self):
         if not set(self.statistics) <= set(STATISTICS) or len(set(self.statistics)) != len(self.statistics):
@@ -86,6 +89,14 @@ class Uncertainty:
         if not (math.isfinite(self.noise_scale_px) and self.noise_scale_px > 0):
             raise ValueError(f"uncertainty: noise_scale_px must be a positive number, got {self.noise_scale_px!r}")
         object.__setattr__(self, "data_correlation", rho)
+        if self.population_sigma_px is not None:
+            pop = np.asarray(self.population_sigma_px, dtype=np.float64)
+            if pop.shape != (4,) or not np.all((pop >= SIGMA_MIN_PX) & (pop <= SIGMA_MAX_PX)):
+                raise ValueError(
+                    f"uncertainty: population_sigma_px must be 4 values in [{SIGMA_MIN_PX:g}, {SIGMA_MAX_PX:g}] px, "
+                    f"got {self.population_sigma_px!r}"
+                )
+            object.__setattr__(self, "population_sigma_px", pop)
         object.__setattr__(self, "_columns", [STATISTICS.index(name) for name in self.statistics])
         object.__setattr__(self, "_rho", rho.tolist())  # plain floats for the per-frame widening
 
@@ -102,7 +113,7 @@ class Uncertainty:
             "correlation": self.correlation.tolist(),
             "data_correlation": self.data_correlation.tolist(),
             "noise_scale_px": self.noise_scale_px,
-        }
+        } | ({} if self.population_sigma_px is None else {"population_sigma_px": self.population_sigma_px.tolist()})
 
     @classmethod
     def from_dict(cls, d: Any, n_cells: int) -> Uncertainty:
@@ -133,6 +144,8 @@ class Uncertainty:
         s0 = d.get("noise_scale_px", NOISE_SCALE_PX)
         if not (is_number(s0) and s0 > 0):
             raise JsonProblem(f"uncertainty.noise_scale_px must be a positive number, got {shown(s0)}")
+        pop = d.get("population_sigma_px")
+        pop = None if pop is None else numbers(pop, (4,), "uncertainty.population_sigma_px")
         low, high = log_sigma_range(coef, statistics, n_cells)
         for p, name in enumerate(PARAMETERS):
             if not math.log(SIGMA_MIN_PX) <= low[p] <= high[p] <= math.log(SIGMA_MAX_PX):
@@ -149,6 +162,7 @@ class Uncertainty:
                 statistics=statistics,
                 data_correlation=rho,
                 noise_scale_px=float(s0),
+                population_sigma_px=pop,
             )
         except ValueError as exc:
             raise JsonProblem(str(exc)) from None
@@ -163,6 +177,10 @@ class Uncertainty:
             math.sqrt(1.0 + 2.0 * rho * w * math.sqrt(max(r * (1.0 - r), 0.0))) if rho else 1.0
             for rho, r in zip(self._rho, variance_ratio)
         ]
+
+    def population_covariance(self) -> Optional[np.ndarray]:
+        """(4, 4) px^2 diag(population_sigma_px^2), or None without it."""
+        return None if self.population_sigma_px is None else np.diag(self.population_sigma_px**2)
 
     def sigma(self, stats: np.ndarray) -> np.ndarray:
         """(B, 4) frame statistics (``frame_statistics``) -> (B, 4) standard deviations of
