@@ -16,10 +16,12 @@ are the errors the result reports, in the lens's image when the camera has one);
 mismatch rule: e(K_c) above MISMATCH_KC_ERROR_F f and e(K) above MISMATCH_SHARE e(K_c), a large
 error under K_c that the predicted K hardly reduces, which an OIS state does not make (points of
 another resolution, K_c of another lens, 3D points in another unit; training/METHOD.md, "Camera
-mismatch"); or the structure rule (``structured``): the frame's residuals under K_c hold smooth
-structure that neither OIS nor corner noise makes, which the network would read as OIS (a sheet
-that is not flat, a lens K_c leaves out). A frame that keeps K_c gets the population covariance
-as its K_cov when the model has one (``Uncertainty.population_sigma_px``).
+mismatch"); or the structure rule (``structured``): K removes less than half of e(K_c) and the
+frame's residuals under K_c hold smooth structure that neither OIS nor corner noise makes, which the
+network read as OIS (a sheet that is not flat, a lens K_c leaves out); an OIS shift that K
+explains leaves e(K) far below e(K_c), and the test (~100 us) runs only where it does not. A frame
+that keeps K_c gets the population covariance as its K_cov when the model has one
+(``Uncertainty.population_sigma_px``).
 
 The values in the reasons are in the user's pixels (``user_px``: user px per model px).
 """
@@ -55,10 +57,12 @@ MISMATCH_SHARE = 0.8
 # Cheap sufficient test of a spread-out configuration (see clearly_spread): second largest over
 # largest eigenvalue of the points' covariance, and the largest over (scale)^2. Far stricter
 # than check_not_degenerate's limits, which then decides the frames failing it.
-# The structure rule (``structured``; training/METHOD.md, "Residual structure"): a frame keeps
-# K_c when the smooth structure of its residuals under K_c is above the model's
-# residual_structure_px (models before spec 1.6: STRUCTURE_PX, model px) with an F statistic above
-# STRUCTURE_RATIO; the reason names the lens when RADIAL_SHARE of it or more is radial.
+# The structure rule (``structured``; training/METHOD.md, "Residual structure"): a frame whose K
+# leaves more than STRUCTURE_GATE of e(K_c) keeps K_c when the smooth structure of its residuals
+# under K_c is above the model's residual_structure_px (models before spec 1.6: STRUCTURE_PX,
+# model px) with an F statistic above STRUCTURE_RATIO; the reason names the lens when RADIAL_SHARE
+# of it or more is radial.
+STRUCTURE_GATE = 0.5
 STRUCTURE_PX = 0.5
 STRUCTURE_RATIO = 3.0
 RADIAL_SHARE = 0.5

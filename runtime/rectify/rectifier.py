@@ -8,19 +8,19 @@ timed into ``timings_us`` under its name:
    inside the camera's image, not degenerate);
 2. ``pnp_kc``: SQPnP pose {W}->{C0} under the prior K_c;
 3. ``features``: the grid feature (``rectify.features.grid_features``) at that pose;
-4. ``structure``: the structure rule on the residuals at that pose (``geometry.residual_structure``,
-   ``checks.structured``): a frame whose residuals hold smooth structure that neither OIS nor
-   corner noise makes keeps K_c, before the network reads it as OIS;
-5. ``model``: one ONNX Runtime call, Delta K (px); the candidate K = K_c + Delta K, refused
+4. ``model``: one ONNX Runtime call, Delta K (px); the candidate K = K_c + Delta K, refused
    outside ``K_bounds``, and its covariance when the spec has an uncertainty model;
-6. ``map`` (mode map only): the MAP fusion of that prior with the frame's points
+5. ``map`` (mode map only): the MAP fusion of that prior with the frame's points
    (``rectify.map_fit``, from the C0 pose turned to the network's principal point) replaces the
    candidate by its K, pose and posterior ``K_cov``; when it fails its checks, the DIME-Net
    candidate stands and ``fallback`` says why;
-7. ``pnp_k``: SQPnP pose under the candidate K (unless map gave one);
-8. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of the PnP poses;
-9. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, and the one
-   fallback rule: a refused candidate gives way to K_c's own solution (``rectify.checks``).
+6. ``pnp_k``: SQPnP pose under the candidate K (unless map gave one);
+7. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of the PnP poses;
+8. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, the worse rule and,
+   where K removes less than half of e(K_c), the structure rule on the residuals under K_c at the
+   C0 pose (``geometry.residual_structure``, ``checks.structured``: structure that neither OIS nor
+   corner noise makes, which the network read as OIS); a refused candidate gives way to K_c's own
+   solution (``rectify.checks``).
 
 ``rectify_batch`` runs the same stages over B frames at once (the model once for all).
 
@@ -166,12 +166,9 @@ class Rectifier:
         lap("pnp_kc")
         feats, e_c = stages.frame_features(cam, p2, p3, rvec_c0, tvec_c0)
         lap("features")
-        cand, reason = None, stages.frame_structure(cam, p2, p3, rvec_c0, tvec_c0, e_c)
-        lap("structure")
-        if reason is None:
-            delta_k = self.model.frame_delta_k(feats)
-            lap("model")
-            cand, reason = stages.frame_candidate(cam, delta_k, feats, len(p2), e_c, invariants_3d)
+        delta_k = self.model.frame_delta_k(feats)
+        lap("model")
+        cand, reason = stages.frame_candidate(cam, delta_k, feats, len(p2), e_c, invariants_3d)
         if reason is None and self.mode == "map":
             cand = stages.frame_map(cam, p2, p3, cand, rvec_c0, tvec_c0)
             lap("map")
@@ -214,7 +211,6 @@ class Rectifier:
             e_c0 = pmd_px
         else:
             e_c0 = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, cam.K_c, rvec_c0, tvec_c0)
-        stages.batch_structures(cam, fr, infer, poses_i, e_c0, reasons)
         cand = stages.batch_candidates(cam, fr, net, rvec_c0, tvec_c0, e_c0, reasons)
         pending = cand.standing
         if cam.spec.uncertainty is not None:
@@ -228,5 +224,5 @@ class Rectifier:
                 if pending[b] and not cand.from_map[b]:
                     cand.rvec[b], cand.tvec[b] = stages.refined(x, X, cand.K[b], cand.rvec[b], cand.tvec[b])
             e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, cam.K_c, rvec_c0, tvec_c0)
-        e = stages.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0))
+        e = stages.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0), (infer, poses_i))
         return stages.batch_result(cam, cand, fr, e, e_c, (rvec_c0, tvec_c0))

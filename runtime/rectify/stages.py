@@ -33,6 +33,7 @@ from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import (
     BEHIND_REASON,
     NO_POSE_REASON,
+    STRUCTURE_GATE,
     STRUCTURE_PX,
     Frames,
     ImageBounds,
@@ -41,6 +42,7 @@ from dimenet.runtime.rectify.checks import (
     implausible_reason,
     in_frame,
     loses_to_k_c,
+    mismatched,
     out_of_range,
     out_of_range_reason,
     structure_reason,
@@ -248,31 +250,6 @@ def frame_features(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0) -> tuple[np.ndarr
     return feats, frame_mean_norm(points[0, :2])
 
 
-# -- structure: the residuals under K_c at the C0 pose, before the network reads them ---------
-
-
-def frame_structure(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0, e_c: float) -> Optional[str]:
-    """The structure rule on one frame's points (model px) at its C0 pose: the reason, or None
-    (also for frames of fewer than MIN_STRUCTURE_POINTS points, which the test cannot read, and
-    for a mean error e_c (px) under K_c out of the model's range: the range rule names that)."""
-    if len(p2) < MIN_STRUCTURE_POINTS or out_of_range(e_c, cam.fx_c):
-        return None
-    structure = residual_structure(p2, p3, cam.K_c, rvec_c0, tvec_c0)
-    if not structured(structure, cam.structure_px):
-        return None
-    return structure_reason(structure, cam.user_px, cam.dist_coeffs is None)
-
-
-def batch_structures(cam: ModelCamera, fr: Frames, infer, poses_i, e_c0, reasons: list) -> None:
-    """The structure rule on each standing frame's inference points at their C0 pose, into
-    ``reasons`` (e_c0 (B,) px: the frames' mean errors under K_c)."""
-    for b in range(len(reasons)):
-        if reasons[b] is None:
-            m = infer[b]
-            x, X = fr.points_2d[b][m], fr.points_3d[b][m]
-            reasons[b] = frame_structure(cam, x, X, poses_i[0][b], poses_i[1][b], e_c0[b])
-
-
 # -- model's end: the range rule, the K-bounds rule and the network's covariance ----------------
 
 
@@ -395,12 +372,26 @@ def frame_pose(p2, p3, cand: Candidate) -> Optional[str]:
     return None
 
 
-# -- check: the errors and the one fallback rule ------------------------------------------------
+# -- check: the errors and the fallback rules ---------------------------------------------------
+
+
+def frame_structure(cam: ModelCamera, p2, p3, c0_pose) -> Optional[str]:
+    """The structure rule on one frame's points (model px) under K_c at its C0 pose ``c0_pose``
+    (rvec_c0, tvec_c0): the reason, or None (also for frames of fewer than MIN_STRUCTURE_POINTS
+    points, which the test cannot read)."""
+    if len(p2) < MIN_STRUCTURE_POINTS:
+        return None
+    structure = residual_structure(p2, p3, cam.K_c, *c0_pose)
+    if not structured(structure, cam.structure_px):
+        return None
+    return structure_reason(structure, cam.user_px, cam.dist_coeffs is None)
 
 
 def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c0_pose, p2_image) -> tuple:
     """e(K) over the frame's points, the cheirality and worse-than-K_c rules (on the errors the result
-    reports: in the lens's image from ``p2_image`` when the camera has one); on a refusal (``reason``
+    reports: in the lens's image from ``p2_image`` when the camera has one) and, where e(K) is above
+    STRUCTURE_GATE e(K_c), the structure rule at the C0 pose first (its reason says more than the
+    worse rule's; the mismatch rule's says more than it); on a refusal (``reason``
     or one of these) K_c's own solution at ``c0_pose``. -> (the candidate standing, the reason or None)."""
     rvec_c0, tvec_c0 = c0_pose
     if reason is None and cand.e is None:
@@ -414,7 +405,9 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
             K = np.stack([K_user, cam.K_c_user])
             image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, tvec_c0))
             e, e_c_rule = image[:, 0] / cam.user_px
-        if loses_to_k_c(e, e_c_rule, cam.fx_c):
+        if e > STRUCTURE_GATE * e_c_rule and not mismatched(e, e_c_rule, cam.fx_c):
+            reason = frame_structure(cam, p2, p3, c0_pose)
+        if reason is None and loses_to_k_c(e, e_c_rule, cam.fx_c):
             reason = worse_reason(e, e_c_rule, cam.fx_c, cam.user_px)
     if reason is not None:
         covariance = None if cam.population_cov is None else partial(np.array, cam.population_cov)
@@ -424,10 +417,12 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
     return cand, reason
 
 
-def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses) -> np.ndarray:
-    """e(K) over each frame's valid points (e_c where not pending), and the cheirality and
-    worse-than-K_c rules into ``cand.reasons`` (on the errors the result reports: in the lens's image
-    when the camera has one, K_c's at the C0 poses ``c0_poses`` (rvec_c0, tvec_c0))."""
+def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses, inference) -> np.ndarray:
+    """e(K) over each frame's valid points (e_c where not pending), and the cheirality, worse-than-K_c
+    and (where e(K) is above STRUCTURE_GATE e(K_c)) structure rules into ``cand.reasons`` (on the
+    errors the result reports: in the lens's image when the camera has one, K_c's at the C0 poses
+    ``c0_poses`` (rvec_c0, tvec_c0)); the structure rule reads what the network read, ``inference``
+    (infer (B, P) bool, (rvec, tvec) their C0 poses)."""
     e = e_c.copy()
     if pending.any():
         mask = None if fr.mask is None else fr.mask[pending]
@@ -455,8 +450,14 @@ def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e
         poses = (cand.rvec[rows], c0_poses[0][rows]), (cand.tvec[rows], c0_poses[1][rows])
         image = cam.image_errors(fr.points_2d_image[rows], p3, mask, K, *poses) / cam.user_px
         e_rule[rows], e_c_rule[rows] = image
+    tested = pending & (e_rule > STRUCTURE_GATE * e_c_rule) & ~mismatched(e_rule, e_c_rule, cam.fx_c)
+    infer, (rvec_i, tvec_i) = inference
+    for b in np.flatnonzero(tested):
+        m = infer[b]
+        cand.reasons[b] = frame_structure(cam, fr.points_2d[b][m], fr.points_3d[b][m], (rvec_i[b], tvec_i[b]))
     for b in np.flatnonzero(pending & loses_to_k_c(e_rule, e_c_rule, cam.fx_c)):
-        cand.reasons[b] = worse_reason(e_rule[b], e_c_rule[b], cam.fx_c, cam.user_px)
+        if cand.reasons[b] is None:
+            cand.reasons[b] = worse_reason(e_rule[b], e_c_rule[b], cam.fx_c, cam.user_px)
     return e
 
 

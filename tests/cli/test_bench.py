@@ -13,7 +13,7 @@ def test_bench_json_reports_every_key(model_path, capsys):
     report = json.loads(capsys.readouterr().out)
     for key in ("end_to_end_us", "baseline_solvepnp_us"):
         assert set(report[key]) == {"p50", "p90", "p99", "max"}
-    assert set(report["stages_us"]) == {"validate", "pnp_kc", "features", "structure", "model", "pnp_k", "check"}
+    assert set(report["stages_us"]) == {"validate", "pnp_kc", "features", "model", "pnp_k", "check"}
     assert report["ratio_p50"] > 0 and report["batch_frames_per_s"] > 0 and report["threads"] == 1
     assert len(report["model_sha256"]) == 64 and report["ort_version"] and report["cpu_model"]
     assert report["frames"] == 12 and report["points"] == 64
