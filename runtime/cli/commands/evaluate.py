@@ -1,15 +1,18 @@
 """`dimenet evaluate`: e_c, e* (and e, rho with a model) per scene on one split; with
 ``--methods``, one row per method (kc, platform, self, dimenet, map, map+platform, oracle) and scene.
 A dataset with lens distortion (``dist_coeffs``) is evaluated on its undistorted points
-(``Dataset.undistorted``): K, e and rho are those of its pinhole camera."""
+(``Dataset.undistorted``): K, e and rho are those of its pinhole camera. ``--suite real``: the
+real-photo suite (``bench.real_suite``) instead of a dataset."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
+from dimenet.runtime.bench.real_suite import SETS, format_suite, missing_sets, run_suite
 from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, noise_sigma, nonempty_path, seed
 from dimenet.runtime.cli.camera_option import add_camera_argument, served_camera
 from dimenet.runtime.cli.main import CliError, Command
@@ -21,15 +24,33 @@ from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
 from dimenet.runtime.geometry import MIN_POINTS
+from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.grid import Grid
+from dimenet.runtime.rectify.model import DEFAULT_NAME, load_model
 
+# The real-photo suite's sets, beside the project's folder as the tests find them.
+DEFAULT_PHOTOS = "../shared/real-photos"
 MAX_DROP = 10**6  # points kept per frame; more than a frame has keeps them all
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "data",
+        nargs="?",
         help="dataset file (dimenet-dataset/1 .npz); one with lens distortion is evaluated on its undistorted points",
+    )
+    p.add_argument(
+        "--suite",
+        choices=("real",),
+        help="instead of a dataset: the real-photo suite, public photo sets ingested, calibrated with and without "
+        "a lens and rectified in both modes against the do-no-harm targets (models_spec/real-photos.md); "
+        "exit 1 when a target is missed",
+    )
+    p.add_argument(
+        "--photos",
+        type=nonempty_path,
+        metavar="DIR",
+        help=f"the suite's photo sets (default {DEFAULT_PHOTOS}, skipped with a reason when absent)",
     )
     p.add_argument(
         "--model",
@@ -79,6 +100,12 @@ def _methods(text: str) -> tuple:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.suite is not None:
+        return _run_suite(args)
+    if args.data is None:
+        raise CliError("give a dataset file, or --suite real")
+    if args.photos is not None:
+        raise CliError("--photos goes with --suite real")
     needs_model = [m for m in args.methods if m in MODEL_METHODS]
     if needs_model and not args.model:
         raise CliError(f"--methods {needs_model[0]} needs --model")
@@ -107,11 +134,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_suite(args: argparse.Namespace) -> int:
+    if args.data is not None:
+        raise CliError("--suite real runs on its own photo sets: give no dataset file")
+    root = Path(args.photos or DEFAULT_PHOTOS)
+    missing = missing_sets(root)
+    if len(missing) == len(SETS):
+        if args.photos is not None:
+            raise CliError(f"--photos {root}: none of the suite's sets ({', '.join(s.name for s in SETS)}) is there")
+        print(f"real-photo suite skipped: none of its sets is under {root} (give --photos DIR)")
+        return 0
+    model = load_model(args.model or DEFAULT_NAME)
+    rows = run_suite(root, model, progress=lambda sets: progress(sets, total=len(sets), desc="real-photo sets"))
+    if args.json:
+        print(json.dumps({"root": str(root), "missing": missing, "rows": [r.to_dict() for r in rows]}))
+    else:
+        print(format_suite(rows))
+        if missing:
+            print(f"skipped (not under {root}): {', '.join(missing)}")
+    return 0 if all(r.met for r in rows) else 1
+
+
 COMMAND = Command(
     name="evaluate",
     summary="Report Avg(e_c) and Avg(e*) per scene (and Avg(e), rho with a model) on one split, in px.",
     example=(
-        "dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --methods kc,self,dimenet,map,oracle --json"
+        "dimenet evaluate s8.npz --model runs/s8 --split test --drop 64 --methods kc,self,dimenet,map,oracle --json\n"
+        "  dimenet evaluate --suite real --photos ../shared/real-photos"
     ),
     add_arguments=add_arguments,
     run=run,
