@@ -10,14 +10,15 @@ Methods compared side by side (``ALL_METHODS``; ``METHODS``: those every dataset
 (``evaluation.self_calibration``); ``dimenet`` the network; ``map`` the network's prior fused
 with the frame's points (``rectify.map_fit``); ``map+platform`` the same from the product of the
 network's Gaussian and the platform's (K_platform with its stated 1 sigma, meta
-``platform_k.sigma_px``); ``oracle`` K*. A dataset with lens distortion is evaluated on its
-undistorted points (``Dataset.undistorted``, as ``dimenet evaluate`` does). For methods with a
-covariance (dimenet: the network's; map: the posterior; platform: its stated sigma), the 1-sigma
-coverage is the share of frames with |K - K*| <= sigma, per parameter; on datasets that carry
-the true K (``K_true``, simulated ones), also with |K - K_true| <= sigma. The two differ where
-K* shares the frame's noise with the estimate: with every valid point inferring K (rig
-frames), a data-dominated posterior and K* err together, so |K - K*| understates the error
-that the posterior describes.
+``platform_k.sigma_px``); ``oracle`` K*; and the product as `dimenet rectify` runs it
+(``RUNTIME_METHODS``: ``rectify``, ``rectify-map``), every runtime fallback rule applied. A
+dataset with lens distortion is evaluated on its undistorted points (``Dataset.undistorted``, as
+``dimenet evaluate`` does). For methods with a covariance (dimenet: the network's; map: the
+posterior; platform: its stated sigma), the 1-sigma coverage is the share of frames with |K -
+K*| <= sigma, per parameter; on datasets that carry the true K (``K_true``, simulated ones),
+also with |K - K_true| <= sigma. The two differ where K* shares the frame's noise with the
+estimate: with every valid point inferring K (rig frames), a data-dominated posterior and K* err
+together, so |K - K*| understates the error that the posterior describes.
 """
 
 from __future__ import annotations
@@ -30,42 +31,66 @@ import numpy as np
 
 from dimenet.runtime.errors import DatasetError, ModelError
 from dimenet.runtime.evaluation.calibration import oracle_fit
-from dimenet.runtime.evaluation.metrics import reduction_ratio, reprojection_error_under_k
+from dimenet.runtime.evaluation.metrics import (
+    average_noise,
+    reduction_ratio,
+    reprojection_error_and_variance,
+    reprojection_error_under_k,
+)
 from dimenet.runtime.evaluation.predictor import KPrediction, Predictor
 from dimenet.runtime.evaluation.self_calibration import self_calibrate
 from dimenet.runtime.evaluation.uncertainty_fit import coverage
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.geometry import homography_floor, k_matrix, k_params
 from dimenet.runtime.rectify.map_fit import map_rectify
+from dimenet.runtime.rectify.rectifier import Rectifier
 
 # A K predictor: a dataset (the evaluated frames) -> K (F, 3, 3) px, one per frame.
 KPredictor = Callable[[Dataset], np.ndarray]
 METHODS = ("kc", "self", "dimenet", "map", "oracle")  # the methods of every dataset (reproduce's tables)
 PLATFORM_METHODS = ("platform", "map+platform")  # those that need the dataset's K_platform
 ALL_METHODS = ("kc", "platform", "self", "dimenet", "map", "map+platform", "oracle")
-MODEL_METHODS = ("dimenet", "map", "map+platform")
+# The product's rectifier (``Rectifier.rectify_batch``, modes dimenet and map) with every fallback
+# rule of the runtime, where dimenet and map are the paper's protocol (the network's K on every
+# frame, the K-bounds rule only): training/METHOD.md, "Metric and protocol".
+RUNTIME_METHODS = ("rectify", "rectify-map")
+MODEL_METHODS = ("dimenet", "map", "map+platform", *RUNTIME_METHODS)
+
+
+# The reference of frames whose K is not observable (one view of one plane), and the suffix of
+# their scene's name: their rho is against the homography floor, not e*.
+FLOOR = "homography floor"
+ONE_PLANE = " (one plane)"
 
 
 @dataclass(frozen=True)
 class SceneSummary:
-    """Averages (px) over the frames of one scene; avg_e and rho are None without a model."""
+    """Averages (px) over the frames of one scene; avg_e and rho are None without a model, rho
+    also when its denominator is within the errors' noise (``metrics.reduction_ratio``);
+    avg_e_star is the reference's: e* ("K*"), or the homography floor of frames of one plane
+    (FLOOR)."""
 
     n_frames: int
     avg_e_c: float
     avg_e_star: float
     avg_e: Optional[float]
     rho: Optional[float]
+    reference: str = "K*"
 
 
 @dataclass(frozen=True)
 class FrameErrors:
-    """Per-frame errors (px) of the evaluated frames; e is None without a model."""
+    """Per-frame errors (px) of the evaluated frames; e is None without a model; e_star is the
+    homography floor where ``floor`` (F,) bool (the frame's K is not observable, K* NaN);
+    e_c_var (F,) px^2 the variance of each e_c (``metrics.reprojection_error_and_variance``)."""
 
     scene: np.ndarray
     e_c: np.ndarray
     e_star: np.ndarray
     e: Optional[np.ndarray]
     K_star: np.ndarray  # (F, 3, 3) px
+    floor: Optional[np.ndarray] = None
+    e_c_var: Optional[np.ndarray] = None
 
 
 @dataclass(frozen=True)
@@ -90,9 +115,8 @@ class Evaluation:
     coverage: dict = field(default_factory=dict)  # method -> parameter -> share of frames within 1 sigma of K*
     coverage_true: dict = field(default_factory=dict)  # the same against K_true, when the dataset has it
     fallbacks: dict = field(default_factory=dict)  # method -> frames it could not estimate
-    # Frames left out because they give no K* (a planar view): reason -> count, and their Avg(e_c) px.
-    skipped: dict = field(default_factory=dict)
-    skipped_avg_e_c: Optional[float] = None
+    # Frames that give no K* (a planar view), measured against their homography floor: reason -> count.
+    floor_reasons: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         d = {
@@ -101,8 +125,8 @@ class Evaluation:
             "scenes": {name: asdict(s) for name, s in self.scenes.items()},
             "overall": asdict(self.overall),
         }
-        if self.skipped:
-            d["skipped"] = {"reasons": self.skipped, "avg_e_c": self.skipped_avg_e_c}
+        if self.floor_reasons:
+            d["against_floor"] = self.floor_reasons
         if self.methods:
             d["methods"] = {m: {name: asdict(s) for name, s in scenes.items()} for m, scenes in self.methods.items()}
             d["coverage"] = self.coverage
@@ -116,22 +140,29 @@ def _summary(mask: np.ndarray, errors: FrameErrors) -> SceneSummary:
     avg_e_c = float(errors.e_c[mask].mean())
     avg_e_star = float(errors.e_star[mask].mean())
     avg_e = None if errors.e is None else float(errors.e[mask].mean())
-    rho = None if avg_e is None else reduction_ratio(avg_e_c, avg_e, avg_e_star)
-    return SceneSummary(int(mask.sum()), avg_e_c, avg_e_star, avg_e, rho)
+    noise = 0.0 if errors.e_c_var is None else average_noise(errors.e_c_var[mask])
+    rho = None if avg_e is None else reduction_ratio(avg_e_c, avg_e, avg_e_star, noise)
+    floor = errors.floor is not None and bool(errors.floor[mask].all())
+    return SceneSummary(int(mask.sum()), avg_e_c, avg_e_star, avg_e, rho, FLOOR if floor else "K*")
 
 
 def frame_errors(
     frames: Dataset, K_c: np.ndarray, K_pred: Optional[np.ndarray] = None, oracle: Optional[tuple] = None
 ) -> FrameErrors:
     """e_c, e*, K* and (with K_pred (F, 3, 3)) e of every frame, on all valid points; ``oracle``:
-    the frames' (K*, e*) when already fitted."""
-    e_c = reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, K_c)
+    the frames' (K*, e*, reasons) when already fitted. A frame without K* (its reason says why: one
+    plane) has the homography floor as its e* (``floor``)."""
+    e_c, e_c_var = reprojection_error_and_variance(frames.points_2d, frames.points_3d, frames.valid, K_c)
     if oracle is None:
-        K_star, _, _, e_star, _ = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
+        K_star, _, _, e_star, reasons = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
     else:
-        K_star, e_star = oracle
+        K_star, e_star, reasons = oracle
+    floor = np.array([r is not None for r in reasons], bool)
+    if floor.any():
+        e_star = e_star.copy()
+        e_star[floor] = homography_floor(frames.points_2d[floor], frames.points_3d[floor], frames.valid[floor])
     e = None if K_pred is None else reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, K_pred)
-    return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e, K_star=K_star)
+    return FrameErrors(scene=frames.scene, e_c=e_c, e_star=e_star, e=e, K_star=K_star, floor=floor, e_c_var=e_c_var)
 
 
 def require_platform(frames: Dataset, methods: Sequence[str]) -> None:
@@ -211,6 +242,16 @@ def map_estimate(
     return MethodEstimate(K=K, K_cov=K_cov, fallbacks=fallbacks)
 
 
+def runtime_estimate(frames: Dataset, predictor: Predictor, mode: str) -> MethodEstimate:
+    """The rectifier's K per frame in ``mode``, K inferred from the inference points, every
+    fallback rule applied (a frame that keeps K_c counts as a fallback; map's soft fallbacks to
+    DIME-Net's K do not), as `dimenet rectify` returns it."""
+    rect = Rectifier(predictor, mode, predictor.camera)
+    r = rect.rectify_batch(frames.points_2d, frames.points_3d, frames.valid, infer_mask=frames.infer_mask)
+    kept = sum(f is not None and not f.startswith("map:") for f in r.fallback)
+    return MethodEstimate(K=r.K, K_cov=r.K_cov, fallbacks=kept)
+
+
 def method_estimate(
     method: str,
     frames: Dataset,
@@ -221,8 +262,9 @@ def method_estimate(
 ) -> MethodEstimate:
     """K per frame of one of ALL_METHODS on the given frames (K* (F, 3, 3) from ``frame_errors``;
     ``prediction`` the predictor's on these frames)."""
-    if method not in ALL_METHODS:
-        raise DatasetError(f"methods: unknown method {method!r} (known: {', '.join(ALL_METHODS)})")
+    if method not in ALL_METHODS + RUNTIME_METHODS:
+        known = ", ".join(ALL_METHODS + RUNTIME_METHODS)
+        raise DatasetError(f"methods: unknown method {method!r} (known: {known})")
     if method in MODEL_METHODS and predictor is None:
         raise ModelError(f"methods: {method!r} needs a model (--model)")
     require_platform(frames, (method,))
@@ -239,6 +281,8 @@ def method_estimate(
         return MethodEstimate(K=sc.K, K_cov=None, fallbacks=sum(r is not None for r in sc.fallback))
     if method == "dimenet":
         return MethodEstimate(K=prediction.K, K_cov=prediction.K_cov, fallbacks=int((~prediction.predicted).sum()))
+    if method in RUNTIME_METHODS:
+        return runtime_estimate(frames, predictor, "map" if method == "rectify-map" else "dimenet")
     if method == "map+platform":
         return map_estimate(frames, predictor, prediction, with_platform=True)
     return map_estimate(frames, predictor, prediction)
@@ -254,35 +298,30 @@ def evaluate(
 ) -> Evaluation:
     """Evaluate the given frames (already restricted to a split and any test condition): e with
     the predictor's K, and one row per method of ``methods`` (dimenet and map need a Predictor).
-    Frames that give no K* (all points in one plane: rho has no reference there) are left out,
-    counted by reason in ``skipped`` with their Avg(e_c)."""
+    Frames that give no K* (all points in one plane) are measured against their homography floor,
+    in scenes of their own (``ONE_PLANE``), counted by reason in ``floor_reasons``; ``overall`` is
+    over the frames with K*, or over all frames when none has one."""
     if frames.n_frames == 0:
         raise DatasetError(f"split: no {split!r} frames to evaluate")
     require_platform(frames, methods)
     K_star, _, _, e_star, reasons = oracle_fit(frames.points_2d, frames.points_3d, frames.valid)
-    unobservable = np.array([r is not None for r in reasons], bool)
-    skipped, skipped_e_c = {}, None
-    if unobservable.any():
-        for r in np.asarray(reasons, dtype=object)[unobservable]:
-            skipped[r] = skipped.get(r, 0) + 1
-        gone = frames.select(unobservable)
-        skipped_e_c = float(reprojection_error_under_k(gone.points_2d, gone.points_3d, gone.valid, K_c).mean())
-        if unobservable.all():
-            raise DatasetError(
-                f"split: none of the {frames.n_frames} {split!r} frames gives K* ({next(iter(skipped))}), so rho "
-                f"has no reference; their Avg(e_c) is {skipped_e_c:.3f} px"
-            )
-        frames, K_star, e_star = frames.select(~unobservable), K_star[~unobservable], e_star[~unobservable]
+    floor_reasons: dict = {}
+    for r in reasons:
+        if r is not None:
+            floor_reasons[r] = floor_reasons.get(r, 0) + 1
     model = predictor if isinstance(predictor, Predictor) else None
     prediction = None if model is None else model.predict(frames)
     if prediction is not None:
         K_pred = prediction.K
     else:
         K_pred = None if predictor is None else np.asarray(predictor(frames), dtype=np.float64)
-    errors = frame_errors(frames, K_c, K_pred, (K_star, e_star))
-    names = sorted(set(frames.scene.tolist()))
-    scenes = {name: _summary(frames.scene == name, errors) for name in names}
-    overall = _summary(np.ones(frames.n_frames, bool), errors)
+    errors = frame_errors(frames, K_c, K_pred, (K_star, e_star, reasons))
+    groups = np.where(errors.floor, np.char.add(frames.scene.astype(str), ONE_PLANE), frames.scene.astype(str))
+    names = sorted(set(groups.tolist()))
+    scenes = {name: _summary(groups == name, errors) for name in names}
+    # Overall: the frames with K* (the paper's rho), unless every frame is of one plane.
+    whole = ~errors.floor if not errors.floor.all() else np.ones(frames.n_frames, bool)
+    overall = _summary(whole, errors)
     rows, covered, covered_true, fallbacks = {}, {}, {}, {}
     for method in dict.fromkeys(methods):
         est = method_estimate(method, frames, K_c, errors.K_star, model, prediction)
@@ -291,12 +330,14 @@ def evaluate(
             if method == "oracle"
             else reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, est.K)
         )
-        mine = FrameErrors(scene=errors.scene, e_c=errors.e_c, e_star=errors.e_star, e=e, K_star=errors.K_star)
-        rows[method] = {name: _summary(frames.scene == name, mine) for name in names}
-        rows[method]["overall"] = _summary(np.ones(frames.n_frames, bool), mine)
+        mine = replace(errors, e=e)
+        rows[method] = {name: _summary(groups == name, mine) for name in names}
+        rows[method]["overall"] = _summary(whole, mine)
         fallbacks[method] = est.fallbacks
         if est.K_cov is not None:
-            ok = np.all(np.isfinite(est.K_cov), axis=(1, 2))
+            ok = np.all(np.isfinite(est.K_cov), axis=(1, 2)) & ~errors.floor
+            if not ok.any():  # no frame with K* (all of one plane): no coverage to measure
+                continue
             covered[method] = coverage(k_params(est.K[ok]), k_params(errors.K_star[ok]), est.K_cov[ok])
             if frames.K_true is not None:
                 covered_true[method] = coverage(k_params(est.K[ok]), k_params(frames.K_true[ok]), est.K_cov[ok])
@@ -310,27 +351,31 @@ def evaluate(
         coverage=covered,
         coverage_true=covered_true,
         fallbacks=fallbacks,
-        skipped=skipped,
-        skipped_avg_e_c=skipped_e_c,
+        floor_reasons=floor_reasons,
     )
 
 
 def format_table(ev: Evaluation) -> str:
     """A small aligned table of the evaluation (px), then one row per method and scene."""
     fmt = lambda v, spec: "-" if v is None else format(v, spec)  # noqa: E731
-    pct = lambda v: "-" if v is None else f"{100 * v:.1f}%"  # noqa: E731
+    rho = lambda s: "-" if s.avg_e is None else "n/a" if s.rho is None else f"{100 * s.rho:.1f}%"  # noqa: E731
     rows = [("scene", "frames", "Avg(e_c)", "Avg(e)", "Avg(e*)", "rho")]
     for name, s in list(ev.scenes.items()) + [("overall", ev.overall)]:
         rows.append(
-            (name, str(s.n_frames), fmt(s.avg_e_c, ".3f"), fmt(s.avg_e, ".3f"), fmt(s.avg_e_star, ".3f"), pct(s.rho))
+            (name, str(s.n_frames), fmt(s.avg_e_c, ".3f"), fmt(s.avg_e, ".3f"), fmt(s.avg_e_star, ".3f"), rho(s))
         )
     text = [
         f"split {ev.split}, errors in px, K_c fx={ev.K_c[0, 0]:.2f} fy={ev.K_c[1, 1]:.2f} cx={ev.K_c[0, 2]:.2f} "
         f"cy={ev.K_c[1, 2]:.2f}",
         _aligned(rows),
     ]
-    for reason, n in ev.skipped.items():
-        text.append(f"left out: {n} frame(s) without K* ({reason}); their Avg(e_c) {ev.skipped_avg_e_c:.3f} px")
+    for reason, n in ev.floor_reasons.items():
+        text.append(
+            f"{n} frame(s) without K* ({reason}): scenes marked{ONE_PLANE}, Avg(e*) is their homography floor "
+            "(the best error any pinhole K reaches on one plane) and rho is against it"
+        )
+    if any(s.rho is None and s.avg_e is not None for s in ev.scenes.values()):
+        text.append("rho n/a: Avg(e_c) - Avg(e*) is within twice the noise of Avg(e_c) (no room to improve)")
     if ev.methods:
         header = ("method", "scene", "frames", "Avg(e)", "rho", "fallbacks", "1-sigma coverage fx/fy/cx/cy vs K*")
         rows = [header + (("vs K_true",) if ev.coverage_true else ())]
@@ -346,7 +391,7 @@ def format_table(ev: Evaluation) -> str:
                         name,
                         str(s.n_frames),
                         fmt(s.avg_e, ".3f"),
-                        pct(s.rho),
+                        rho(s),
                         str(ev.fallbacks[method]) if name == "overall" else "",
                         *(covs if name == "overall" else [""] * len(covs)),
                     )

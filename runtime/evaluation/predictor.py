@@ -108,6 +108,10 @@ class Predictor:
                 K_cov = pixels.covariance_to_user(K_cov)
         return KPrediction(K=K, predicted=predicted, stats=stats, K_cov=K_cov)
 
+    def frame_delta_k(self, features: np.ndarray) -> np.ndarray:
+        """One frame's (1, D) feature -> Delta K (4,) px: the model interface ``Rectifier`` calls."""
+        return np.asarray(self.delta_k(np.asarray(features, np.float32)), dtype=np.float64)[0]
+
     def predict_k(self, frames: Dataset) -> np.ndarray:
         """K (F, 3, 3) px per frame from its inference points; K_c where the frame has too few
         inference points or the prediction is outside the plausible bounds."""

@@ -3,8 +3,8 @@
 Pure numpy/OpenCV functions; conventions in models_spec/conventions.md. Everything outside
 geometry imports from this package (``from dimenet.runtime.geometry import project``): it hands
 on the public functions of its modules (projection, rotation, spread, pnp, normal_equations,
-residual_structure, distortion, least_squares, lens_bundle); ``least_squares`` and ``lens_division``, whose names
-are generic (``fit``, ``distort``), are also taken as modules.
+residual_structure, homography, distortion, least_squares, lens_bundle); ``least_squares`` and
+``lens_division``, whose names are generic (``fit``, ``distort``), are also taken as modules.
 """
 
 from dimenet.runtime.geometry.distortion import (
@@ -13,6 +13,7 @@ from dimenet.runtime.geometry.distortion import (
     mean_distorted_error,
     undistort_points,
 )
+from dimenet.runtime.geometry.homography import homography_floor, plane_coordinates
 from dimenet.runtime.geometry.least_squares import calibrate, solve_pnp
 from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
 from dimenet.runtime.geometry.normal_equations import frame_normal_equations
@@ -70,6 +71,8 @@ from dimenet.runtime.geometry.spread import (
 )
 
 __all__ = [
+    "homography_floor",
+    "plane_coordinates",
     "MIN_STRUCTURE_POINTS",
     "ResidualStructure",
     "residual_structure",

@@ -101,3 +101,23 @@ def test_evaluate_works_on_the_undistorted_points(tmp_path, capsys):
         )
         results.append(json.loads(capsys.readouterr().out))
     assert results[0] == results[1]
+
+
+def test_the_runtime_methods_return_the_rectifiers_k():
+    """evaluate's rectify and rectify-map give the K `dimenet rectify` gives, every rule applied."""
+    from dimenet.runtime.evaluation.methods import runtime_estimate
+    from dimenet.runtime.evaluation.predictor import load_predictor
+    from dimenet.runtime.rectify.rectifier import Rectifier
+    from dimenet.runtime.rectify.user_camera import Camera
+    from dimenet.runtime.sim.simulator import simulate
+
+    frames = simulate("galaxy-s8", seed=3, natural_frames=3)
+    test = frames.select(frames.frames_in("test"))
+    camera = Camera(frames.K_true[0], tuple(int(v) for v in frames.image_size))
+    predictor = load_predictor("default").for_camera(camera)
+    for mode in ("dimenet", "map"):
+        est = runtime_estimate(test, predictor, mode)
+        rect = Rectifier.load(K_c=camera.K, image_size=camera.image_size, mode=mode)
+        r = rect.rectify_batch(test.points_2d, test.points_3d, test.valid, infer_mask=test.infer_mask)
+        np.testing.assert_array_equal(est.K, r.K)
+        assert est.fallbacks == sum(f is not None and not f.startswith("map:") for f in r.fallback)

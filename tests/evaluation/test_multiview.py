@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dimenet.runtime.errors import CalibrationError, DatasetError
+from dimenet.runtime.errors import CalibrationError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset, read_calibration, write_calibration
-from dimenet.runtime.evaluation.methods import evaluate, format_table
+from dimenet.runtime.evaluation.methods import FLOOR, evaluate, format_table
 from dimenet.runtime.evaluation.multiview import joint_fit
 from dimenet.runtime.formats.dataset import FORMAT, Dataset
 from dimenet.runtime.geometry import k_params
@@ -108,7 +108,7 @@ def _without_lens(ds: Dataset) -> Dataset:
     return replace(ds, dist_coeffs=None, dist_K=None)
 
 
-def test_evaluate_leaves_out_the_frames_without_k_star(s8_dataset, s8_calibration):
+def test_frames_without_k_star_are_measured_against_their_homography_floor(s8_dataset, s8_calibration):
     test = s8_dataset.select(s8_dataset.frames_in("test") & (s8_dataset.scene == "rig"))
     boards = board_dataset(board_views(3, seed=4), split="test")
     P = test.n_points
@@ -123,10 +123,11 @@ def test_evaluate_leaves_out_the_frames_without_k_star(s8_dataset, s8_calibratio
         scene=np.concatenate([test.scene, boards.scene]),
         meta=test.meta,
     )
-    ev = evaluate(both, s8_calibration.K_c)
-    assert ev.overall.n_frames == test.n_frames
-    assert list(ev.skipped.values()) == [3] and "coplanar" in next(iter(ev.skipped))
-    assert ev.skipped_avg_e_c > 0 and "left out: 3 frame(s) without K*" in format_table(ev)
-    assert ev.to_json()["skipped"]["avg_e_c"] == ev.skipped_avg_e_c
-    with pytest.raises(DatasetError, match="none of the 3 'test' frames gives K"):
-        evaluate(boards, s8_calibration.K_c)
+    ev = evaluate(both, s8_calibration.K_c, lambda frames: np.broadcast_to(s8_calibration.K_c, (frames.n_frames, 3, 3)))
+    assert ev.overall.n_frames == test.n_frames and ev.overall.reference == "K*"  # overall: the frames with K*
+    plane = ev.scenes["board (one plane)"]
+    assert plane.n_frames == 3 and plane.reference == FLOOR and 0 < plane.avg_e_star < plane.avg_e_c
+    assert list(ev.floor_reasons.values()) == [3] and "coplanar" in next(iter(ev.floor_reasons))
+    assert "3 frame(s) without K*" in format_table(ev) and ev.to_json()["against_floor"] == ev.floor_reasons
+    only = evaluate(boards, s8_calibration.K_c)  # all of one plane: no longer refused
+    assert only.overall.reference == FLOOR and only.overall.n_frames == 3

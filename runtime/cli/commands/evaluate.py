@@ -19,7 +19,14 @@ from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
-from dimenet.runtime.evaluation.methods import ALL_METHODS, MODEL_METHODS, evaluate, format_table, require_platform
+from dimenet.runtime.evaluation.methods import (
+    ALL_METHODS,
+    MODEL_METHODS,
+    RUNTIME_METHODS,
+    evaluate,
+    format_table,
+    require_platform,
+)
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
@@ -82,19 +89,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=_methods,
         default=(),
         metavar="M1,M2",
-        help=f"compare methods, comma-separated from {','.join(ALL_METHODS)} (dimenet and map need --model, "
-        "platform needs the dataset's K_platform): rho per method and scene, and the 1-sigma coverage of K's "
-        "uncertainty",
+        help=f"compare methods, comma-separated from {','.join(ALL_METHODS + RUNTIME_METHODS)} (dimenet and map, "
+        "the paper's protocol: the network's K on every frame; rectify and rectify-map: the product as `dimenet "
+        "rectify` runs it, with its fallback rules; these need --model; platform needs the dataset's K_platform): "
+        "rho per method and scene, and the 1-sigma coverage of K's uncertainty",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
 def _methods(text: str) -> tuple:
     names = tuple(m.strip() for m in text.split(",") if m.strip())
-    unknown = [m for m in names if m not in ALL_METHODS]
+    known = ALL_METHODS + RUNTIME_METHODS
+    unknown = [m for m in names if m not in known]
     if unknown or not names:
         raise argparse.ArgumentTypeError(
-            f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(ALL_METHODS)})"
+            f"unknown method {unknown[0] if unknown else text!r} (choose from {','.join(known)})"
         )
     return names
 
