@@ -8,6 +8,7 @@ has no covered photos). ``--min-boards`` moves the rule of a rig of several boar
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -131,3 +132,25 @@ def test_cli_render_of_a_one_board_rig_promises_no_covered_photo(rig_file, tmp_p
     assert main([*argv, "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "every 5th from the 2nd upside down)" in out and "covered" not in out
+
+
+def test_split_auto_says_how_many_views_of_one_board_it_holds_out_of_k_c(rig_file, rendered, tmp_path, capsys):
+    from dimenet.runtime.cli.commands.ingest import held_out_note
+    from dimenet.runtime.formats.dataset import read_dataset
+
+    folder, truth = rendered
+    photos = [str(folder / str(f)) for f in truth.frame_id]
+    out = tmp_path / "auto.npz"
+    assert main(["ingest", *photos, "--rig", str(rig_file), "--out", str(out)]) == 0
+    ds = read_dataset(out)
+    test = int(ds.frames_in("test").sum())
+    printed = capsys.readouterr().out
+    if test:
+        assert f"holds {test} of these {N_PHOTOS} views of one board out of K_c" in printed
+        assert "--split train keeps them all" in printed
+    else:  # the name hash put every view in train: nothing to say
+        assert "holds" not in printed
+    # the rule itself, on the ingested views: said under auto when some are test, never under train
+    some_test = replace(ds, split=np.array(["test"] + ["train"] * (ds.n_frames - 1)))
+    assert "holds 1 of these" in held_out_note("auto", some_test)
+    assert held_out_note("train", some_test) == ""

@@ -16,11 +16,14 @@ from dimenet.runtime.formats.camera_file import camera_file, read_camera
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.natural_labels import read_labels, read_object
 from dimenet.runtime.formats.rig import MAX_RIG_POINTS, PAPER_RIG_NAME, rig_from_argument
+from dimenet.runtime.geometry import spans_3d
 from dimenet.runtime.ingest.outcome import DROPPED, IDENTIFIED, NOT_FOUND
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS
 from dimenet.runtime.ingest.pipeline import MIN_BOARDS, SPLITS, check_object, ingest, report
 from dimenet.runtime.jobs.progress import progress
 
+# A set of fewer views than this, all of one board, is told how many views --split auto holds out of K_c.
+SMALL_SET = 30
 OPENCV_MAX_MEGAPIXELS = 1000.0  # OpenCV refuses to decode more than 2**30 px (1073.7 MP) whatever the flag
 
 
@@ -39,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--split",
         choices=SPLITS,
         default="auto",
-        help="split of every frame; auto (default): 80/20 train/test by file-name hash, natural photos test",
+        help="split of every frame; auto (default): 80/20 train/test by file-name hash, natural photos test "
+        f"(a set of fewer than {SMALL_SET} views of one board is told how many it holds out of K_c)",
     )
     p.add_argument("--labels", metavar="LABELS.csv", help="hand-labelled natural points: image,point_id,x_px,y_px")
     p.add_argument(
@@ -175,7 +179,26 @@ def run(args: argparse.Namespace) -> int:
     if camera is not None:
         lens = "no distortion" if camera.dist_coeffs is None else f"{len(camera.dist_coeffs)} distortion coefficients"
         print(f"lens: {lens} from {args.camera}")
+    note = held_out_note(args.split, result.dataset)
+    if note:
+        print(note)
     return 0
+
+
+def held_out_note(split: str, dataset) -> str:
+    """Under ``--split auto``, for a set of fewer than SMALL_SET views all of one plane (one board): how many
+    views the test split holds out of K_c (``calibrate`` averages the train views), and how to keep them."""
+    if split != "auto" or dataset.n_frames >= SMALL_SET:
+        return ""
+    planar = [not spans_3d(x[v]) for x, v in zip(dataset.points_3d, dataset.valid)]
+    test = int(dataset.frames_in("test").sum())
+    if not all(planar) or test == 0:
+        return ""
+    return (
+        f"note: --split auto holds {test} of these {dataset.n_frames} views of one board out of K_c (the test "
+        f"split, ~20 % by file name); with fewer than {SMALL_SET} views each counts: --split train keeps them all "
+        "for K_c (`dimenet evaluate` then measures them against their homography floor with --split train)"
+    )
 
 
 COMMAND = Command(
