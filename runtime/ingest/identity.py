@@ -68,6 +68,9 @@ class Identification:
     tvec: np.ndarray  # (3,) mm: that pose {W}->{C}
     rms_px: float  # reprojection RMS (px) under K
     runner_up_rms_px: float  # the same for the next-best labelling; inf when there is none
+    # The cameras (K, rvec, tvec) of the other labellings refitted within AMBIGUITY_RATIO of the winner's
+    # RMS: where each would put the boards not found (``pipeline.find_and_label`` looks there too).
+    close: tuple = ()
 
 
 def rough_k(image_size: tuple[int, int]) -> np.ndarray:
@@ -268,12 +271,18 @@ def label(
         tvec=fit.tvec[win],
         rms_px=float(rms[win]),
         runner_up_rms_px=float(rms[rank[1]]) if len(rank) > 1 else float("inf"),
+        close=tuple((fit.K[i], fit.rvec[i], fit.tvec[i]) for i in rank[1:] if rms[i] < AMBIGUITY_RATIO * rms[win]),
     )
+
+
+def ambiguous(found: Identification) -> bool:
+    """Whether the runner-up labelling leaves less than AMBIGUITY_RATIO times the winner's RMS."""
+    return found.runner_up_rms_px < AMBIGUITY_RATIO * found.rms_px
 
 
 def check_unambiguous(found: Identification) -> None:
     """IdentificationError unless the runner-up labelling leaves at least AMBIGUITY_RATIO times the winner's RMS."""
-    if found.runner_up_rms_px < AMBIGUITY_RATIO * found.rms_px:
+    if ambiguous(found):
         raise IdentificationError(
             f"ambiguous board identity: the best labelling leaves {found.rms_px:.2f} px RMS, "
             f"the next {found.runner_up_rms_px:.2f} px (needs {AMBIGUITY_RATIO:g}x apart)"

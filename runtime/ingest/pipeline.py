@@ -35,17 +35,25 @@ import cv2
 import numpy as np
 
 from dimenet.runtime import __version__
-from dimenet.runtime.errors import DimenetError, IngestError, LabelsError
+from dimenet.runtime.errors import CalibrationError, DimenetError, IngestError, LabelsError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.natural_labels import MAX_OBJECT_MM, ImageLabels, NaturalObject
 from dimenet.runtime.formats.rig import Rig, rig_to_dict
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project, undistort_points
 from dimenet.runtime.ingest.detection import BoardSearch, detect_boards
-from dimenet.runtime.ingest.identity import Identification, check_unambiguous, label, label_planar, refit, rough_k
+from dimenet.runtime.ingest.identity import (
+    Identification,
+    check_unambiguous,
+    label,
+    label_planar,
+    refit,
+    rough_k,
+)
 from dimenet.runtime.ingest.outcome import BoardLine, board_lines, shortfall
 from dimenet.runtime.ingest.photo import MAX_MEGAPIXELS, read_photo
 from dimenet.runtime.ingest.placement import boards_in_view, place
 from dimenet.runtime.ingest.predicted import search_predicted
+from dimenet.runtime.ingest.wider import look_from_one_plane, look_under_close_labellings
 from dimenet.runtime.jobs.workers import run_shared
 from dimenet.runtime.rectify.user_camera import Camera
 
@@ -200,7 +208,16 @@ def ingest_photo(
             return replace(result, corners_px=corners, boards=(board,), board_lines=lines)
         fixed_2d = np.empty((0, 2)) if labels is None else labels.points_px
         fixed_3d = np.empty((0, 3)) if labels is None else object_points_mm[labels.index]
-        found, search, in_view = find_and_label(photo.gray, rig, fixed_2d, fixed_3d, search)
+        try:
+            found, search, in_view = find_and_label(photo.gray, rig, fixed_2d, fixed_3d, search)
+        except CalibrationError:  # the boards found lie in one plane: no camera yet to say where the others are
+            wider = look_from_one_plane(photo.gray, rig, search)
+            if len(wider.detections) == len(search.detections):
+                raise
+            found, search, in_view = find_and_label(photo.gray, rig, fixed_2d, fixed_3d, wider)
+        wider = look_under_close_labellings(photo.gray, rig, found, search)
+        if len(wider.detections) > len(search.detections):
+            found, search, in_view = find_and_label(photo.gray, rig, fixed_2d, fixed_3d, wider)
         check_unambiguous(found)
         if camera is not None and camera.dist_coeffs is not None:
             found = under_lens(found, rig, fixed_2d, fixed_3d, camera)

@@ -88,7 +88,11 @@ def crop_search(
 
 
 def search_predicted(
-    gray: np.ndarray, rig: Rig, kept: tuple[Detection, ...], predicted: dict[int, np.ndarray]
+    gray: np.ndarray,
+    rig: Rig,
+    kept: tuple[Detection, ...],
+    predicted: dict[int, np.ndarray],
+    rough: bool = False,
 ) -> BoardSearch:
     """Plain boards looked for where the photo's camera puts them: ``predicted`` (nx·ny, 2) native px by rig
     board index, of boards in view but not found. Each is first looked at there (``look``, with the lens and
@@ -98,7 +102,8 @@ def search_predicted(
     CROP_SPACING_PX, for every plain pattern of the rig (the camera may come from a labelling that is still
     wrong: what lies there may be another board); at most one board per crop. Every step, unless the look
     found the board partly hidden (some corners confirmed, some no checker corner: no detector finds it
-    whole), when only the first runs (cheap, for a camera off by whole squares). Returns the boards found
+    whole), when only the first runs (cheap, for a camera off by whole squares), unless the camera is
+    ``rough`` (one plane's: off by more than the look can tell from a hidden corner). Returns the boards found
     (not yet identified; ``found_by`` says where), those dropped, and those not found where the look saw
     corners hidden (``BoardSearch.hidden``: how many)."""
     size = (gray.shape[1], gray.shape[0])
@@ -122,7 +127,7 @@ def search_predicted(
                 if isinstance(outcome, Detection):
                     found.append(outcome)
                     continue
-            elif seen.hidden.any() and seen.confirmed.any():
+            elif seen.hidden.any() and seen.confirmed.any() and not rough:
                 steps = STEPS[:1]
         outcome = crop_search(gray, px, board, patterns, steps, (*kept, *found))
         if outcome is not None:
