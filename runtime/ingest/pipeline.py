@@ -195,6 +195,8 @@ def ingest_photo(
         placer = partial(place, photo.gray, rig) if len(rig.boards) > 1 else None
         search = detect_boards(photo.gray, rig, placer)
         need = (default_min_boards(rig) if min_boards is None else min_boards) if labels is None else MIN_BOARDS_NATURAL
+        if 0 < len(search.detections) < need and len(rig.boards) > 1:  # one board's camera says where the others are
+            search = look_from_one_plane(photo.gray, rig, search)
         if len(search.detections) < need:
             kind = "a rig photo" if labels is None else "a labelled photo"
             return replace(result, skipped=shortfall(search, need, kind), board_lines=board_lines(rig, search))

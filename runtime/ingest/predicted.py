@@ -33,7 +33,10 @@ from dimenet.runtime.ingest.refine import colouring
 CROP_SPACING_PX = 20  # a predicted board's crop is reduced so that its corner spacing is about this
 
 
-CROP_MARGIN_SQUARES = 2.0  # the crop reaches this far beyond the predicted inner corners
+CROP_MARGIN_SQUARES = 2.0
+# A rough camera's crops (one plane's, ``wider``) run this many of the detector STEPS whatever the look saw:
+# the exhaustive SB modes cost 0.1-0.5 s per crop that holds no board, and a rough camera has several.
+ROUGH_STEPS = 3  # the crop reaches this far beyond the predicted inner corners
 
 
 def crop_box(predicted_px: np.ndarray, pattern: tuple[int, int], size: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -102,8 +105,9 @@ def search_predicted(
     CROP_SPACING_PX, for every plain pattern of the rig (the camera may come from a labelling that is still
     wrong: what lies there may be another board); at most one board per crop. Every step, unless the look
     found the board partly hidden (some corners confirmed, some no checker corner: no detector finds it
-    whole), when only the first runs (cheap, for a camera off by whole squares), unless the camera is
-    ``rough`` (one plane's: off by more than the look can tell from a hidden corner). Returns the boards found
+    whole), when only the first runs (cheap, for a camera off by whole squares); a ``rough`` camera (one
+    plane's: off by more than the look can tell from a hidden corner) runs the first ROUGH_STEPS there and
+    everywhere. Returns the boards found
     (not yet identified; ``found_by`` says where), those dropped, and those not found where the look saw
     corners hidden (``BoardSearch.hidden``: how many)."""
     size = (gray.shape[1], gray.shape[0])
@@ -118,7 +122,7 @@ def search_predicted(
         board = rig.boards[b]
         if board.aruco is not None:
             continue
-        steps, seen = STEPS, None
+        steps, seen = (STEPS[:ROUGH_STEPS] if rough else STEPS), None
         if np.isfinite(contrast) and not on_kept(px, (*kept, *found), size):
             seen = look(gray, px, board.inner_corners, reference.k, contrast)
             if seen.confirmed.all():

@@ -27,14 +27,18 @@ from dimenet.runtime.ingest.predicted import on_kept, search_predicted
 
 def look_where(gray: np.ndarray, rig: Rig, search: BoardSearch, cameras, rough: bool = False) -> BoardSearch:
     """``search`` with the boards found where each of ``cameras`` ((K, rvec, tvec) each) puts the rig boards it
-    shows in view, off the boards kept (``search_predicted``, every detector step when the cameras are
-    ``rough``; the boards found so far masked out)."""
+    shows in view, off the boards kept (``search_predicted``, its ``rough`` steps for rough cameras; the boards
+    found so far masked out), until one more board is found: with it the photo's own camera, or labelling,
+    says where the rest are (``pipeline.find_and_label``), cheaper than the next camera's crops."""
     size = (gray.shape[1], gray.shape[0])
-    for K, rvec, tvec in cameras:
-        if len(search.detections) >= len(rig.boards):
+    until = len(search.detections) + 1
+    views = [(camera, np.flatnonzero(boards_in_view(rig, *camera, size))) for camera in cameras]
+    # The cameras that show more of the rig first: the photo was taken of it.
+    for (K, rvec, tvec), in_view in sorted(views, key=lambda v: -len(v[1])):
+        if len(search.detections) >= until or not len(in_view):
             break
         predicted = {}
-        for b in np.flatnonzero(boards_in_view(rig, K, rvec, tvec, size)):
+        for b in in_view:
             px = project(rig.boards[b].points(), K, rvec, tvec)
             if not on_kept(px, search.detections, size):
                 predicted[int(b)] = px

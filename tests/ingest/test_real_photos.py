@@ -153,3 +153,18 @@ def test_k_star_of_each_photo_is_opencvs_single_view_fit_of_the_same_corners(ing
         for reference in (theirs, np.array(PUBLISHED_K[camera])):
             assert np.all(np.abs(K_star[f, :2] - reference[:2]) <= 0.02 * reference[:2]), (name, K_star[f], reference)
             assert np.all(np.abs(K_star[f, 2:] - reference[2:]) <= 25.0), (name, K_star[f], reference)
+
+
+def test_the_rig_at_640x480_gives_every_board_of_every_photo(tmp_path):
+    """Reduced to 640x480 the walls' squares are ~11 px: the whole-photo detectors find the floor alone
+    on the right camera's photos, and placing's look does not confirm the walls. The floor's own camera,
+    as each board it may be, puts them where a crop search finds them (``ingest.wider``)."""
+    small = []
+    for name in PHOTOS:
+        image = cv2.resize(cv2.imread(str(ORTHO / name)), (640, 480), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(tmp_path / name), image, [cv2.IMWRITE_JPEG_QUALITY, 92])
+        small.append(tmp_path / name)
+    result = ingest(small, load_rig(ORTHO / "rig.json"), split="train")
+    for photo in result.results:
+        assert photo.skipped is None and photo.boards == (0, 1, 2), (photo.name, photo.skipped)
+        assert photo.rms_px < 1.0
