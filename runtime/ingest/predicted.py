@@ -96,6 +96,7 @@ def search_predicted(
     kept: tuple[Detection, ...],
     predicted: dict[int, np.ndarray],
     rough: bool = False,
+    crops: bool = True,
 ) -> BoardSearch:
     """Plain boards looked for where the photo's camera puts them: ``predicted`` (nx·ny, 2) native px by rig
     board index, of boards in view but not found. Each is first looked at there (``look``, with the lens and
@@ -107,7 +108,7 @@ def search_predicted(
     found the board partly hidden (some corners confirmed, some no checker corner: no detector finds it
     whole), when only the first runs (cheap, for a camera off by whole squares); a ``rough`` camera (one
     plane's: off by more than the look can tell from a hidden corner) runs the first ROUGH_STEPS there and
-    everywhere. Returns the boards found
+    everywhere; without ``crops``, only the looks. Returns the boards found
     (not yet identified; ``found_by`` says where), those dropped, and those not found where the look saw
     corners hidden (``BoardSearch.hidden``: how many)."""
     size = (gray.shape[1], gray.shape[0])
@@ -133,7 +134,7 @@ def search_predicted(
                     continue
             elif seen.hidden.any() and seen.confirmed.any() and not rough:
                 steps = STEPS[:1]
-        outcome = crop_search(gray, px, board, patterns, steps, (*kept, *found))
+        outcome = crop_search(gray, px, board, patterns, steps, (*kept, *found)) if crops else None
         if outcome is not None:
             (dropped if isinstance(outcome, Dropped) else found).append(outcome)
         elif seen is not None and seen.hidden.any():
