@@ -228,15 +228,6 @@ def find_one(copy: np.ndarray, pattern: tuple[int, int], step: Step) -> Optional
     return (corners.reshape(-1, 2), pattern) if ok else None
 
 
-def unpadded(copy: np.ndarray, pattern: tuple[int, int], step: Step):
-    """``find_one`` on the copy without its white border, the corners back in the padded copy's px: the
-    border makes the cheap SEED_STEPS fail on some photos where the boards' own margins are narrow (on the
-    real rig at 640x480, after the first board is masked: the classic step in 10 ms and LARGER in 43 ms
-    find a wall the border hides, which the cascade found nowhere, after 0.5 s of slow SB calls)."""
-    found = find_one(np.ascontiguousarray(copy[PAD_PX:-PAD_PX, PAD_PX:-PAD_PX]), pattern, step)
-    return None if found is None else (found[0] + PAD_PX, found[1])
-
-
 def settle(
     gray: np.ndarray,
     corners_px: np.ndarray,
@@ -358,8 +349,6 @@ def search_plain(
         for pattern, count in sorted(wanted.items()):
             while len(kept) < until and of_pattern(kept, pattern) < count and of_pattern(dropped, pattern) < count:
                 found = find_one(copy_at(factor), pattern, step)
-                if found is None and step in SEED_STEPS:
-                    found = unpadded(copy_at(factor), pattern, step)
                 if found is None:
                     break
                 native, grid = to_native(found[0], factor), found[1]

@@ -6,10 +6,13 @@ PnP of it, as each rig board it may be (``identity.candidates``; the largest fir
 its pattern is likelier a board and a fold row than a smaller board and two), a camera that puts every other
 board within about a quarter of a square (models_spec/ingest.md, "Placing"). Where that camera shows
 plain boards in view, their corners are refined from there with no detector call
-(``detection.confirm``); the first hypothesis under which every one of them is confirmed and kept
-(``detection.settle``) gives them. A wrong hypothesis puts boards on the desk, on the boards'
-margins or across a fold, where the corners do not refine, are no checker corners or do not fit
-one board.
+(``detection.confirm``). Once a second board is confirmed, the rest are looked for under two cameras of both
+boards: the one-plane K held (a PnP), then K refitted free (``identity.refit``, which also tells a wrong
+hypothesis: no one camera puts both boards there); on two planes a free K can put a third board further
+off than the held one (models_spec/ingest.md, "Looking wider"). The first hypothesis under which every
+board in view is confirmed and kept (``detection.settle``) gives them. A wrong hypothesis puts boards on
+the desk, on the boards' margins or across a fold, where the corners do not refine, are no checker
+corners or do not fit one board.
 
 Pixels: x right, y down; 3D in mm in the rig frame {W}; poses {W}->{C}.
 """
@@ -107,9 +110,16 @@ def place(gray: np.ndarray, rig: Rig, seed: Detection) -> tuple[Detection, ...]:
         rms, fit = refit(p2, p3, K, rvec[None], tvec[None])
         if not rms[0] <= tolerance:  # no one camera puts both boards there: a wrong hypothesis
             continue
-        K2, rvec2, tvec2 = fit.K[0], fit.rvec[0], fit.tvec[0]
-        rest = plain_in_view(K2, rvec2, tvec2, {c.board, others[0]})
-        found = {others[0]: first} | {b: px for b in rest if (px := look(b, K2, rvec2, tvec2)) is not None}
+        try:  # the first K held, posed on both boards: a K freed on two planes can put a third further off
+            held = (K, *solve_pnp_start(p2[0], p3[0], K))
+        except InputError:
+            continue
+        found, rest = {others[0]: first}, set()
+        for camera in (held, (fit.K[0], fit.rvec[0], fit.tvec[0])):
+            for b in plain_in_view(*camera, {c.board} | found.keys()):
+                rest.add(b)
+                if (px := look(b, *camera)) is not None:
+                    found[b] = px
         if len(found) < min(len(rest) + 1, PLACE_AGREEING):  # a board this camera shows is not there
             continue
         name = rig.boards[c.board].name
