@@ -21,6 +21,7 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
+from dimenet.runtime.sim.scenes import framed, random_rig
 from dimenet.runtime.sim.simulator import simulate
 
 # Image sizes (width, height) px: 16:9 and 4:3 stream and photo sizes, 1280 to 8000 px wide.
@@ -40,6 +41,10 @@ STROKE_OVER_SHAKE = (1.05, 1.6)  # OIS stroke / shake std, uniform (paper profil
 OIS_STROKE_DEG = (0.7, 1.8)  # ... then clipped to this range (paper profiles: 0.8 .. 1.5)
 CORNER_SIGMA_PX = (0.1, 0.6)  # corner detection noise std per axis, uniform (px of that camera)
 FAMILY_FRAMES = (80, 20)  # rig frames (train, test) per camera
+SCENES = (
+    "paper",
+    "random",
+)  # what each camera sees: the paper's rig at its distances, or a rig of its own (sim.scenes)
 
 # The paper's scale: label noise and border margin were set for a 4032 px wide camera, the rig
 # distances for the galaxy-s8's field of view.
@@ -189,10 +194,9 @@ def simulate_family(
     frames: tuple[int, int] = FAMILY_FRAMES,
     dist_coeffs: Optional[Sequence[float]] = None,
     platform_k: bool = False,
+    scenes: str = "paper",
 ) -> Iterator[tuple[DeviceProfile, Dataset]]:
-    """(camera, dataset) for each camera of ``family_profiles(n, seed, frames)``, lazily: the dataset
-    is ``simulate(camera, seed=camera_seed(seed, i), natural_frames=..., planar_frames=...,
-    dist_coeffs=..., platform_k=...)`` with ``family`` = {"seed", "index", "cameras"} added to its meta."""
+    """(camera, dataset) for each camera of ``family_profiles(n, seed, frames)``, lazily: ``family_member``'s."""
     for i, profile in enumerate(family_profiles(n, seed, frames)):
         yield (
             profile,
@@ -205,6 +209,7 @@ def simulate_family(
                 planar_frames=planar_frames,
                 dist_coeffs=dist_coeffs,
                 platform_k=platform_k,
+                scenes=scenes,
             ),
         )
 
@@ -219,18 +224,26 @@ def family_member(
     planar_frames: int = 0,
     dist_coeffs: Optional[Sequence[float]] = None,
     platform_k: bool = False,
+    scenes: str = "paper",
 ) -> Dataset:
     """The dataset of camera ``index`` (``profile``) of the family of ``seed`` and ``n`` cameras:
     ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed",
-    "index", "cameras"} added to its meta. It depends on nothing else, so cameras can be
+    "index", "cameras", "scenes"} added to its meta. It depends on nothing else, so cameras can be
     simulated apart (``dimenet simulate --family N --address``). ``dist_coeffs`` (scale-free)
-    apply to each camera about its own nominal K."""
+    apply to each camera about its own nominal K. ``scenes``: ``paper``, the paper's rig at the camera's
+    distances; ``random``, a rig of the camera's own (``scenes.random_rig``, its own stream) framed from a fifth of
+    the image to most of it (``scenes.framed``)."""
+    if scenes not in SCENES:
+        raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
+    rig = random_rig(_stream(seed, 3, index)) if scenes == "random" else None
     ds = simulate(
-        profile,
+        profile if rig is None else framed(profile, rig),
         seed=camera_seed(seed, index),
         natural_frames=natural_frames,
         planar_frames=planar_frames,
         dist_coeffs=dist_coeffs,
         platform_k=platform_k,
+        rig=rig,
     )
-    return replace(ds, meta={**ds.meta, "family": {"seed": int(seed), "index": index, "cameras": int(n)}})
+    family = {"seed": int(seed), "index": index, "cameras": int(n), "scenes": scenes}
+    return replace(ds, meta={**ds.meta, "family": family})

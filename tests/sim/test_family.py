@@ -147,7 +147,9 @@ def test_simulate_family_yields_each_camera_with_its_dataset():
     out = list(simulate_family(3, 4, natural_frames=1, frames=(3, 1)))
     assert [p for p, _ in out] == family_profiles(3, 4, frames=(3, 1))
     for i, (_, ds) in enumerate(out):
-        assert ds.meta["family"] == {"seed": 4, "index": i, "cameras": 3} and ds.meta["seed"] == camera_seed(4, i)
+        assert ds.meta["family"] == {"seed": 4, "index": i, "cameras": 3, "scenes": "paper"} and ds.meta[
+            "seed"
+        ] == camera_seed(4, i)
         assert ds.frame_id[0] == f"family-s4-{i:03d}-0000"
     assert len({camera_seed(4, i) for i in range(50)}) == 50
 
@@ -163,7 +165,7 @@ def test_cli_writes_one_dataset_per_camera(tmp_path, capsys):
     assert "2 cameras" in lines[2] and str(out) in lines[2]
     ds = read_dataset(out / "family-s3-001.npz")
     assert ds.n_frames == 80 + 20 + 1 and ds.meta["device"]["name"] == "family-s3-001"
-    assert ds.meta["family"] == {"seed": 3, "index": 1, "cameras": 2}
+    assert ds.meta["family"] == {"seed": 3, "index": 1, "cameras": 2, "scenes": "paper"}
 
 
 def test_cli_help_ends_with_a_family_example(capsys):

@@ -14,7 +14,7 @@ from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.jobs.engine import run_all
-from dimenet.runtime.sim.family import MAX_FAMILY, family_member, family_profiles, hfov_deg
+from dimenet.runtime.sim.family import MAX_FAMILY, SCENES, family_member, family_profiles, hfov_deg
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
 from dimenet.runtime.sim.simulator import checked_dist_coeffs, simulate
 
@@ -30,6 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help=f"simulate N random cameras (1 to {MAX_FAMILY}; see models_spec/simulator.md, 'Camera family'), "
         "one dataset each in the --out directory",
+    )
+    p.add_argument(
+        "--scenes",
+        choices=SCENES,
+        default="paper",
+        help="with --family, what each camera sees: the paper's rig (default), or a random rig of its own, 2-6 "
+        "boards, framed from a fifth of the image to most of it (models_spec/simulator.md, 'Scene family')",
     )
     p.add_argument("--seed", type=seed, default=0, help="random seed (default 0); same seed, same file(s)")
     p.add_argument(
@@ -102,9 +109,9 @@ def camera_summary(profile: DeviceProfile) -> str:
 
 def write_member(job: tuple) -> tuple[str, int]:
     """One camera of a family to ``out``/<camera>.npz (a job of ``run_all``): job = (profile, index,
-    seed, n, natural_frames, planar_frames, dist_coeffs, platform_k, out). Returns its summary line
+    seed, n, natural_frames, planar_frames, dist_coeffs, platform_k, scenes, out). Returns its summary line
     and frame count."""
-    profile, index, seed_, n, natural_frames, planar_frames, dist, platform_k, out = job
+    profile, index, seed_, n, natural_frames, planar_frames, dist, platform_k, scenes, out = job
     ds = family_member(
         profile,
         index,
@@ -114,9 +121,12 @@ def write_member(job: tuple) -> tuple[str, int]:
         planar_frames=planar_frames,
         dist_coeffs=dist,
         platform_k=platform_k,
+        scenes=scenes,
     )
     path = write_dataset(ds, Path(out) / f"{profile.name}.npz")
-    return f"{profile.name}: {camera_summary(profile)}: {frame_counts(ds)}{extras(ds)} -> {path}", ds.n_frames
+    boards = ds.meta["rig"]["boards"]
+    rig = "" if scenes == "paper" else f", a rig of {len(boards)} boards of {boards[0]['square_mm']:.1f} mm squares"
+    return f"{profile.name}: {camera_summary(profile)}{rig}: {frame_counts(ds)}{extras(ds)} -> {path}", ds.n_frames
 
 
 def run_family(args: argparse.Namespace) -> int:
@@ -133,6 +143,7 @@ def run_family(args: argparse.Namespace) -> int:
             args.planar_frames,
             args.dist_coeffs,
             args.platform_k,
+            args.scenes,
             str(out),
         )
         for i, p in enumerate(profiles)
@@ -150,6 +161,8 @@ def run_family(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.family is not None:
         return run_family(args)
+    if args.scenes != "paper":
+        raise CliError("dimenet simulate: --scenes random needs --family (a paper profile sees the paper's rig)")
     ds = simulate(
         args.profile,
         seed=args.seed,
@@ -173,6 +186,7 @@ COMMAND = Command(
     example="dimenet simulate --profile galaxy-s8 --seed 0 --natural-frames 34 --planar-frames 40 --out s8.npz\n"
     "  dimenet simulate --profile galaxy-s8 --platform-k --dist-coeffs 0.08,-0.15,0,0 --out s8-sdk.npz\n"
     "  dimenet simulate --family 100 --seed 0 --natural-frames 10 --out family\n"
+    "  dimenet simulate --family 100 --seed 0 --scenes random --out family-scenes\n"
     "  dimenet simulate --family 100 --seed 0 --out family --address local:2   (the fleet extra: Ray jobs)",
     add_arguments=add_arguments,
     run=run,

@@ -1,0 +1,103 @@
+"""The scene family: random rigs (``sim.scenes.random_rig``), their framing, and ``simulate --family --scenes``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.formats.dataset import read_dataset
+from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
+from dimenet.runtime.geometry import RIG_VIEW_RATIO, project, spans_3d
+from dimenet.runtime.sim import scenes
+from dimenet.runtime.sim.family import family_member, family_profiles
+from dimenet.runtime.sim.scenes import extent_mm, framed, random_rig
+
+
+def rigs(n: int = 60) -> list:
+    return [random_rig(np.random.default_rng(seed)) for seed in range(n)]
+
+
+def test_random_rigs_stay_in_their_ranges_and_span_3d():
+    drawn = rigs()
+    counts = {len(r.boards) for r in drawn}
+    assert counts == set(range(scenes.BOARDS[0], scenes.BOARDS[1] + 1))  # every count drawn in 60 rigs
+    for rig in drawn:
+        assert len({b.square_mm for b in rig.boards}) == 1
+        assert scenes.SQUARE_MM[0] <= rig.boards[0].square_mm <= scenes.SQUARE_MM[1]
+        for b in rig.boards:
+            assert all(scenes.SQUARES[0] - 1 <= v <= scenes.SQUARES[1] - 1 for v in b.inner_corners)
+            tilt = math.degrees(math.acos(np.clip(b.normal()[2], -1, 1)))  # off facing the camera (+z)
+            assert tilt <= scenes.TILT_DEG[1] + 1e-9
+        n0, n1 = rig.boards[0].normal(), rig.boards[1].normal()
+        assert math.degrees(math.acos(np.clip(n0 @ n1, -1, 1))) >= scenes.MIN_PLANE_ANGLE_DEG - 1e-9
+        assert spans_3d(rig.points(), RIG_VIEW_RATIO)
+
+
+def test_boards_of_a_random_rig_do_not_overlap_as_the_camera_sees_them_face_on():
+    """Each board sits in its own cell: seen from far along the view axis, no two boards' corner hulls meet."""
+    for rig in rigs(30):
+        boxes = [(b.points()[:, :2].min(0), b.points()[:, :2].max(0)) for b in rig.boards]
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                (lo_a, hi_a), (lo_b, hi_b) = boxes[i], boxes[j]
+                assert np.any(hi_a < lo_b) or np.any(hi_b < lo_a), (i, j)
+
+
+def test_same_generator_state_same_rig():
+    a, b = random_rig(np.random.default_rng(5)), random_rig(np.random.default_rng(5))
+    assert rig_to_dict(a) == rig_to_dict(b)
+    assert rig_to_dict(a) != rig_to_dict(random_rig(np.random.default_rng(6)))
+
+
+def test_framing_puts_the_rig_between_a_fifth_of_the_image_and_most_of_it():
+    profile = family_profiles(1, 0)[0]
+    rig = random_rig(np.random.default_rng(1))
+    near, far = framed(profile, rig).distance_mm
+    width_px = profile.image_size_px[0]
+    for distance, fill in ((near, scenes.FILL[1]), (far, scenes.FILL[0])):
+        # a segment of the rig's extent, centred and face on at that distance, spans `fill` of the width
+        ends = np.array([[-extent_mm(rig) / 2, 0, distance], [extent_mm(rig) / 2, 0, distance]])
+        px = project(ends, profile.nominal_K, np.zeros(3), np.zeros(3))
+        assert (px[1, 0] - px[0, 0]) / width_px == pytest.approx(fill, rel=1e-9)
+
+
+def test_a_random_scene_family_member_sees_its_own_rig_and_keeps_k_star_observable():
+    profile = family_profiles(2, 3, frames=(12, 4))[1]
+    ds = family_member(profile, 1, 3, 2, scenes="random")
+    assert ds.meta["family"]["scenes"] == "random"
+    assert ds.meta["rig"] != rig_to_dict(paper_rig())
+    assert ds.meta["rig"] == rig_to_dict(random_rig(np.random.default_rng(np.random.SeedSequence(3, spawn_key=(3, 1)))))
+    for k in range(ds.n_frames):
+        seen = ds.valid[k]
+        assert spans_3d(ds.points_3d[k][seen], RIG_VIEW_RATIO)
+    again = family_member(profile, 1, 3, 2, scenes="random")
+    assert np.array_equal(again.points_2d, ds.points_2d, equal_nan=True)
+
+
+def test_paper_scenes_are_the_family_as_before():
+    profile = family_profiles(1, 4, frames=(6, 2))[0]
+    default = family_member(profile, 0, 4, 1)
+    paper = family_member(profile, 0, 4, 1, scenes="paper")
+    assert np.array_equal(default.points_2d, paper.points_2d, equal_nan=True)
+    assert paper.meta["rig"] == rig_to_dict(paper_rig())
+
+
+def test_unknown_scenes_raise_input_error():
+    profile = family_profiles(1, 0, frames=(2, 1))[0]
+    with pytest.raises(InputError, match="scenes must be one of paper, random"):
+        family_member(profile, 0, 0, 1, scenes="rooms")
+
+
+def test_cli_writes_random_scene_cameras_and_refuses_them_without_family(tmp_path, capsys):
+    out = tmp_path / "fam"
+    assert main(["simulate", "--family", "2", "--seed", "2", "--scenes", "random", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("a rig of") == 2
+    rigs_seen = [read_dataset(out / f"family-s2-00{i}.npz").meta["rig"] for i in range(2)]
+    assert rigs_seen[0] != rigs_seen[1]
+    assert main(["simulate", "--profile", "galaxy-s8", "--scenes", "random", "--out", str(tmp_path / "x.npz")]) == 2
+    assert "--scenes random needs --family" in capsys.readouterr().err
