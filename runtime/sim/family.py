@@ -41,10 +41,8 @@ STROKE_OVER_SHAKE = (1.05, 1.6)  # OIS stroke / shake std, uniform (paper profil
 OIS_STROKE_DEG = (0.7, 1.8)  # ... then clipped to this range (paper profiles: 0.8 .. 1.5)
 CORNER_SIGMA_PX = (0.1, 0.6)  # corner detection noise std per axis, uniform (px of that camera)
 FAMILY_FRAMES = (80, 20)  # rig frames (train, test) per camera
-SCENES = (
-    "paper",
-    "random",
-)  # what each camera sees: the paper's rig at its distances, or a rig of its own (sim.scenes)
+SCENES = ("paper", "random")  # what a camera sees: the paper's rig at its distances, or a rig of its own (sim.scenes)
+OIS_OFF_SHARE = 0.2  # with random scenes, this share of cameras has no OIS (front cameras, OIS disabled)
 
 # The paper's scale: label noise and border margin were set for a 4032 px wide camera, the rig
 # distances for the galaxy-s8's field of view.
@@ -232,12 +230,17 @@ def family_member(
     simulated apart (``dimenet simulate --family N --address``). ``dist_coeffs`` (scale-free)
     apply to each camera about its own nominal K. ``scenes``: ``paper``, the paper's rig at the camera's
     distances; ``random``, a rig of the camera's own (``scenes.random_rig``, its own stream) framed from a fifth of
-    the image to most of it (``scenes.framed``)."""
+    the image to most of it (``scenes.framed``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS
+    (stroke 0: the principal point never moves, only focus breathing changes f)."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
-    rig = random_rig(_stream(seed, 3, index)) if scenes == "random" else None
+    rig = None
+    if scenes == "random":
+        rig = random_rig(_stream(seed, 3, index))
+        ois_off = _stream(seed, 4, index).uniform() < OIS_OFF_SHARE
+        profile = framed(replace(profile, ois_stroke_deg=0.0) if ois_off else profile, rig)
     ds = simulate(
-        profile if rig is None else framed(profile, rig),
+        profile,
         seed=camera_seed(seed, index),
         natural_frames=natural_frames,
         planar_frames=planar_frames,

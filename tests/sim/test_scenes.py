@@ -13,7 +13,7 @@ from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
 from dimenet.runtime.geometry import RIG_VIEW_RATIO, project, spans_3d
 from dimenet.runtime.sim import scenes
-from dimenet.runtime.sim.family import family_member, family_profiles
+from dimenet.runtime.sim.family import OIS_OFF_SHARE, family_member, family_profiles
 from dimenet.runtime.sim.scenes import extent_mm, framed, random_rig
 
 
@@ -101,3 +101,20 @@ def test_cli_writes_random_scene_cameras_and_refuses_them_without_family(tmp_pat
     assert rigs_seen[0] != rigs_seen[1]
     assert main(["simulate", "--profile", "galaxy-s8", "--scenes", "random", "--out", str(tmp_path / "x.npz")]) == 2
     assert "--scenes random needs --family" in capsys.readouterr().err
+
+
+def test_a_share_of_random_scene_cameras_has_no_ois_and_a_still_principal_point():
+    """OIS_OFF_SHARE of the cameras (front cameras, OIS disabled): the principal point never moves, f still breathes;
+    the others' does. Paper scenes keep every camera's OIS."""
+    n = 40
+    off = 0
+    for i, profile in enumerate(family_profiles(n, 2, frames=(4, 2))):
+        ds = family_member(profile, i, 2, n, scenes="random")
+        c_spread_px = np.ptp(ds.K_true[:, :2, 2], axis=0)
+        if ds.meta["device"]["ois_stroke_deg"] == 0.0:
+            off += 1
+            assert np.all(c_spread_px == 0.0) and np.ptp(ds.K_true[:, 0, 0]) > 0.0
+        else:
+            assert np.all(c_spread_px > 0.0)
+            assert ds.meta["device"]["ois_stroke_deg"] == profile.ois_stroke_deg
+    assert 0.5 * OIS_OFF_SHARE * n <= off <= 1.75 * OIS_OFF_SHARE * n
