@@ -21,7 +21,7 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
-from dimenet.runtime.sim.scenes import framed, random_rig
+from dimenet.runtime.sim.scenes import build_errors_mm, framed, random_rig
 from dimenet.runtime.sim.simulator import simulate
 
 # Image sizes (width, height) px: 16:9 and 4:3 stream and photo sizes, 1280 to 8000 px wide.
@@ -231,14 +231,16 @@ def family_member(
     apply to each camera about its own nominal K. ``scenes``: ``paper``, the paper's rig at the camera's
     distances; ``random``, a rig of the camera's own (``scenes.random_rig``, its own stream) framed from a fifth of
     the image to most of it (``scenes.framed``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS
-    (stroke 0: the principal point never moves, only focus breathing changes f)."""
+    (stroke 0: the principal point never moves, only focus breathing changes f); the rig as built departs from
+    its points (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
-    rig = None
+    rig, offsets = None, None
     if scenes == "random":
         rig = random_rig(_stream(seed, 3, index))
         ois_off = _stream(seed, 4, index).uniform() < OIS_OFF_SHARE
         profile = framed(replace(profile, ois_stroke_deg=0.0) if ois_off else profile, rig)
+        offsets = build_errors_mm(rig, _stream(seed, 5, index))
     ds = simulate(
         profile,
         seed=camera_seed(seed, index),
@@ -247,6 +249,7 @@ def family_member(
         dist_coeffs=dist_coeffs,
         platform_k=platform_k,
         rig=rig,
+        rig_offsets_mm=offsets,
     )
     family = {"seed": int(seed), "index": index, "cameras": int(n), "scenes": scenes}
     return replace(ds, meta={**ds.meta, "family": family})

@@ -6,7 +6,9 @@ does not learn the paper's one rig and framing (models_spec/simulator.md, "Scene
 about a random in-plane axis and set forward or back, so the rig spans 3D (its first two boards at
 least MIN_PLANE_ANGLE_DEG apart, its corners spanning 3D: K* observable from a rig photo). ``framed`` sets a camera's
 distances so the rig fills between FILL[0] and FILL[1] of the image's width (from a fifth of the frame to
-most of it), and aims within a tenth of the rig's extent of its centre.
+most of it), and aims within a tenth of the rig's extent of its centre. ``build_errors_mm`` is how the rig
+as built departs from its file: sheets that sag and boards placed slightly off, which a camera sees and the
+rig's 3D points do not hold (the real rig's 1.9 px residual).
 
 Frames: {W} the rig frame (mm); the camera looks along +z of {W}, so a board's printed side faces -z
 (its normal +z before its tilt).
@@ -34,6 +36,9 @@ DEPTH_SPREAD = 0.3  # each board set forward or back by up to this fraction of t
 FILL = (0.2, 0.8)  # the rig's extent over the image width that the camera's distances span
 AIM_FRACTION = 0.1  # aim jitter as a fraction of the rig's extent
 MAX_DRAWS = 1000  # draws of one rig before giving up
+SAG_MM = 3.0  # a printed sheet bends, peak off flat U(0, this) mm either way, along one of its axes
+PLACEMENT_DEG = 0.2  # each board sits turned off its nominal pose by N(0, this) deg about a random axis ...
+PLACEMENT_MM = 0.5  # ... and moved by N(0, this) mm per axis
 
 
 def _tilt(rng: np.random.Generator) -> np.ndarray:
@@ -94,3 +99,24 @@ def framed(profile: DeviceProfile, rig: Rig) -> DeviceProfile:
     span_mm = extent_mm(rig)
     distance = [span_mm * profile.focal_px / (fill * width_px) for fill in FILL[::-1]]
     return replace(profile, distance_mm=(distance[0], distance[1]), aim_jitter_mm=AIM_FRACTION * span_mm)
+
+
+def build_errors_mm(rig: Rig, rng: np.random.Generator) -> np.ndarray:
+    """(P, 3) mm in {W}: where each corner of the built rig lies off its nominal point, board by board: a cylindrical
+    sag of peak U(-SAG_MM, SAG_MM) along the board's normal, across its x or y axis (zero at the edges of its
+    grid), then the board turned by N(0, PLACEMENT_DEG) about a random axis through its grid's centre and moved by
+    N(0, PLACEMENT_MM) per axis."""
+    out = []
+    for board in rig.boards:
+        local = board.local_points()
+        centre = local.mean(0)
+        axis = int(rng.integers(2))
+        half = max(float(np.ptp(local[:, axis])) / 2.0, 1e-9)
+        sag = rng.uniform(-SAG_MM, SAG_MM) * (1.0 - ((local[:, axis] - centre[axis]) / half) ** 2)
+        bent = local + sag[:, None] * np.array([0.0, 0.0, 1.0])
+        direction = rng.normal(size=3)
+        turn = rvec_to_matrix(math.radians(rng.normal(0.0, PLACEMENT_DEG)) * direction / np.linalg.norm(direction))
+        placed = (bent - centre) @ turn.T + centre + rng.normal(0.0, PLACEMENT_MM, 3)
+        R = board.rotation()
+        out.append((placed - local) @ R.T)
+    return np.concatenate(out)

@@ -340,6 +340,7 @@ def simulate(
     rig: Optional[Rig] = None,
     dist_coeffs: Optional[Sequence[float]] = None,
     platform_k: bool = False,
+    rig_offsets_mm: Optional[np.ndarray] = None,
 ) -> Dataset:
     """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
     test frames, then ``planar_frames`` planar test frames.
@@ -355,6 +356,8 @@ def simulate(
     is in the image when its distorted pixel is; the dataset carries ``dist_coeffs`` and ``dist_K``.
     ``platform_k``: add the SDK's K per frame (``sim.platform``, its own random stream; meta
     ``platform_k`` states the model). Without either, the dataset is as before, array for array.
+    ``rig_offsets_mm`` (P, 3) mm in {W}: the built rig's corners lie there off the rig's points (``scenes.
+    build_errors_mm``); the camera images the built rig (seen where the rig is), the dataset's 3D points stay the rig's.
     """
     profile = get_profile(profile) if isinstance(profile, str) else profile
     for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
@@ -364,6 +367,12 @@ def simulate(
     rig = paper_rig() if rig is None else rig
     rng = np.random.default_rng(seed)
     rig_set = rig_scene(rig)
+    built = None  # the built rig's corners (P, 3) mm, imaged where the rig is seen (a few mm change no visibility)
+    if rig_offsets_mm is not None:
+        offsets = np.asarray(rig_offsets_mm, dtype=np.float64)
+        if offsets.shape != rig_set.points.shape or not np.all(np.isfinite(offsets)):
+            raise InputError(f"rig_offsets_mm must be finite, one (x, y, z) per rig point {rig_set.points.shape}")
+        built = rig_set.points + offsets
     nature = natural_scene(rig.boards[0])
     n_rig = profile.n_train + profile.n_test
     n_shot = n_rig + natural_frames
@@ -372,7 +381,8 @@ def simulate(
     valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
     K_true = np.zeros((F, 3, 3))
     for k in range(n_rig):
-        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
+        K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
+        px = px if built is None else project(built, K_true[k], rvec, tvec)
         n = len(px)
         p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
         p3[k, :n][seen] = rig_set.points[seen]
@@ -387,7 +397,8 @@ def simulate(
         p3[k, :n][seen] = model_points[seen]
         valid[k, :n], infer[k, :n] = seen, seen & building
     for k in range(n_shot, F):
-        K_true[k], _, _, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
+        K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
+        px = px if built is None else project(built, K_true[k], rvec, tvec)
         n = len(px)
         p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
         p3[k, :n][seen] = rig_set.points[seen]

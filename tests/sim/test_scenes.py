@@ -14,7 +14,8 @@ from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
 from dimenet.runtime.geometry import RIG_VIEW_RATIO, project, spans_3d
 from dimenet.runtime.sim import scenes
 from dimenet.runtime.sim.family import OIS_OFF_SHARE, family_member, family_profiles
-from dimenet.runtime.sim.scenes import extent_mm, framed, random_rig
+from dimenet.runtime.sim.scenes import build_errors_mm, extent_mm, framed, random_rig
+from dimenet.runtime.sim.simulator import simulate
 
 
 def rigs(n: int = 60) -> list:
@@ -118,3 +119,38 @@ def test_a_share_of_random_scene_cameras_has_no_ois_and_a_still_principal_point(
             assert np.all(c_spread_px > 0.0)
             assert ds.meta["device"]["ois_stroke_deg"] == profile.ois_stroke_deg
     assert 0.5 * OIS_OFF_SHARE * n <= off <= 1.75 * OIS_OFF_SHARE * n
+
+
+def test_a_sagging_sheet_bends_along_its_normal_and_stays_flat_at_its_edges(monkeypatch):
+    monkeypatch.setattr(scenes, "PLACEMENT_DEG", 0.0)
+    monkeypatch.setattr(scenes, "PLACEMENT_MM", 0.0)
+    rig = random_rig(np.random.default_rng(2))
+    offsets = build_errors_mm(rig, np.random.default_rng(3))
+    start = 0
+    for board in rig.boards:
+        off = offsets[start : start + board.n_points]
+        start += board.n_points
+        along_normal = off @ board.normal()
+        assert np.allclose(off, along_normal[:, None] * board.normal(), atol=1e-12)  # a bend, no slide
+        assert np.max(np.abs(along_normal)) <= scenes.SAG_MM
+        grid = along_normal.reshape(board.inner_corners[1], board.inner_corners[0])
+        flat_rows = np.allclose(grid[0], 0.0) and np.allclose(grid[-1], 0.0)
+        flat_cols = np.allclose(grid[:, 0], 0.0) and np.allclose(grid[:, -1], 0.0)
+        assert flat_rows or flat_cols, grid  # zero sag at the two edges across the bent axis
+
+
+def test_the_camera_sees_the_built_rig_and_the_dataset_keeps_the_rigs_points():
+    profile = family_profiles(1, 6, frames=(5, 2))[0]
+    rig = random_rig(np.random.default_rng(4))
+    framed_profile = framed(profile, rig)
+    offsets = build_errors_mm(rig, np.random.default_rng(5))
+    nominal = simulate(framed_profile, seed=9, rig=rig)
+    built = simulate(framed_profile, seed=9, rig=rig, rig_offsets_mm=offsets)
+    zero = simulate(framed_profile, seed=9, rig=rig, rig_offsets_mm=np.zeros_like(offsets))
+    assert np.array_equal(zero.points_2d, nominal.points_2d, equal_nan=True)
+    assert np.array_equal(built.valid, nominal.valid) and np.array_equal(built.K_true, nominal.K_true)
+    assert np.array_equal(built.points_3d, nominal.points_3d, equal_nan=True)  # the file's points, not the built ones
+    moved = np.linalg.norm(built.points_2d - nominal.points_2d, axis=-1)[built.valid]
+    assert 0.0 < np.median(moved) and np.max(moved) < 20.0  # a few mm at the rig's distance: pixels, not frames
+    with pytest.raises(InputError, match="rig_offsets_mm"):
+        simulate(framed_profile, seed=9, rig=rig, rig_offsets_mm=offsets[:-1])
