@@ -21,7 +21,7 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
-from dimenet.runtime.sim.scenes import build_errors_mm, framed, random_rig
+from dimenet.runtime.sim.scenes import FILL, build_errors_mm, framed, random_rig
 from dimenet.runtime.sim.simulator import simulate
 
 # Image sizes (width, height) px: 16:9 and 4:3 stream and photo sizes, 1280 to 8000 px wide.
@@ -193,6 +193,7 @@ def simulate_family(
     dist_coeffs: Optional[Sequence[float]] = None,
     platform_k: bool = False,
     scenes: str = "paper",
+    fill: tuple = FILL,
 ) -> Iterator[tuple[DeviceProfile, Dataset]]:
     """(camera, dataset) for each camera of ``family_profiles(n, seed, frames)``, lazily: ``family_member``'s."""
     for i, profile in enumerate(family_profiles(n, seed, frames)):
@@ -208,6 +209,7 @@ def simulate_family(
                 dist_coeffs=dist_coeffs,
                 platform_k=platform_k,
                 scenes=scenes,
+                fill=fill,
             ),
         )
 
@@ -223,23 +225,26 @@ def family_member(
     dist_coeffs: Optional[Sequence[float]] = None,
     platform_k: bool = False,
     scenes: str = "paper",
+    fill: tuple = FILL,
 ) -> Dataset:
     """The dataset of camera ``index`` (``profile``) of the family of ``seed`` and ``n`` cameras:
-    ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed",
-    "index", "cameras", "scenes"} added to its meta. It depends on nothing else, so cameras can be
-    simulated apart (``dimenet simulate --family N --address``). ``dist_coeffs`` (scale-free)
-    apply to each camera about its own nominal K. ``scenes``: ``paper``, the paper's rig at the camera's
-    distances; ``random``, a rig of the camera's own (``scenes.random_rig``, its own stream) framed from a fifth of
-    the image to most of it (``scenes.framed``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS
-    (stroke 0: the principal point never moves, only focus breathing changes f); the rig as built departs from
-    its points (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off."""
+        ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed",
+        "index", "cameras", "scenes"} added to its meta. It depends on nothing else, so cameras can be
+        simulated apart (``dimenet simulate --family N --address``). ``dist_coeffs`` (scale-free)
+        apply to each camera about its own nominal K. ``scenes``: ``paper``, the paper's rig at the camera's
+        distances; ``random``, a rig of the camera's own (``scenes.random_rig``, its own stream) framed from a fifth of
+        the image to most of it (``scenes.framed``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS
+        (stroke 0: the principal point never moves, only focus breathing changes f); the rig as built departs from
+        its points (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off. ``fill``
+    (random scenes): the share of the image width the rig spans from the camera's far distance to its near one
+    (held-out families draw other framings than the training's: ``training/reproduce``)."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
     rig, offsets = None, None
     if scenes == "random":
         rig = random_rig(_stream(seed, 3, index))
         ois_off = _stream(seed, 4, index).uniform() < OIS_OFF_SHARE
-        profile = framed(replace(profile, ois_stroke_deg=0.0) if ois_off else profile, rig)
+        profile = framed(replace(profile, ois_stroke_deg=0.0) if ois_off else profile, rig, fill)
         offsets = build_errors_mm(rig, _stream(seed, 5, index))
     ds = simulate(
         profile,

@@ -21,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from dimenet.runtime.errors import RigError
+from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.rig import Board, Rig
 from dimenet.runtime.geometry import RIG_VIEW_RATIO, matrix_to_rvec, rvec_to_matrix, spans_3d
 from dimenet.runtime.sim.profiles import DeviceProfile
@@ -92,12 +92,14 @@ def extent_mm(rig: Rig) -> float:
     return float(np.max(points[:, :2].max(0) - points[:, :2].min(0)))
 
 
-def framed(profile: DeviceProfile, rig: Rig) -> DeviceProfile:
-    """The camera with its distances set so ``rig`` fills FILL of the image width, aim jitter AIM_FRACTION of
-    its extent."""
+def framed(profile: DeviceProfile, rig: Rig, fill: tuple = FILL) -> DeviceProfile:
+    """The camera with its distances set so ``rig`` fills ``fill`` (low, high) of the image width, aim jitter
+    AIM_FRACTION of its extent."""
+    if not 0.0 < fill[0] < fill[1] <= 1.0:
+        raise InputError(f"fill must be 0 < low < high <= 1 of the image width, got {fill!r}")
     width_px = profile.image_size_px[0]
     span_mm = extent_mm(rig)
-    distance = [span_mm * profile.focal_px / (fill * width_px) for fill in FILL[::-1]]
+    distance = [span_mm * profile.focal_px / (part * width_px) for part in fill[::-1]]
     return replace(profile, distance_mm=(distance[0], distance[1]), aim_jitter_mm=AIM_FRACTION * span_mm)
 
 

@@ -54,16 +54,24 @@ def test_same_generator_state_same_rig():
     assert rig_to_dict(a) != rig_to_dict(random_rig(np.random.default_rng(6)))
 
 
-def test_framing_puts_the_rig_between_a_fifth_of_the_image_and_most_of_it():
+@pytest.mark.parametrize("fill", [scenes.FILL, (0.2, 1 / 3)])
+def test_framing_puts_the_rig_between_a_fifth_of_the_image_and_most_of_it(fill):
+    """The training's framing, and the far one a held-out family draws."""
     profile = family_profiles(1, 0)[0]
     rig = random_rig(np.random.default_rng(1))
-    near, far = framed(profile, rig).distance_mm
+    near, far = framed(profile, rig, fill).distance_mm
     width_px = profile.image_size_px[0]
-    for distance, fill in ((near, scenes.FILL[1]), (far, scenes.FILL[0])):
-        # a segment of the rig's extent, centred and face on at that distance, spans `fill` of the width
+    for distance, share in ((near, fill[1]), (far, fill[0])):
+        # a segment of the rig's extent, centred and face on at that distance, spans `share` of the width
         ends = np.array([[-extent_mm(rig) / 2, 0, distance], [extent_mm(rig) / 2, 0, distance]])
         px = project(ends, profile.nominal_K, np.zeros(3), np.zeros(3))
-        assert (px[1, 0] - px[0, 0]) / width_px == pytest.approx(fill, rel=1e-9)
+        assert (px[1, 0] - px[0, 0]) / width_px == pytest.approx(share, rel=1e-9)
+
+
+@pytest.mark.parametrize("fill", [(0.0, 0.5), (0.5, 0.4), (0.2, 1.5)])
+def test_a_framing_outside_the_image_is_refused(fill):
+    with pytest.raises(InputError, match="fill must be"):
+        framed(family_profiles(1, 0)[0], random_rig(np.random.default_rng(1)), fill)
 
 
 def test_a_random_scene_family_member_sees_its_own_rig_and_keeps_k_star_observable():
