@@ -99,7 +99,7 @@ class Predictor:
             rows = np.flatnonzero(usable)[ok]
             k = net.k[ok] if pixels is None else pixels.k_to_user(net.k[ok])
             K[rows], predicted[rows] = k_matrix(k), True
-            stats[rows] = network_statistics(net, ok, sub.infer_mask, sub.points_3d, len(spec.features.channels))
+            stats[rows] = network_statistics(net, ok, sub.infer_mask, sub.points_3d, spec.features)
         K_cov = None
         if spec.uncertainty is not None:
             K_cov = np.full((F, 4, 4), np.nan)

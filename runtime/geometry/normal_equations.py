@@ -7,6 +7,7 @@ Jacobian: models_spec/BENCHMARKS.md)."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 
@@ -61,3 +62,39 @@ def frame_normal_equations(
     JJ = (C @ G[:9, :9]).reshape(10, 18) @ C.reshape(10, 18).T
     Cr = C @ G[:9, 9:]
     return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10]), r
+
+
+def prior_step(
+    JJ: np.ndarray, Jr: np.ndarray, rss: float, n_residuals: int, k_precision: np.ndarray, *, noise_floor_px: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """One Gauss-Newton step over (pose, K) from ``frame_normal_equations`` (JJ (10, 10), Jr (10,),
+    rss px^2 over n_residuals = 2N residuals) with a Gaussian prior on K centred where the normal
+    equations were formed: k_precision (4, 4) px^-2.
+
+    The data term is weighted by 1 / s^2, s^2 (px^2) the frame's 2D noise variance: first RSS /
+    (2N - 6) (the pose alone fitted), then once more from the linearised residuals of the step
+    (2N - 10 dof), floored at noise_floor_px^2. Returns (step (10,) the update of (w rad, tau mm,
+    fx, fy, cx, cy px), cov (10, 10) the inverse Hessian of the weighted cost, its K block the
+    posterior covariance px^2, weight 1 / s^2 px^-2)."""
+    weight = _noise_weight(rss, n_residuals - 6, noise_floor_px)
+    # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations.
+    step = prior_posterior(JJ, k_precision, weight) @ Jr * weight
+    rss_step = rss - 2.0 * float(step @ Jr) + float(step @ JJ @ step)
+    weight = _noise_weight(rss_step, n_residuals - 10, noise_floor_px)
+    cov = prior_posterior(JJ, k_precision, weight)
+    step = cov @ Jr
+    step *= -weight
+    return step, cov, weight
+
+
+def _noise_weight(rss: float, dof: int, floor_px: float) -> float:
+    """1 / s^2 (px^-2) from a residual sum of squares rss (px^2) with dof degrees of freedom."""
+    return 1.0 / max(rss / max(dof, 1), floor_px**2)
+
+
+def prior_posterior(JJ: np.ndarray, k_precision: np.ndarray, weight: float) -> np.ndarray:
+    """The inverse (10, 10) of the Gauss-Newton Hessian over (pose, K), weight J J^T plus the
+    prior's precision k_precision (4, 4) px^-2 on K: a step is its product with the gradient."""
+    H = JJ * weight
+    H[6:, 6:] += k_precision
+    return cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1]

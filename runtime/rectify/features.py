@@ -17,6 +17,14 @@ millimetres of a scene depth_mm away. With the PMD measured in a canonical camer
 
 Variants (paper Table 3): A all five channels; B PMD only; C PMD + 1/Z; D PMD + X, Y;
 E X, Y, 1/Z only.
+
+The data step (``FeatureSpec.data_step``, spec >= 1.7; not the paper's): after the grid, STEP_SIZE
+more inputs say what the frame's own points say of K. One Gauss-Newton step over (pose, K) from
+the C0 pose and K_c (``geometry.prior_step``) with a weak prior on K (1 sigma STEP_PRIOR_REL * fx_c
+px per parameter): its Delta K (fx, fy, cx, cy) px times the PMD's scale, then the log of each
+parameter's posterior sigma over the prior's (0 where the points do not fix it, e.g. f and c on
+one plane). The grid says where the points are; the step is how they fix K, whatever the scene
+(training/METHOD.md, "A scene-robust encoder").
 """
 
 from __future__ import annotations
@@ -29,7 +37,14 @@ from typing import Any, Optional
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import MIN_POSE_POINTS, rotation_matrices, solve_pnp_start
+from dimenet.runtime.geometry import (
+    MIN_POSE_POINTS,
+    frame_normal_equations,
+    k_params,
+    prior_step,
+    rotation_matrices,
+    solve_pnp_start,
+)
 from dimenet.runtime.json_text import JsonProblem, is_number, required, shown
 from dimenet.runtime.rectify.grid import Grid
 
@@ -41,6 +56,13 @@ VARIANTS = {
     "D": ("dx", "dy", "X", "Y"),
     "E": ("X", "Y", "inv_z"),
 }
+# The data step's inputs: Delta K (4) then log sigma ratios (4); its prior's 1 sigma over fx_c; the
+# noise floor of its data weight (px).
+STEP_SIZE = 8
+STEP_PRIOR_REL = 0.1
+STEP_NOISE_FLOOR_PX = 0.1
+# A posterior variance over the prior's below this reads as this (no log of 0 from a failed inverse).
+STEP_VARIANCE_FLOOR = 1e-30
 # Fixed per-channel scales bringing each channel to order 1 on hand-held rig data:
 # PMD of ~10 px, {C0} coordinates of ~100 mm, inverse depth of ~1/500 mm^-1.
 DEFAULT_SCALE = {"dx": 0.1, "dy": 0.1, "X": 0.01, "Y": 0.01, "inv_z": 500.0}
@@ -54,6 +76,7 @@ class FeatureSpec:
     variant: str = "A"
     scale: dict = field(default_factory=lambda: dict(DEFAULT_SCALE))
     depth_mm: Optional[float] = None  # None: {C0} in the frame's own unit; else scale-free depth (above)
+    data_step: bool = False  # the frame's own Gauss-Newton step on K after the grid (above)
 
     def __post_init__(self) -> None:
         if self.depth_mm is not None and not (math.isfinite(self.depth_mm) and self.depth_mm > 0):
@@ -80,13 +103,20 @@ class FeatureSpec:
         return np.array([{"X": 1.0, "Y": 1.0, "inv_z": -1.0}.get(c, 0.0) for c in self.channels])
 
     @property
-    def size(self) -> int:
+    def grid_size(self) -> int:
+        """The grid's inputs: channels x cells, first in the feature."""
         return len(self.channels) * self.grid.n_cells
+
+    @property
+    def size(self) -> int:
+        return self.grid_size + (STEP_SIZE if self.data_step else 0)
 
     def to_dict(self) -> dict:
         d = {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
         if self.depth_mm is not None:
             d["depth_mm"] = self.depth_mm
+        if self.data_step:
+            d["data_step"] = True
         return d
 
     @classmethod
@@ -120,12 +150,16 @@ class FeatureSpec:
         depth_mm = d.get("depth_mm")
         if depth_mm is not None and not (is_number(depth_mm) and depth_mm > 0):
             raise JsonProblem(f"features.depth_mm must be a positive number, got {shown(depth_mm)}")
+        data_step = d.get("data_step", False)
+        if not isinstance(data_step, bool):
+            raise JsonProblem(f"features.data_step must be true or false, got {shown(data_step)}")
         try:
             return cls(
                 grid=grid,
                 variant=variant,
                 scale={c: float(scale[c]) for c in CHANNELS},
                 depth_mm=None if depth_mm is None else float(depth_mm),
+                data_step=data_step,
             )
         except ValueError as exc:
             raise JsonProblem(f"features: {exc}") from None
@@ -246,4 +280,23 @@ def grid_features(
             scale = spec.channel_scale[:, None, None] * factor[None, :, None] ** spec.depth_exponents[:, None, None]
             means.reshape(width - 1, F, -1)[...] *= scale
     feats = means.T.reshape(F, bins // F * (width - 1))
+    if spec.data_step:
+        feats = np.concatenate([feats, data_steps(points, points_2d, mask, K_c, spec.scale["dx"])], 1)
     return (feats, points) if return_points else feats
+
+
+def data_steps(points: np.ndarray, points_2d: np.ndarray, mask, K_c, pmd_scale: float) -> np.ndarray:
+    """(F, STEP_SIZE) the data step's inputs (module docstring) of F frames from their raw point rows
+    (F, 6, N) (``grid_features``'s: X, Y, 1/Z in {C0} in rows 2-4), points_2d (F, N, 2) px, mask
+    (F, N) bool their inference points (None: all), K_c (3, 3) px and the PMD's scale (1/px)."""
+    k_c = k_params(K_c)
+    prior_var = (STEP_PRIOR_REL * k_c[0]) ** 2
+    precision = np.eye(4) / prior_var
+    out = np.empty((len(points), STEP_SIZE))
+    for b in range(len(points)):
+        rows, x = (points[b], points_2d[b]) if mask is None else (points[b][:, mask[b]], points_2d[b][mask[b]])
+        JJ, Jr, rss, r = frame_normal_equations(rows[2:5], x, k_c)
+        step, cov, _ = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=STEP_NOISE_FLOOR_PX)
+        out[b, :4] = step[6:] * pmd_scale
+        out[b, 4:] = 0.5 * np.log(np.maximum(cov.diagonal()[6:] / prior_var, STEP_VARIANCE_FLOOR))
+    return out

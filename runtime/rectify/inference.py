@@ -10,7 +10,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from dimenet.runtime.geometry import covariance_invariants_batch, k_params, mean_residual_norms
-from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.spec import ModelSpec
 from dimenet.runtime.rectify.uncertainty import input_statistics
 
@@ -57,13 +57,14 @@ def network_statistics(
     rows: np.ndarray,
     mask: np.ndarray,
     points_3d: np.ndarray,
-    n_channels: int,
+    features: FeatureSpec,
     pmd_norms: Optional[np.ndarray] = None,
     invariants_3d: Optional[tuple] = None,
 ) -> np.ndarray:
     """The uncertainty statistics (``rectify.uncertainty.input_statistics``) of the frames
     ``rows`` (B,) bool of ``net``, from their inference points ``mask`` (B, N) bool and
-    points_3d (B, N, 3) mm: (R, 4) for the R selected frames. ``pmd_norms`` (R,) px and
+    points_3d (B, N, 3) mm, ``features`` the model's FeatureSpec (its grid part is read): (R, 4) for
+    the R selected frames. ``pmd_norms`` (R,) px and
     ``invariants_3d`` (the ``covariance_invariants_batch`` of their inference points) may be
     passed when the caller has them."""
     m = mask[rows]
@@ -71,4 +72,5 @@ def network_statistics(
         pmd_norms = mean_residual_norms(net.points[rows, :2], m)
     if invariants_3d is None:
         invariants_3d = covariance_invariants_batch(points_3d[rows], m)
-    return input_statistics(net.features[rows], m.sum(1), pmd_norms, invariants_3d, n_channels)
+    grid = net.features[rows, : features.grid_size]
+    return input_statistics(grid, m.sum(1), pmd_norms, invariants_3d, len(features.channels))

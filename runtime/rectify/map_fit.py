@@ -5,8 +5,8 @@ Minimises over (rvec, tvec, k = (fx, fy, cx, cy))
     sum_i ||pi(K, R X_i + t) - x_i||^2 / s^2  +  (k - k_net)^T Sigma^-1 (k - k_net)
 
 where k_net, Sigma (4x4, px^2) are the network's Delta K mean and covariance (added to K_c)
-and s^2 (px^2) the frame's 2D noise variance: s^2 = RSS / (2N - 10) of the linearised MAP
-residuals (first weighted by the start's own residuals), floored at NOISE_FLOOR_PX^2.
+and s^2 (px^2) the frame's 2D noise variance (``geometry.prior_step``'s, floored at
+NOISE_FLOOR_PX^2).
 ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) turned to
 k_net's principal point (``turned_to_principal_point``), with the analytic normal equations
 (``geometry.frame_normal_equations``, the pose perturbed on the left); a step that does not
@@ -33,6 +33,8 @@ from dimenet.runtime.geometry import (
     frame_residuals,
     k_matrix,
     left_update,
+    prior_posterior,
+    prior_step,
     solve_pnp_start,
 )
 from dimenet.runtime.rectify.spec import frame_within_bounds
@@ -42,10 +44,6 @@ from dimenet.runtime.rectify.uncertainty import Uncertainty
 # (training/METHOD.md, "MAP: steps and noise passes").
 ITERATIONS = 1
 NOISE_FLOOR_PX = 0.1
-# The start pose (C0, under K_c, turned) is not the optimum under k_net, so its residuals
-# overstate the noise: s^2 is re-estimated this many times from the linearised MAP residuals
-# (2N - 10 dof; training/METHOD.md, "MAP: steps and noise passes").
-NOISE_PASSES = 1
 
 
 @dataclass(frozen=True)
@@ -89,12 +87,7 @@ def map_fit(
     if K_start is not None:
         R, tvec = turned_to_principal_point(R, tvec, K_start, k_net)
     JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
-    weight = _noise_weight(rss, r.size - 6)
-    for _ in range(NOISE_PASSES):
-        # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations.
-        step = _posterior(JJ, precision, weight) @ Jr * weight
-        weight = _noise_weight(rss - 2.0 * float(step @ Jr) + float(step @ JJ @ step), r.size - 10)
-    cov = _posterior(JJ, precision, weight)
+    _, cov, weight = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=NOISE_FLOOR_PX)
     cost, residuals, steps = weight * rss, None, 0
     for it in range(iterations):
         g = Jr * weight
@@ -112,7 +105,7 @@ def map_fit(
         k, R, tvec, cost, residuals, steps = k_new, R_new, tvec_new, cost_new, res, steps + 1
         if it + 1 < iterations:
             JJ, Jr, _, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
-            cov = _posterior(JJ, precision, weight)
+            cov = prior_posterior(JJ, precision, weight)
     if residuals is None:
         residuals = np.ascontiguousarray(r.T)
     K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
@@ -142,19 +135,6 @@ def turned_to_principal_point(
     fx, fy, cx, cy = k_to.tolist()
     turn = cv2.Rodrigues(np.array([(cy - K_from[1, 2]) / fy, (K_from[0, 2] - cx) / fx, 0.0]))[0]
     return turn @ R, turn @ tvec
-
-
-def _noise_weight(rss: float, dof: int) -> float:
-    """1 / s^2 (px^-2) from a residual sum of squares rss (px^2) with dof degrees of freedom."""
-    return 1.0 / max(rss / max(dof, 1), NOISE_FLOOR_PX**2)
-
-
-def _posterior(JJ: np.ndarray, precision: np.ndarray, weight: float) -> np.ndarray:
-    """The inverse of the 10x10 Gauss-Newton Hessian of the MAP cost, weight J J^T plus the prior
-    on K: the step is its product with the gradient, its K block the posterior covariance."""
-    H = JJ * weight
-    H[6:, 6:] += precision
-    return cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1]
 
 
 def map_rectify(

@@ -270,7 +270,7 @@ def frame_candidate(cam: ModelCamera, delta_k, feats, n_points: int, e_c: float,
 def _frame_covariance(spec: ModelSpec, feats: np.ndarray, n_points: int, pmd_px: float, invariants_3d: tuple):
     """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count, mean
     PMD (px) and the ``covariance_invariants`` of its 3D points."""
-    cells = occupied_cells(feats, len(spec.features.channels))[0]
+    cells = occupied_cells(feats[:, : spec.features.grid_size], len(spec.features.channels))[0]
     return spec.uncertainty.frame_covariance(n_points, cells, pmd_px, thickness(*invariants_3d))
 
 
@@ -307,12 +307,12 @@ def batch_covariances(cam: ModelCamera, cand: BatchCandidates, net, fr: Frames, 
     cand.K_cov = np.full((len(infer), 4, 4), np.nan)
     if not pending.any():
         return
-    n_channels = len(cam.spec.features.channels)
+    features = cam.spec.features
     if pmd_px is not None:
         known = (pmd_px[pending], tuple(a[pending] for a in fr.invariants_3d))
-        stats = network_statistics(net, pending, infer, fr.points_3d, n_channels, *known)
+        stats = network_statistics(net, pending, infer, fr.points_3d, features, *known)
     else:
-        stats = network_statistics(net, pending, infer, fr.points_3d, n_channels)
+        stats = network_statistics(net, pending, infer, fr.points_3d, features)
     cand.K_cov[pending] = cam.spec.uncertainty.covariance(stats)
 
 

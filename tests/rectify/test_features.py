@@ -4,7 +4,15 @@ from helpers import K_TEST, random_frames
 
 from dimenet.runtime import geometry as g
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.rectify.features import CHANNELS, DEFAULT_SCALE, FeatureSpec, grid_features
+from dimenet.runtime.json_text import JsonProblem
+from dimenet.runtime.rectify.features import (
+    CHANNELS,
+    DEFAULT_SCALE,
+    STEP_PRIOR_REL,
+    STEP_SIZE,
+    FeatureSpec,
+    grid_features,
+)
 from dimenet.runtime.rectify.grid import Grid
 
 IMAGE = (4032, 3024)
@@ -112,6 +120,54 @@ def test_spec_round_trip_and_bad_variant():
     with pytest.raises(InputError, match="8x6"):
         Grid.parse("8 by 6")
     assert set(CHANNELS) == set(DEFAULT_SCALE)
+
+
+def test_data_step_round_trips_and_is_appended_after_the_grid():
+    spec = FeatureSpec(grid=Grid(4, 3), data_step=True, depth_mm=500.0)
+    assert FeatureSpec.from_dict(spec.to_dict()) == spec
+    assert "data_step" not in FeatureSpec().to_dict()  # a paper model's spec is as before
+    assert spec.size == spec.grid_size + STEP_SIZE == 5 * 12 + STEP_SIZE
+    with pytest.raises(JsonProblem, match="data_step must be true or false"):
+        FeatureSpec.from_dict({**spec.to_dict(), "data_step": "yes"})
+    rng = np.random.default_rng(4)
+    x, X, *_ = random_frames(rng, frames=3, points=40, noise_px=0.5)
+    mask = np.ones((3, 40), bool)
+    mask[:, :6] = False
+    with_step = grid_features(x, X, mask, K_TEST, IMAGE, spec)
+    without = grid_features(x, X, mask, K_TEST, IMAGE, FeatureSpec(grid=Grid(4, 3), depth_mm=500.0))
+    np.testing.assert_array_equal(with_step[:, : spec.grid_size], without)
+    x2 = x.copy()
+    x2[:, :6] = np.nan  # garbage on masked points
+    for b in range(3):
+        alone = grid_features(x2[b : b + 1], X[b : b + 1], mask[b : b + 1], K_TEST, IMAGE, spec)[0]
+        np.testing.assert_allclose(alone, with_step[b], atol=1e-9)
+
+
+def shifted_camera(dk):
+    K = K_TEST.copy()
+    K[[0, 1, 0, 1], [0, 1, 2, 2]] += dk
+    return K
+
+
+def test_data_step_reads_a_k_shift_from_a_3d_frame_and_knows_a_plane_does_not_fix_k():
+    """The frame is imaged under K_c + dk: noise-free, the step says dk to the linearisation's
+    2 %; with noise, within 3 of its own posterior sigmas, which are far below the prior's. On one
+    plane f and c are not both fixed, and the step's sigmas say so."""
+    dk = np.array([30.0, 30.0, -12.0, 8.0])  # px: OIS moves c by tens of px, AF breathes f
+    spec = FeatureSpec(data_step=True)
+    prior_px = STEP_PRIOR_REL * K_TEST[0, 0]
+    for noise_px in (0.0, 0.3):
+        x, X, *_ = random_frames(np.random.default_rng(5), frames=2, points=80, noise_px=noise_px, K=shifted_camera(dk))
+        step = grid_features(x, X, None, K_TEST, IMAGE, spec)[:, spec.grid_size :]
+        sigma_px = np.exp(step[:, 4:]) * prior_px
+        error_px = np.abs(step[:, :4] / DEFAULT_SCALE["dx"] - dk)
+        assert np.all(error_px <= 3 * sigma_px * (noise_px > 0) + 0.02 * np.abs(dk).max())
+        assert sigma_px.max() < 0.05 * prior_px
+    xp, Xp, *_ = random_frames(
+        np.random.default_rng(6), frames=2, points=80, noise_px=0.3, K=shifted_camera(dk), planar=True
+    )
+    planar = grid_features(xp, Xp, None, K_TEST, IMAGE, spec)[:, spec.grid_size :]
+    assert np.all(planar[:, 4:].max(1) > step[:, 4:].max() + 2.0)  # some parameter is left to the prior
 
 
 def test_too_few_inference_points_is_named():
