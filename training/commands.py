@@ -37,6 +37,12 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         help=f"feature variant of paper Table 3 (default {d.variant})",
     )
     p.add_argument(
+        "--data-step",
+        action="store_true",
+        help="after the grid, give the network the frame's own Gauss-Newton step on K from the C0 pose and its "
+        "posterior sigmas (not the paper's: an encoder that reads how the points fix K, whatever the scene)",
+    )
+    p.add_argument(
         "--epochs", type=epochs, default=d.epochs, help=f"epochs (default {d.epochs}; the best val epoch is kept)"
     )
     p.add_argument("--seed", type=seed, default=d.seed, help=f"seed: same seed, same model (default {d.seed})")
@@ -78,6 +84,7 @@ def _run_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         grid=args.grid,
         variant=args.features,
+        data_step=args.data_step,
         epochs=args.epochs,
         seed=args.seed,
         focal_weight=args.focal_weight,
@@ -117,6 +124,12 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
         type=nonempty_path,
         metavar="DIR",
         help="folder for REPRODUCTION.md, results.json, plots, runs/",
+    )
+    p.add_argument(
+        "--data-step",
+        action="store_true",
+        help="after the grid, give the network the frame's own Gauss-Newton step on K from the C0 pose and its "
+        "posterior sigmas (not the paper's: an encoder that reads how the points fix K, whatever the scene)",
     )
     p.add_argument(
         "--epochs", type=epochs, default=d["epochs"], help=f"epochs of the three device models (default {d['epochs']})"

@@ -27,6 +27,7 @@ train_frames = integer_in(2, MAX_TRAIN_FRAMES)
 class TrainConfig:
     grid: str = "8x6"
     variant: str = "A"
+    data_step: bool = False  # the frame's own Gauss-Newton step on K after the grid (rectify.features)
     epochs: int = 600
     batch_size: int = 32
     lr: float = 2e-3

@@ -134,7 +134,10 @@ def _feature_spec(config: TrainConfig, generic: bool, init: Optional[InitialWeig
     if init is not None:
         return init.spec.features
     return FeatureSpec(
-        grid=Grid.parse(config.grid), variant=config.variant, depth_mm=GENERIC_DEPTH_MM if generic else None
+        grid=Grid.parse(config.grid),
+        variant=config.variant,
+        depth_mm=GENERIC_DEPTH_MM if generic else None,
+        data_step=config.data_step,
     )
 
 
