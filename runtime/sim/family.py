@@ -172,6 +172,11 @@ def camera_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence(int(seed), spawn_key=(2, index)).generate_state(1)[0])
 
 
+def has_ois(seed: int, index: int) -> bool:
+    """Whether camera ``index`` of a random-scene family of ``seed`` keeps its OIS (OIS_OFF_SHARE of them do not)."""
+    return bool(_stream(seed, 4, index).uniform() >= OIS_OFF_SHARE)
+
+
 def family_profiles(n: int, seed: int, frames: tuple[int, int] = FAMILY_FRAMES) -> list[DeviceProfile]:
     """The ``n`` cameras (1 .. 1000) of the family of ``seed``, each with ``frames`` = (train, test)
     rig frames. Deterministic per seed; camera i does not depend on ``n`` (a family's first m
@@ -243,8 +248,7 @@ def family_member(
     rig, offsets = None, None
     if scenes == "random":
         rig = random_rig(_stream(seed, 3, index))
-        ois_off = _stream(seed, 4, index).uniform() < OIS_OFF_SHARE
-        profile = framed(replace(profile, ois_stroke_deg=0.0) if ois_off else profile, rig, fill)
+        profile = framed(profile if has_ois(seed, index) else replace(profile, ois_stroke_deg=0.0), rig, fill)
         offsets = build_errors_mm(rig, _stream(seed, 5, index))
     ds = simulate(
         profile,

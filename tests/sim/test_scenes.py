@@ -13,7 +13,7 @@ from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
 from dimenet.runtime.geometry import RIG_VIEW_RATIO, project, spans_3d
 from dimenet.runtime.sim import scenes
-from dimenet.runtime.sim.family import OIS_OFF_SHARE, family_member, family_profiles
+from dimenet.runtime.sim.family import OIS_OFF_SHARE, family_member, family_profiles, has_ois
 from dimenet.runtime.sim.scenes import build_errors_mm, extent_mm, framed, random_rig
 from dimenet.runtime.sim.simulator import simulate
 
@@ -120,6 +120,7 @@ def test_a_share_of_random_scene_cameras_has_no_ois_and_a_still_principal_point(
     for i, profile in enumerate(family_profiles(n, 2, frames=(4, 2))):
         ds = family_member(profile, i, 2, n, scenes="random")
         c_spread_px = np.ptp(ds.K_true[:, :2, 2], axis=0)
+        assert has_ois(2, i) == (ds.meta["device"]["ois_stroke_deg"] > 0.0)
         if ds.meta["device"]["ois_stroke_deg"] == 0.0:
             off += 1
             assert np.all(c_spread_px == 0.0) and np.ptp(ds.K_true[:, 0, 0]) > 0.0

@@ -24,21 +24,36 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     monkeypatch.setattr(generic, "DEVICES", ("galaxy-s8",))
     monkeypatch.setattr(generic, "FRESH_FAMILY_CAMERAS", 2)
     monkeypatch.setattr(generic, "FINE_TUNE_FRAMES", 20)
+    monkeypatch.setattr(generic, "FRESH_SCENES", {"rig": (101, 2, (0.2, 0.8)), "far": (202, 1, (0.2, 1 / 3))})
+    monkeypatch.setattr(generic, "OIS_OFF_FAMILY", (11, 2))  # its camera 1 has no OIS
     data = {"galaxy-s8": simulate("galaxy-s8", seed=2, natural_frames=4, planar_frames=4)}
     device = {"galaxy-s8": load_onnx_predictor(DEVICE_MODEL)}
     config = ReproduceConfig(out_dir=tmp_path, epochs=2)
     dataset, cfg, run_dir, init = generic.fine_tune_training(data, tmp_path, config)
     tuned = train(dataset, cfg, run_dir, init=initial_weights(init))
-    side = {"fine_tune": (tuned.run_dir, tuned.seconds), "fresh_family": generic.fresh_family()}
+    side = {
+        "fine_tune": (tuned.run_dir, tuned.seconds),
+        "fresh_family": generic.fresh_family(),
+        "fresh_scenes": generic.fresh_scenes(),
+    }
     results = generic.run_generic(data, device, config, load_model(), side)
     rows = results["zero_shot"]
     assert set(rows) == {"galaxy-s8 rig", "galaxy-s8 rig 64 pts", "galaxy-s8 natural", "galaxy-s8 planar"}
     assert rows["galaxy-s8 rig"]["generic"]["dimenet"] > 0.9 and rows["galaxy-s8 rig"]["device"]["dimenet"] > 0.9
     assert len(results["fresh_family"]) == 2 and all(r["rho"] > 0.5 for r in results["fresh_family"])
     assert set(results["fine_tune"]["rows"]) == {"rig 64 pts", "natural"}
+    scenes = results["fresh_scenes"]
+    assert [len(scenes[name]) for name in ("rig", "far")] == [2, 1]
+    # the bundled model on random rigs: better than K_c in mode map (the frame's points carry it), every case measured
+    assert all(
+        r[case]["map"] > 0.3 for rows in (scenes["rig"], scenes["far"]) for r in rows for case in ("all", "small")
+    )
+    assert scenes["ois_off"]["cameras"] == 1 and scenes["ois_off"]["frames"] == 20
+    assert all(0.0 <= v <= 1.0 for v in scenes["ois_off"]["within"].values())
     inv = results["invariance"]
     assert inv["half_vs_full_mean_px"] < 1e-6 and inv["m_vs_mm_max_px"] < 1e-6
     assert inv["half_points_full_k_c_silent"] == 0
     text = "\n".join(_generic_report(results))
     assert "## The generic default model beside the per-device ones" in text and "family-s101-001" in text
+    assert "### Held-out scene families" in text and "| far | 1 |" in text and "Cameras without OIS (1 of" in text
     assert np.isfinite(rows["galaxy-s8 planar"]["generic"]["map"])

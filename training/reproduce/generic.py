@@ -1,6 +1,7 @@
 """The generic default model beside the per-device ones (issue 21's targets): zero-shot on the
 paper's three profiles, on every camera of a fresh camera family, fine-tuned from a few frames,
-and its invariance to the stream's resolution and the world unit."""
+and its invariance to the stream's resolution and the world unit; and on held-out scene families
+(issue 35's): random rigs of seeds and framings the training never drew, and cameras without OIS."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.evaluation.conditions import drop_inference_points
-from dimenet.runtime.evaluation.methods import evaluate
+from dimenet.runtime.evaluation.methods import evaluate, runtime_estimate
 from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
@@ -19,7 +20,8 @@ from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.model import OnnxModel, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
-from dimenet.runtime.sim.family import hfov_deg, simulate_family
+from dimenet.runtime.sim.family import family_member, family_profiles, has_ois, hfov_deg, simulate_family
+from dimenet.runtime.sim.scenes import FILL
 
 from ..config import ReproduceConfig, TrainConfig
 from .paper import DEVICES
@@ -28,6 +30,12 @@ from .paper import DEVICES
 # one it never saw.
 FRESH_FAMILY_SEED = 101
 FRESH_FAMILY_CAMERAS = 20
+# Held-out scene families: name -> (seed, cameras, fill), random scenes of seeds the default never drew (it
+# trains on seed 0), one framed as the training's, one far (a fifth to a third of the image width); and the
+# cameras without OIS of a third (OIS_OFF_FAMILY: seed, cameras; about a fifth of them).
+FRESH_SCENES = {"rig": (101, 12, FILL), "far": (202, 12, (0.2, 1 / 3))}
+OIS_OFF_FAMILY = (11, 40)
+OIS_OFF_SIGMAS = 2.0  # a frame of a camera without OIS is right when K is within this many sigma of K_true
 FINE_TUNE_FRAMES = 30
 SMALL_POINTS = 64
 
@@ -69,9 +77,7 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
 def fresh_family(generic: Optional[Predictor] = None) -> list:
     """rho (rig, all points) of the generic model (default: the bundled one) on each camera of a
     family it never saw. A job of ``runtime.jobs.engine.run_all`` too (it needs no other result)."""
-    if generic is None:
-        model = load_model()
-        generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
+    generic = generic or _bundled_predictor()
     rows = []
     family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
     for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
@@ -80,6 +86,62 @@ def fresh_family(generic: Optional[Predictor] = None) -> list:
         w, h = camera.image_size_px
         rows.append({"camera": camera.name, "size": [w, h], "hfov_deg": hfov_deg(camera), "rho": _rho(ev)})
     return rows
+
+
+def _bundled_predictor() -> Predictor:
+    model = load_model()
+    return Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
+
+
+def fresh_scenes(generic: Optional[Predictor] = None) -> dict:
+    """The generic model (default: the bundled one) on held-out scene families: per FRESH_SCENES family
+    and camera, rho of both modes on its rig test frames at every point and at SMALL_POINTS; and, on
+    the cameras without OIS of OIS_OFF_FAMILY, the share of frames whose K (as `rectify` returns it,
+    fallbacks included) is within OIS_OFF_SIGMAS of K_true on every parameter. Each camera's K_c is
+    calibrated on its train split. A job of ``runtime.jobs.engine.run_all`` too."""
+    generic = generic or _bundled_predictor()
+    out: dict = {}
+    for name, (seed, n, fill) in FRESH_SCENES.items():
+        rows = []
+        family = simulate_family(n, seed, scenes="random", fill=fill)
+        for i, (camera, ds) in enumerate(progress(family, total=n, desc=f"reproduce: held-out {name} scenes")):
+            p = generic.for_camera(dataset_camera(ds))
+            rig = _test(ds, "rig")
+            row = {"camera": camera.name, "ois": has_ois(seed, i)}
+            cases = {"all": rig, "small": drop_inference_points(rig, SMALL_POINTS, np.random.default_rng(seed + i))}
+            for case, frames in cases.items():
+                ev = evaluate(frames, p.K_c, p, methods=("dimenet", "map"))
+                row[case] = {m: _rho(ev, m) for m in ("dimenet", "map")}
+            rows.append(row)
+        out[name] = rows
+    out["ois_off"] = ois_off_coverage(generic)
+    return out
+
+
+def ois_off_coverage(generic: Predictor) -> dict:
+    """On the cameras without OIS of OIS_OFF_FAMILY: per mode, the frames and the share of them whose K is
+    within OIS_OFF_SIGMAS of K_true on every parameter, and how many kept K_c."""
+    seed, n = OIS_OFF_FAMILY
+    profiles = family_profiles(n, seed)
+    off = [i for i in range(n) if not has_ois(seed, i)]
+    within = {"dimenet": [], "map": []}
+    kept = {"dimenet": 0, "map": 0}
+    for i in progress(off, desc="reproduce: cameras without OIS"):
+        ds = family_member(profiles[i], i, seed, n, scenes="random")
+        p = generic.for_camera(dataset_camera(ds))
+        frames = _test(ds, "rig")
+        for mode in within:
+            est = runtime_estimate(frames, p, mode)
+            sigma = np.sqrt(np.diagonal(est.K_cov, axis1=1, axis2=2))
+            error = np.abs(k_params(est.K) - k_params(frames.K_true))
+            within[mode] += (error <= OIS_OFF_SIGMAS * sigma).all(1).tolist()
+            kept[mode] += est.fallbacks
+    return {
+        "cameras": len(off),
+        "frames": len(within["dimenet"]),
+        "within": {m: float(np.mean(v)) for m, v in within.items()},
+        "kept_k_c": kept,
+    }
 
 
 def fine_tune_training(data: dict, out: Path, config: ReproduceConfig) -> tuple:
@@ -142,12 +204,13 @@ def _half_k(K: np.ndarray) -> np.ndarray:
 def run_generic(data: dict, device: dict, config: ReproduceConfig, model: OnnxModel, jobs: dict) -> dict:
     """Every row of the generic comparison of ``model`` (the bundled default; ``report`` writes
     them); ``jobs``: what ran beside the trainings, the fine-tuning's run dir and seconds
-    (``fine_tune``) and the ``fresh_family`` rows."""
+    (``fine_tune``), the ``fresh_family`` rows and the ``fresh_scenes`` ones."""
     generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
     return {
         "model": model.source,
         "zero_shot": zero_shot(data, generic, device, config),
         "fresh_family": jobs["fresh_family"],
+        "fresh_scenes": jobs["fresh_scenes"],
         "fine_tune": fine_tune(data, device, *jobs["fine_tune"], config),
         "invariance": invariance(data, model),
     }

@@ -24,7 +24,7 @@ from dimenet.runtime.sim.simulator import simulate
 from ..config import ReproduceConfig, TrainConfig
 from ..init_weights import initial_weights
 from ..trainer import train
-from .generic import fine_tune_training, fresh_family, run_generic
+from .generic import fine_tune_training, fresh_family, fresh_scenes, run_generic
 from .paper import DEVICES, ETAS, GRIDS, NATURAL_FRAMES, NOISE_2D_PX, NOISE_3D_MM, PLANAR_FRAMES, POINTS, VARIANTS
 from .report import plot_eta, plot_methods, plot_points, report
 
@@ -89,9 +89,12 @@ def _baseline(frames: Dataset, run_dir: str) -> dict:
     }
 
 
-def _generic_rows(data: dict, run_dirs: dict, fine_tune_job: tuple, fresh: list, config: ReproduceConfig) -> dict:
+def _generic_rows(
+    data: dict, run_dirs: dict, fine_tune_job: tuple, fresh: list, scenes: dict, config: ReproduceConfig
+) -> dict:
     device = {d: load_predictor(run_dirs[f"{d}-8x6-A"]) for d in DEVICES}
-    return run_generic(data, device, config, load_model(), {"fine_tune": fine_tune_job, "fresh_family": fresh})
+    jobs = {"fine_tune": fine_tune_job, "fresh_family": fresh, "fresh_scenes": scenes}
+    return run_generic(data, device, config, load_model(), jobs)
 
 
 # The jobs of ``runtime.jobs.engine.Engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
@@ -99,6 +102,7 @@ def _generic_rows(data: dict, run_dirs: dict, fine_tune_job: tuple, fresh: list,
 JOBS = {
     "train": _train,
     "fresh_family": fresh_family,
+    "fresh_scenes": fresh_scenes,
     "tables": _tables,
     "baseline": _baseline,
     "generic": _generic_rows,
@@ -154,14 +158,17 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
         trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
         trainings["fresh family"] = ("fresh_family",)
+        trainings["fresh scenes"] = ("fresh_scenes",)
     cases = _baseline_cases(data, config)
     with Engine(address) as engine:  # one Ray session for both batches
         trained = _run_jobs(engine, trainings, cpus_per_job, "reproduce: training")
-        run_dirs = {name: trained[name].value for name in trainings if name not in ("fine-tune", "fresh family")}
+        side_jobs = ("fine-tune", "fresh family", "fresh scenes")
+        run_dirs = {name: trained[name].value for name in trainings if name not in side_jobs}
         evaluations = {}  # the longest first (generic ~12 s, tables ~9 s, each baseline case ~1 s)
         if generic:
             tune = (Path(trained["fine-tune"].value), trained["fine-tune"].seconds)
-            evaluations["generic"] = ("generic", data, run_dirs, tune, trained["fresh family"].value, config)
+            side = (trained["fresh family"].value, trained["fresh scenes"].value)
+            evaluations["generic"] = ("generic", data, run_dirs, tune, *side, config)
         evaluations["tables"] = ("tables", data, run_dirs, config)
         evaluations.update({case: ("baseline", frames, run_dirs[name]) for case, (frames, name) in cases.items()})
         evaluated = _run_jobs(engine, evaluations, cpus_per_job, "reproduce: evaluation")
