@@ -12,7 +12,7 @@ from dimenet.runtime.cli.arguments import grid_size, nonempty_path, seed
 from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 
-from .config import FEATURE_VARIANTS, ReproduceConfig, TrainConfig, epochs, focal_weight, train_frames
+from .config import FEATURE_VARIANTS, ReproduceConfig, TrainConfig, epochs, focal_weight, k_c_error, train_frames
 
 # The defaults --help states are the dataclasses' own (training/config.py imports no torch).
 TRAIN_DEFAULTS = TrainConfig()
@@ -61,6 +61,14 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         "MODEL.onnx; its grid, features and layer sizes are kept (a generic init stays generic)",
     )
     p.add_argument(
+        "--k-c-error",
+        type=k_c_error,
+        default=d.k_c_error,
+        metavar="SHARE",
+        help="share of the cameras that each epoch train under a factory-like K_c (f off up to 3 %%, c up to 1 %% of "
+        f"the width) instead of their calibrated one, so the model corrects a platform's K_c (default {d.k_c_error})",
+    )
+    p.add_argument(
         "--train-frames",
         type=train_frames,
         metavar="N",
@@ -89,6 +97,7 @@ def _run_train(args: argparse.Namespace) -> int:
         seed=args.seed,
         focal_weight=args.focal_weight,
         train_frames=args.train_frames,
+        k_c_error=args.k_c_error,
     )
     result = train(
         datasets,

@@ -21,6 +21,7 @@ FEATURE_VARIANTS = tuple("ABCDE")  # paper Table 3 (rectify.features.VARIANTS)
 epochs = integer_in(1, MAX_EPOCHS)
 focal_weight = finite_float_in(0.0, MAX_FOCAL_WEIGHT)
 train_frames = integer_in(2, MAX_TRAIN_FRAMES)
+k_c_error = finite_float_in(0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,9 @@ class TrainConfig:
     full_share: float = 0.4  # share of frames keeping all their inference points and every cell
     focal_weight: float = 0.03  # weight of the focal term: squared error (px^2) of (fx, fy) against K*
     train_frames: Optional[int] = None  # keep only the first N train frames of each dataset, in file order
+    # Share of the cameras that, each epoch, train under a factory-like K_c (trainer.factory_k_c) instead of their
+    # calibrated one, so the network learns to correct the K_c users have (ARKit's, Camera2's); 0: the paper's.
+    k_c_error: float = 0.0
     # Learning rate when starting from a model's weights (--init): a tenth of lr keeps what the
     # init knows (at lr, 30 galaxy-s8 frames took the default's natural rho 76 -> 66 %; METHOD.md).
     fine_tune_lr: float = 2e-4

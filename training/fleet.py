@@ -4,7 +4,8 @@ The manifest (JSON, models_spec/fleet.md):
 ``{"jobs": [{"name": "s8", "dataset": "s8.npz", "init": "default", "seed": 0, "epochs": 600}, ...]}``
 with per job a unique ``name`` (its run dir ``DIR/<name>``), a ``dataset`` (a .npz file or a
 family folder, relative to the manifest) and any of `dimenet train`'s options: ``init``,
-``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``.
+``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``, ``data_step``,
+``k_c_error``.
 
 Every value goes through the argparse type `dimenet train` gives its flag (training/config.py),
 so a manifest passes nothing the command line refuses; a job name may not be one of the files
@@ -36,7 +37,7 @@ from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.json_text import JsonProblem, an_object, parse_json, required, shown
 
-from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, train_frames
+from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, k_c_error, train_frames
 
 FLEET_FILE, SUMMARY_MD, SUMMARY_JSON = "fleet.json", "summary.md", "summary.json"
 RESERVED = (SUMMARY_MD, SUMMARY_JSON)  # what the fleet itself writes into DIR, besides the run dirs
@@ -59,6 +60,8 @@ _OPTIONS = {
     "features": ("variant", str, _features),
     "focal_weight": ("focal_weight", float, focal_weight),
     "train_frames": ("train_frames", int, train_frames),
+    "data_step": ("data_step", bool, None),  # `dimenet train --data-step`: a switch, no argparse type
+    "k_c_error": ("k_c_error", float, k_c_error),
 }
 _KEYS = {attr: key for key, (attr, _, _) in _OPTIONS.items()}  # TrainConfig field -> manifest key
 
@@ -86,6 +89,10 @@ def _option(key: str, value):
         raise JsonProblem(f"{key} must be an integer, got {shown(value)}")
     if kind is float and not (isinstance(value, (int, float)) and not isinstance(value, bool)):
         raise JsonProblem(f"{key} must be a number, got {shown(value)}")
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise JsonProblem(f"{key} must be true or false, got {shown(value)}")
+        return value
     try:
         return parse(value if kind is str else str(value))
     except argparse.ArgumentTypeError as exc:

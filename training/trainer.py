@@ -36,11 +36,12 @@ from dimenet.runtime import __version__
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
-from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.features import FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
+from dimenet.runtime.rectify.user_camera import Camera
 
 from . import bpnp
 from .config import TrainConfig
@@ -56,6 +57,10 @@ DELTA_K_LIMIT_PX = 300.0
 # phones' f and rig distance, so the device models' constants (noise, scales, limits) carry over.
 GENERIC_FOCAL_PX = 3000.0
 GENERIC_DEPTH_MM = 500.0
+# A factory K_c (the platform's, not calibrated; ``TrainConfig.k_c_error``): f off by up to this fraction ...
+FACTORY_F_REL = 0.03
+# ... and the principal point by up to this fraction of the image width, per axis (uniform draws).
+FACTORY_C_WIDTH = 0.01
 
 
 @dataclass(frozen=True)
@@ -157,12 +162,12 @@ def _stack(parts: list) -> tuple:
     return tuple(torch.cat([pad(p[k]) if k in (1, 2, 3) else p[k] for p in parts]) for k in range(len(parts[0])))
 
 
-def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec) -> tuple:
-    """(features, p2, p3, w, K_c per frame) tensors of one camera's frames (model px)."""
-    feats = grid_features(
-        frames.points_2d, frames.points_3d, frames.infer_mask, unit.camera.K, frames.image_size, spec_features
-    )
-    K_c = torch.from_numpy(np.broadcast_to(unit.camera.K, (frames.n_frames, 3, 3)).copy())
+def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec, K_c: Optional[np.ndarray] = None) -> tuple:
+    """(features, p2, p3, w, K_c per frame) tensors of one camera's frames (model px), under K_c (3, 3)
+    (None: the unit's calibrated one)."""
+    K_c = unit.camera.K if K_c is None else K_c
+    feats = grid_features(frames.points_2d, frames.points_3d, frames.infer_mask, K_c, frames.image_size, spec_features)
+    K_c = torch.from_numpy(np.broadcast_to(K_c, (frames.n_frames, 3, 3)).copy())
     return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c)
 
 
@@ -183,9 +188,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     spec_features = _feature_spec(config, generic, init)
     units = _units(datasets, config, focal_px)
     # Re-imaging keeps a frame's own focal length, so its K* f stays the target of every draw.
-    delta_f_star = torch.from_numpy(
-        np.concatenate([k_params(u.truth.K_star)[:, :2] - k_params(u.camera.K)[:2] for u in units])
-    )
+    f_star = [k_params(u.truth.K_star)[:, :2] for u in units]
     val_inputs = []
     for reduced in (False, True):
         parts = []
@@ -206,11 +209,16 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     best = (np.inf, 0, None)
     history = []
     for epoch in progress(range(1, config.epochs + 1), desc="train"):
-        parts = []
-        for u in units:
+        parts, delta_f_star = [], []
+        for u, f in zip(units, f_star):
             frames = augment(resynthesise(u.fit, u.truth, rng, config.resynthesis)[0], config, spec_features.grid, rng)
-            parts.append(_inputs(u, frames, spec_features))
+            K_c = u.camera.K
+            if config.k_c_error and rng.random() < config.k_c_error:
+                K_c = factory_k_c(u.camera, rng)
+            parts.append(_inputs(u, frames, spec_features, K_c))
+            delta_f_star.append(f - k_params(K_c)[:2])
         feats, p2, p3, w, K_c = _stack(parts)
+        delta_f_star = torch.from_numpy(np.concatenate(delta_f_star))
         order = torch.from_numpy(rng.permutation(len(feats)))
         model.train()
         losses = []
@@ -247,18 +255,43 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         provenance["init"] = init.source
     if generic:
         delta = np.concatenate([k_params(u.train_K_star) - k_params(u.camera.K) for u in units])
-        generic_camera = GenericCamera(focal_px, parameter_bounds(delta))
+        bounds = parameter_bounds(delta)
+        if config.k_c_error:
+            span = _factory_span(units)
+            bounds += np.stack([-span, span], -1)
+        generic_camera = GenericCamera(focal_px, bounds)
         camera = {"K_c": None, "image_size": None, "K_bounds": None, "generic": generic_camera}
         provenance["cameras"] = [u.name for u in units]
     else:
         u = units[0]
-        camera = {"K_c": u.camera.K, "image_size": u.camera.image_size, "K_bounds": k_bounds(u.train_K_star)}
+        bounds = k_bounds(u.train_K_star)
+        if config.k_c_error:
+            span = _factory_span([u])
+            bounds += np.stack([-span, span], -1)
+        camera = {"K_c": u.camera.K, "image_size": u.camera.image_size, "K_bounds": bounds}
     spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
     spec = replace(spec, **uncertainty_fields(model, spec, units, config, init))
     run_dir = write_run(run_dir, model, spec, history)
     return TrainResult(
         run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0], seconds=time.monotonic() - start, history=history
     )
+
+
+def factory_k_c(camera: Camera, rng: np.random.Generator) -> np.ndarray:
+    """(3, 3) px a factory-like K_c of ``camera`` (model px): its calibrated K with f scaled by one
+    U(1 +- FACTORY_F_REL) and each principal-point coordinate moved by U(+-FACTORY_C_WIDTH) x its width."""
+    k = k_params(camera.K)
+    k[:2] *= 1.0 + rng.uniform(-FACTORY_F_REL, FACTORY_F_REL)
+    k[2:] += rng.uniform(-FACTORY_C_WIDTH, FACTORY_C_WIDTH, 2) * camera.image_size[0]
+    return k_matrix(k)
+
+
+def _factory_span(units: list) -> np.ndarray:
+    """(4,) px the largest factory offset of (fx, fy, cx, cy) over the units' cameras: how far ``factory_k_c``
+    can move K_c, by which the plausible Delta K widens either way."""
+    k = np.array([k_params(u.camera.K) for u in units])
+    width = max(u.camera.image_size[0] for u in units)
+    return np.array([*(FACTORY_F_REL * k[:, :2].max(0)), FACTORY_C_WIDTH * width, FACTORY_C_WIDTH * width])
 
 
 def read_training_data(path: str | Path) -> tuple[list, str]:

@@ -66,6 +66,7 @@ def test_bad_manifests_name_the_job_and_the_field(tmp_path):
         '{"jobs": [{"name": "a", "dataset": "x", "lr": 1}]}': "'lr' is not a job field",
         '{"jobs": [{"name": "a", "dataset": "x", "epochs": 0}]}': "job 0 ('a'): epochs: must be >= 1, got 0",
         '{"jobs": [{"name": "a", "dataset": "x", "grid": 8}]}': "grid must be a string",
+        '{"jobs": [{"name": "a", "dataset": "x", "data_step": 1}]}': "data_step must be true or false",
         "[1]": "the manifest must be an object",
     }
     for text, message in cases.items():
@@ -91,6 +92,8 @@ PAST_THE_CAPS = [
     ("features", '"Z"', "--features"),
     ("train_frames", "1000000000000000", "--train-frames"),
     ("train_frames", "1", "--train-frames"),
+    ("k_c_error", "1.5", "--k-c-error"),
+    ("k_c_error", "-0.1", "--k-c-error"),
 ]
 
 
@@ -110,6 +113,9 @@ def test_manifest_values_within_the_caps_are_the_command_line_s(tmp_path):
     job = {"name": "a", "dataset": "x.npz", "epochs": 100000, "seed": 2**32 - 1, "focal_weight": 1000}
     path.write_text(json.dumps({"jobs": [{**job, "grid": "64x64", "features": "E", "train_frames": 2}]}))
     (config,) = [j.config for j in read_manifest(path)]
+    path.write_text(json.dumps({"jobs": [{**job, "data_step": True, "k_c_error": 1}]}))
+    (scenes,) = [j.config for j in read_manifest(path)]
+    assert (scenes.data_step, scenes.k_c_error) == (True, 1.0)
     assert (config.epochs, config.seed, config.focal_weight, config.grid, config.variant, config.train_frames) == (
         100000,
         2**32 - 1,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import K_TEST
 
 pytest.importorskip("torch")
 pytest.importorskip("onnx")
@@ -14,12 +15,14 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.rectify.features import STEP_SIZE
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.config import TrainConfig
 from dimenet.training.init_weights import initial_weights
 from dimenet.training.run_dir import load_run
-from dimenet.training.trainer import train
+from dimenet.training.trainer import FACTORY_C_WIDTH, FACTORY_F_REL, factory_k_c, train
 from dimenet.training.units import first_train_frames
 
 
@@ -50,6 +53,35 @@ def test_a_family_trains_a_generic_model_that_serves_an_unseen_camera(family, ge
     test = unseen.select(unseen.frames_in("test"))
     ev = evaluate(test, predictor.K_c, predictor, methods=("dimenet", "map"))
     assert ev.fallbacks["dimenet"] < test.n_frames and np.isfinite(ev.methods["map"]["overall"].avg_e)
+
+
+def test_a_scene_encoder_trains_with_the_data_step_and_factory_k_c(family, generic_run, tmp_path):
+    """--data-step and --k-c-error 1 (every camera, every epoch, under a factory-like K_c): the spec says so,
+    the plausible Delta K widens by the factory span either way, and the model serves an unseen camera."""
+    run = train(family[:2], TrainConfig(epochs=2, seed=1, data_step=True, k_c_error=1.0), tmp_path / "run")
+    _, spec = load_run(run.run_dir)
+    assert spec.features.data_step and spec.features.size == spec.features.grid_size + STEP_SIZE
+    plain = load_run(generic_run.run_dir)[1].generic.delta_bounds
+    widened = spec.generic.delta_bounds
+    f_span = FACTORY_F_REL * spec.generic.focal_px
+    assert np.all(widened[:2, 0] <= -f_span) and np.all(widened[:2, 1] >= f_span)
+    assert np.all(np.ptp(widened, 1) > np.ptp(plain, 1) + 2 * f_span * np.array([0.99, 0.99, 0.0, 0.0]))
+    unseen = family[2]
+    predictor = load_predictor(run.run_dir).for_camera(camera_of(unseen))
+    test = unseen.select(unseen.frames_in("test"))
+    assert np.all(np.isfinite(predictor.predict_k(test)))
+
+
+def test_a_factory_k_c_is_off_within_its_ranges_and_keeps_the_pixel_aspect():
+    camera = Camera(K_TEST.copy(), (4032, 3024))
+    rng = np.random.default_rng(0)
+    k = np.array([k_params(factory_k_c(camera, rng)) for _ in range(400)])
+    k0 = k_params(K_TEST)
+    scale = k[:, 0] / k0[0]
+    assert np.all(np.abs(scale - 1) <= FACTORY_F_REL) and np.ptp(scale) > FACTORY_F_REL  # drawn across the range
+    np.testing.assert_allclose(k[:, 1] / k0[1], scale)  # one factor: fy / fx as calibrated
+    shift = np.abs(k[:, 2:] - k0[2:]) / 4032
+    assert np.all(shift <= FACTORY_C_WIDTH) and shift.max() > 0.9 * FACTORY_C_WIDTH
 
 
 def test_train_frames_keeps_the_first_n_train_frames_in_file_order(family):
