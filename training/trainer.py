@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from dimenet.runtime import __version__
-from dimenet.runtime.errors import DatasetError
+from dimenet.runtime.errors import DatasetError, InputError
 from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import k_matrix, k_params
@@ -215,17 +215,26 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
             K_c = u.camera.K
             if config.k_c_error and rng.random() < config.k_c_error:
                 K_c = factory_k_c(u.camera, rng)
-            parts.append(_inputs(u, frames, spec_features, K_c))
+                try:
+                    parts.append(_inputs(u, frames, spec_features, K_c))
+                except InputError:  # a frame with no C0 pose under it (a few noisy clustered points)
+                    K_c = u.camera.K
+            if K_c is u.camera.K:
+                parts.append(_inputs(u, frames, spec_features))
             delta_f_star.append(f - k_params(K_c)[:2])
         feats, p2, p3, w, K_c = _stack(parts)
         delta_f_star = torch.from_numpy(np.concatenate(delta_f_star))
         order = torch.from_numpy(rng.permutation(len(feats)))
         model.train()
-        losses = []
+        losses, skipped = [], 0
         for i in range(0, len(order), config.batch_size):
             b = order[i : i + config.batch_size]
             delta_k = model(feats[b])
-            mse = reprojection_loss(delta_k, K_c[b], p2[b], p3[b], w[b])[0]
+            try:
+                mse = reprojection_loss(delta_k, K_c[b], p2[b], p3[b], w[b])[0]
+            except InputError:  # a frame has no pose under the net's K: no gradient from this batch
+                skipped += 1
+                continue
             loss = mse + config.focal_weight * focal_loss(delta_k, delta_f_star[b])
             opt.zero_grad()
             loss.backward()
@@ -234,8 +243,13 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         sched.step()
         model.eval()
         with torch.no_grad():
-            val_e = float(np.mean([reprojection_loss(model(f), K, *t)[1].mean() for f, *t, K in val_inputs]))
+            try:
+                val_e = float(np.mean([reprojection_loss(model(f), K, *t)[1].mean() for f, *t, K in val_inputs]))
+            except InputError:  # a val frame has no pose under the net's K: not a best epoch
+                val_e = float("inf")
         history.append({"epoch": epoch, "train_mse_px2": float(np.mean(losses)), "val_e_px": val_e})
+        if skipped:
+            history[-1]["skipped_batches"] = skipped
         if val_e < best[0]:
             best = (val_e, epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
         elif config.patience is not None and epoch - best[1] >= config.patience:

@@ -23,8 +23,8 @@ more inputs say what the frame's own points say of K. One Gauss-Newton step over
 the C0 pose and K_c (``geometry.prior_step``) with a weak prior on K (1 sigma STEP_PRIOR_REL * fx_c
 px per parameter): its Delta K (fx, fy, cx, cy) px times the PMD's scale, then the log of each
 parameter's posterior sigma over the prior's (0 where the points do not fix it, e.g. f and c on
-one plane). The grid says where the points are; the step is how they fix K, whatever the scene
-(training/METHOD.md, "A scene-robust encoder").
+one plane). The step's Delta K is clipped to +- STEP_CLIP_REL * fx_c. The grid says where the points
+are; the step is how they fix K, whatever the scene (training/METHOD.md, "A scene-robust encoder").
 """
 
 from __future__ import annotations
@@ -60,6 +60,9 @@ VARIANTS = {
 # noise floor of its data weight (px).
 STEP_SIZE = 8
 STEP_PRIOR_REL = 0.1
+# The step's Delta K is clipped to +- this x fx_c before scaling: OIS moves c by up to ~0.02 fx and a factory K_c
+# is off by up to 0.03 f; a step past 0.05 fx_c is the prior's doing on points that fix no K (inputs of order 1).
+STEP_CLIP_REL = 0.05
 STEP_NOISE_FLOOR_PX = 0.1
 # A posterior variance over the prior's below this reads as this (no log of 0 from a failed inverse).
 STEP_VARIANCE_FLOOR = 1e-30
@@ -292,11 +295,12 @@ def data_steps(points: np.ndarray, points_2d: np.ndarray, mask, K_c, pmd_scale: 
     k_c = k_params(K_c)
     prior_var = (STEP_PRIOR_REL * k_c[0]) ** 2
     precision = np.eye(4) / prior_var
+    clip_px = STEP_CLIP_REL * k_c[0]
     out = np.empty((len(points), STEP_SIZE))
     for b in range(len(points)):
         rows, x = (points[b], points_2d[b]) if mask is None else (points[b][:, mask[b]], points_2d[b][mask[b]])
         JJ, Jr, rss, r = frame_normal_equations(rows[2:5], x, k_c)
         step, cov, _ = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=STEP_NOISE_FLOOR_PX)
-        out[b, :4] = step[6:] * pmd_scale
+        out[b, :4] = np.clip(step[6:], -clip_px, clip_px) * pmd_scale
         out[b, 4:] = 0.5 * np.log(np.maximum(cov.diagonal()[6:] / prior_var, STEP_VARIANCE_FLOOR))
     return out

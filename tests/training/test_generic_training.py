@@ -11,6 +11,7 @@ pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
 from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import InputError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
@@ -70,6 +71,35 @@ def test_a_scene_encoder_trains_with_the_data_step_and_factory_k_c(family, gener
     predictor = load_predictor(run.run_dir).for_camera(camera_of(unseen))
     test = unseen.select(unseen.frames_in("test"))
     assert np.all(np.isfinite(predictor.predict_k(test)))
+
+
+def test_a_batch_without_a_pose_under_the_net_s_k_is_skipped_and_counted(family, tmp_path, monkeypatch):
+    """A 40-minute training does not die on one frame whose pose the BPnP layer cannot find under the net's
+    K (or on a camera's frame with no C0 pose under a drawn factory K_c): the batch gives no gradient and the
+    epoch's history counts it; val keeps its frames."""
+    from dimenet.training import trainer
+
+    calls = {"n": 0}
+    real = trainer.reprojection_loss
+
+    def failing_first(delta_k, *args):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise InputError("frame 3: PnP did not converge (no isolated optimum in front of the camera)")
+        return real(delta_k, *args)
+
+    monkeypatch.setattr(trainer, "reprojection_loss", failing_first)
+    real_inputs = trainer._inputs
+
+    def no_pose_under_a_factory_k_c(unit, frames, spec, K_c=None):
+        if K_c is not None and K_c is not unit.camera.K:
+            raise InputError("PnP failed: no camera pose explains these correspondences")
+        return real_inputs(unit, frames, spec, K_c)
+
+    monkeypatch.setattr(trainer, "_inputs", no_pose_under_a_factory_k_c)
+    run = train(family[:2], TrainConfig(epochs=2, seed=1, k_c_error=1.0), tmp_path / "run")
+    assert [h.get("skipped_batches", 0) for h in run.history] == [1, 0]
+    assert all(np.isfinite(h["val_e_px"]) for h in run.history)
 
 
 def test_a_factory_k_c_is_off_within_its_ranges_and_keeps_the_pixel_aspect():
