@@ -40,7 +40,6 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MIN_POSE_POINTS,
     frame_normal_equations,
-    k_params,
     prior_step,
     rotation_matrices,
     solve_pnp_start,
@@ -292,7 +291,7 @@ def data_steps(points: np.ndarray, points_2d: np.ndarray, mask, K_c, pmd_scale: 
     """(F, STEP_SIZE) the data step's inputs (module docstring) of F frames from their raw point rows
     (F, 6, N) (``grid_features``'s: X, Y, 1/Z in {C0} in rows 2-4), points_2d (F, N, 2) px, mask
     (F, N) bool their inference points (None: all), K_c (3, 3) px and the PMD's scale (1/px)."""
-    k_c = k_params(K_c)
+    k_c = (float(K_c[0, 0]), float(K_c[1, 1]), float(K_c[0, 2]), float(K_c[1, 2]))
     prior_var = (STEP_PRIOR_REL * k_c[0]) ** 2
     precision = np.eye(4) / prior_var
     clip_px = STEP_CLIP_REL * k_c[0]
