@@ -38,7 +38,7 @@ from dimenet.runtime.evaluation.conditions import drop_inference_points
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.features import FeatureSpec, grid_features
+from dimenet.runtime.rectify.features import FeatureSpec, c0_poses, grid_features
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
 from dimenet.runtime.rectify.user_camera import Camera
@@ -163,12 +163,19 @@ def _stack(parts: list) -> tuple:
 
 
 def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec, K_c: Optional[np.ndarray] = None) -> tuple:
-    """(features, p2, p3, w, K_c per frame) tensors of one camera's frames (model px), under K_c (3, 3)
-    (None: the unit's calibrated one)."""
+    """(features, p2, p3, w, K_c per frame) tensors of one camera's frames (model px) under K_c (3, 3) (None: the
+    unit's calibrated one), and kept (F,) bool: the frames with a C0 pose, the only ones in the tensors (an
+    augmented frame of a few noisy clustered points can have none under a drawn K_c)."""
     K_c = unit.camera.K if K_c is None else K_c
-    feats = grid_features(frames.points_2d, frames.points_3d, frames.infer_mask, K_c, frames.image_size, spec_features)
+    rvec, tvec, reasons = c0_poses(frames.points_2d, frames.points_3d, frames.infer_mask, K_c)
+    kept = np.array([r is None for r in reasons])
+    if not kept.all():
+        frames, rvec, tvec = frames.select(kept), rvec[kept], tvec[kept]
+    feats = grid_features(
+        frames.points_2d, frames.points_3d, frames.infer_mask, K_c, frames.image_size, spec_features, poses=(rvec, tvec)
+    )
     K_c = torch.from_numpy(np.broadcast_to(K_c, (frames.n_frames, 3, 3)).copy())
-    return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c)
+    return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c), kept
 
 
 def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command: str, init) -> TrainResult:
@@ -196,7 +203,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
             frames = u.val
             if reduced:
                 frames = drop_inference_points(frames, config.min_points, np.random.default_rng(config.seed + 1))
-            parts.append(_inputs(u, frames, spec_features))
+            parts.append(_inputs(u, frames, spec_features)[0])
         val_inputs.append(_stack(parts))
 
     hidden = tuple(init.spec.hidden) if init is not None else tuple(config.hidden)
@@ -209,19 +216,16 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     best = (np.inf, 0, None)
     history = []
     for epoch in progress(range(1, config.epochs + 1), desc="train"):
-        parts, delta_f_star = [], []
+        parts, delta_f_star, unposed = [], [], 0
         for u, f in zip(units, f_star):
             frames = augment(resynthesise(u.fit, u.truth, rng, config.resynthesis)[0], config, spec_features.grid, rng)
             K_c = u.camera.K
             if config.k_c_error and rng.random() < config.k_c_error:
                 K_c = factory_k_c(u.camera, rng)
-                try:
-                    parts.append(_inputs(u, frames, spec_features, K_c))
-                except InputError:  # a frame with no C0 pose under it (a few noisy clustered points)
-                    K_c = u.camera.K
-            if K_c is u.camera.K:
-                parts.append(_inputs(u, frames, spec_features))
-            delta_f_star.append(f - k_params(K_c)[:2])
+            tensors, kept = _inputs(u, frames, spec_features, K_c)
+            parts.append(tensors)
+            delta_f_star.append(f[kept] - k_params(K_c)[:2])
+            unposed += int((~kept).sum())
         feats, p2, p3, w, K_c = _stack(parts)
         delta_f_star = torch.from_numpy(np.concatenate(delta_f_star))
         order = torch.from_numpy(rng.permutation(len(feats)))
@@ -250,6 +254,8 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         history.append({"epoch": epoch, "train_mse_px2": float(np.mean(losses)), "val_e_px": val_e})
         if skipped:
             history[-1]["skipped_batches"] = skipped
+        if unposed:
+            history[-1]["unposed_frames"] = unposed
         if val_e < best[0]:
             best = (val_e, epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
         elif config.patience is not None and epoch - best[1] >= config.patience:

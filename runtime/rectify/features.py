@@ -169,16 +169,30 @@ class FeatureSpec:
 
 def poses_c0(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray]:
     """Pose {W}->{C0} of each of F frames: SQPnP under K_c on the masked points (mask None:
-    all). (F, 3) each."""
+    all). (F, 3) each; InputError naming the first frame that has none."""
+    rvec, tvec, reasons = c0_poses(points_2d, points_3d, mask, K_c)
+    for b, reason in enumerate(reasons):
+        if reason is not None:
+            raise InputError(f"frame {b}: {reason}")
+    return rvec, tvec
+
+
+def c0_poses(points_2d, points_3d, mask, K_c) -> tuple[np.ndarray, np.ndarray, list]:
+    """``poses_c0``'s poses (F, 3) each (zero where there is none) and per frame None or why it has no pose."""
     F = len(points_2d)
-    rvec, tvec = np.empty((F, 3)), np.empty((F, 3))
+    rvec, tvec = np.zeros((F, 3)), np.zeros((F, 3))
+    reasons: list = [None] * F
     for b in range(F):
         m = slice(None) if mask is None else mask[b]
         n = points_2d.shape[1] if mask is None else int(m.sum())
         if n < MIN_POSE_POINTS:
-            raise InputError(f"frame {b}: {n} inference points, the C0 pose needs >= {MIN_POSE_POINTS}")
-        rvec[b], tvec[b] = solve_pnp_start(points_2d[b][m], points_3d[b][m], K_c)
-    return rvec, tvec
+            reasons[b] = f"{n} inference points, the C0 pose needs >= {MIN_POSE_POINTS}"
+            continue
+        try:
+            rvec[b], tvec[b] = solve_pnp_start(points_2d[b][m], points_3d[b][m], K_c)
+        except InputError as exc:
+            reasons[b] = str(exc)
+    return rvec, tvec, reasons
 
 
 def point_features(points_2d, points_3d, K_c, rvec, tvec) -> np.ndarray:

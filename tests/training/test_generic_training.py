@@ -75,8 +75,8 @@ def test_a_scene_encoder_trains_with_the_data_step_and_factory_k_c(family, gener
 
 def test_a_batch_without_a_pose_under_the_net_s_k_is_skipped_and_counted(family, tmp_path, monkeypatch):
     """A 40-minute training does not die on one frame whose pose the BPnP layer cannot find under the net's
-    K (or on a camera's frame with no C0 pose under a drawn factory K_c): the batch gives no gradient and the
-    epoch's history counts it; val keeps its frames."""
+    K, nor on a frame with no C0 pose under a drawn factory K_c: the batch gives no gradient, the frame sits
+    the epoch out, and the epoch's history counts both."""
     from dimenet.training import trainer
 
     calls = {"n": 0}
@@ -89,16 +89,18 @@ def test_a_batch_without_a_pose_under_the_net_s_k_is_skipped_and_counted(family,
         return real(delta_k, *args)
 
     monkeypatch.setattr(trainer, "reprojection_loss", failing_first)
-    real_inputs = trainer._inputs
+    real_poses = trainer.c0_poses
 
-    def no_pose_under_a_factory_k_c(unit, frames, spec, K_c=None):
-        if K_c is not None and K_c is not unit.camera.K:
-            raise InputError("PnP failed: no camera pose explains these correspondences")
-        return real_inputs(unit, frames, spec, K_c)
+    def one_unposed_frame(points_2d, points_3d, mask, K_c):
+        rvec, tvec, reasons = real_poses(points_2d, points_3d, mask, K_c)
+        if len(reasons) > 5:  # a unit's fit frames (its val frames are 2 or 3)
+            reasons[5] = "PnP failed: no camera pose explains these correspondences"
+        return rvec, tvec, reasons
 
-    monkeypatch.setattr(trainer, "_inputs", no_pose_under_a_factory_k_c)
+    monkeypatch.setattr(trainer, "c0_poses", one_unposed_frame)
     run = train(family[:2], TrainConfig(epochs=2, seed=1, k_c_error=1.0), tmp_path / "run")
     assert [h.get("skipped_batches", 0) for h in run.history] == [1, 0]
+    assert [h.get("unposed_frames", 0) for h in run.history] == [2, 2]  # one per camera and epoch
     assert all(np.isfinite(h["val_e_px"]) for h in run.history)
 
 
