@@ -9,7 +9,6 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -193,13 +192,11 @@ def test_a_run_finished_without_the_record_is_trained_again_and_says_why(two_dat
 
 def test_ray_jobs_give_the_same_models_and_the_same_family(manifest, tmp_path):
     pytest.importorskip("ray")
-    start = time.monotonic()
     ray_run = fleet_train(manifest, tmp_path / "ray", address="local:2")
     local = fleet_train(manifest, tmp_path / "local")
     assert ray_run["failed"] == local["failed"] == ["broken"]
     for r, s in zip(ray_run["jobs"], local["jobs"]):
         assert r.get("rho") == s.get("rho") and r.get("avg_e") == s.get("avg_e")
-    assert time.monotonic() - start < 120
     for address in (None, "local:2"):
         out = tmp_path / f"family-{address}"
         argv = ["simulate", "--family", "3", "--seed", "4", "--out", str(out)]
