@@ -275,19 +275,12 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         provenance["init"] = init.source
     if generic:
         delta = np.concatenate([k_params(u.train_K_star) - k_params(u.camera.K) for u in units])
-        bounds = parameter_bounds(delta)
-        if config.k_c_error:
-            span = _factory_span(units)
-            bounds += np.stack([-span, span], -1)
-        generic_camera = GenericCamera(focal_px, bounds)
+        generic_camera = GenericCamera(focal_px, _with_factory_span(parameter_bounds(delta), units, config))
         camera = {"K_c": None, "image_size": None, "K_bounds": None, "generic": generic_camera}
         provenance["cameras"] = [u.name for u in units]
     else:
         u = units[0]
-        bounds = k_bounds(u.train_K_star)
-        if config.k_c_error:
-            span = _factory_span([u])
-            bounds += np.stack([-span, span], -1)
+        bounds = _with_factory_span(k_bounds(u.train_K_star), [u], config)
         camera = {"K_c": u.camera.K, "image_size": u.camera.image_size, "K_bounds": bounds}
     spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
     spec = replace(spec, **uncertainty_fields(model, spec, units, config, init))
@@ -306,12 +299,15 @@ def factory_k_c(camera: Camera, rng: np.random.Generator) -> np.ndarray:
     return k_matrix(k)
 
 
-def _factory_span(units: list) -> np.ndarray:
-    """(4,) px the largest factory offset of (fx, fy, cx, cy) over the units' cameras: how far ``factory_k_c``
-    can move K_c, by which the plausible Delta K widens either way."""
+def _with_factory_span(bounds: np.ndarray, units: list, config: TrainConfig) -> np.ndarray:
+    """(4, 2) px ``bounds`` of the plausible (Delta) K, widened either way by the largest offset ``factory_k_c``
+    can give the units' cameras when the training drew factory K_c (``config.k_c_error``), else as they are."""
+    if not config.k_c_error:
+        return bounds
     k = np.array([k_params(u.camera.K) for u in units])
     width = max(u.camera.image_size[0] for u in units)
-    return np.array([*(FACTORY_F_REL * k[:, :2].max(0)), FACTORY_C_WIDTH * width, FACTORY_C_WIDTH * width])
+    span = np.array([*(FACTORY_F_REL * k[:, :2].max(0)), FACTORY_C_WIDTH * width, FACTORY_C_WIDTH * width])
+    return bounds + np.stack([-span, span], -1)
 
 
 def read_training_data(path: str | Path) -> tuple[list, str]:

@@ -24,7 +24,7 @@ the C0 pose and K_c (``geometry.prior_step``) with a weak prior on K (1 sigma ST
 px per parameter): its Delta K (fx, fy, cx, cy) px times the PMD's scale, then the log of each
 parameter's posterior sigma over the prior's (0 where the points do not fix it, e.g. f and c on
 one plane). The step's Delta K is clipped to +- STEP_CLIP_REL * fx_c. The grid says where the points
-are; the step is how they fix K, whatever the scene (training/METHOD.md, "A scene-robust encoder").
+are; the step is how they fix K, whatever the scene (training/METHOD.md, "Any scene: the encoder").
 """
 
 from __future__ import annotations

@@ -233,16 +233,15 @@ def family_member(
     fill: tuple = FILL,
 ) -> Dataset:
     """The dataset of camera ``index`` (``profile``) of the family of ``seed`` and ``n`` cameras:
-        ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed",
-        "index", "cameras", "scenes"} added to its meta. It depends on nothing else, so cameras can be
-        simulated apart (``dimenet simulate --family N --address``). ``dist_coeffs`` (scale-free)
-        apply to each camera about its own nominal K. ``scenes``: ``paper``, the paper's rig at the camera's
-        distances; ``random``, a rig of the camera's own (``scenes.random_rig``, its own stream) framed from a fifth of
-        the image to most of it (``scenes.framed``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS
-        (stroke 0: the principal point never moves, only focus breathing changes f); the rig as built departs from
-        its points (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off. ``fill``
-    (random scenes): the share of the image width the rig spans from the camera's far distance to its near one
-    (held-out families draw other framings than the training's: ``training/reproduce``)."""
+    ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed", "index", "cameras",
+    "scenes"} added to its meta. It depends on nothing else, so cameras can be simulated apart (``dimenet
+    simulate --family N --address``). ``dist_coeffs`` (scale-free) apply to each camera about its own nominal K.
+    ``scenes``: ``paper``, the paper's rig at the camera's distances; ``random``, a rig of the camera's own
+    (``scenes.random_rig``, its own stream) framed so it spans ``fill`` (low, high) of the image width from the
+    camera's far distance to its near one (``scenes.framed``; held-out families draw other framings than the
+    training's: ``training/reproduce``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS (stroke 0:
+    the principal point never moves, only focus breathing changes f); the rig as built departs from its points
+    (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
     rig, offsets = None, None
