@@ -43,7 +43,7 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.errors import CameraError, InputError
-from dimenet.runtime.geometry import frame_error_and_depth, mean_reprojection_error
+from dimenet.runtime.geometry import frame_error_and_depth, k_params, mean_reprojection_error
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify import stages
 from dimenet.runtime.rectify.checks import validated_batch, validated_frame
@@ -51,7 +51,7 @@ from dimenet.runtime.rectify.inference import network_k
 from dimenet.runtime.rectify.model import OnnxModel, load_model
 from dimenet.runtime.rectify.results import BatchRectification, Rectification
 from dimenet.runtime.rectify.spec import ModelSpec, frame_within_bounds
-from dimenet.runtime.rectify.user_camera import Camera, PixelMap, checked_camera
+from dimenet.runtime.rectify.user_camera import Camera, PixelMap, checked_camera, checked_image_size
 
 MODES = ("dimenet", "map")
 
@@ -79,7 +79,7 @@ def _camera(model: OnnxModel, K_c, image_size) -> Optional[Camera]:
         return None
     spec, source = model.spec, model.source
     if spec.generic is None and K_c is None:
-        size = checked_camera(spec.K_c, image_size, "image_size").image_size
+        size = checked_image_size(image_size, "image_size")
         K_c = PixelMap(scale=spec.image_size[0] / size[0]).K_to_user(spec.K_c)
     elif spec.generic is None and image_size is None:
         image_size = spec.image_size
@@ -137,6 +137,16 @@ class Rectifier:
             camera = checked_camera(camera.K, camera.image_size, "camera", dist_coeffs)
         return cls(model, mode, camera)
 
+    def __repr__(self) -> str:
+        fx, fy, cx, cy = (float(v) for v in k_params(self.K_c))
+        kind = "generic" if self.spec.generic is not None else "device"
+        return (
+            f"Rectifier(model={self.model.source!r} ({kind}), mode={self.mode!r}, "
+            f"K_c=(fx {fx:.2f}, fy {fy:.2f}, cx {cx:.2f}, cy {cy:.2f}) px, "
+            f"image_size={self.image_size[0]}x{self.image_size[1]} px"
+            f"{', with lens' if self.dist_coeffs is not None else ''})"
+        )
+
     @property
     def spec(self) -> ModelSpec:
         """The model's own spec (a generic model's has no camera: see ``K_c``, ``image_size``)."""
@@ -153,7 +163,8 @@ class Rectifier:
         return frame_within_bounds(list(k), self.K_bounds.tolist())
 
     def rectify(self, points_2d, points_3d, *, refine: bool = False) -> Rectification:
-        """K and pose of one frame from its correspondences: points_2d (N, 2) px, points_3d (N, 3) mm in {W}.
+        """K and pose of one frame from its correspondences: points_2d (N, 2) px, points_3d (N, 3) mm in {W}
+        (or OpenCV's (N, 1, 2) and (N, 1, 3), as cv2.findChessboardCorners returns them).
 
         Lists and other real dtypes are accepted and cast to float64. Raises InputError for
         unusable input. See the module docstring for the stages and ``rectify.checks`` for the

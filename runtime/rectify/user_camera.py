@@ -63,6 +63,16 @@ class Camera:
     dist_coeffs: Optional[np.ndarray] = None
     dist_K: Optional[np.ndarray] = None
 
+    def __post_init__(self) -> None:
+        """The checks of ``checked_camera`` on a Camera made directly (K read-only float64)."""
+        width, height = checked_image_size(self.image_size, "camera")
+        object.__setattr__(self, "image_size", (width, height))
+        object.__setattr__(self, "K", _checked_k(_array_k(self.K, "camera"), width, height, "camera"))
+        if self.dist_K is not None:
+            object.__setattr__(
+                self, "dist_K", _checked_k(_array_k(self.dist_K, "camera dist_K"), width, height, "camera dist_K")
+            )
+
     @property
     def lens_K(self) -> np.ndarray:
         """(3, 3) px the K the distortion is stated about: dist_K, or K."""
@@ -73,10 +83,13 @@ def _fail(source: str, field: str, problem: str) -> CameraError:
     return CameraError(f"{source}: {field} {problem}")
 
 
-# fx and fy lie within these multiples of the image's larger side: a horizontal field of view from
-# 2 * atan(50) = 178.9 deg down to 2 * atan(1 / 2000) = 0.057 deg. Past them a pinhole model means
-# nothing (and 5e-324 px or 1e300 px break the pixel map's inverse).
-FOCAL_PER_SIDE = (0.01, 1000.0)
+# fx and fy lie within these multiples of the image's larger side: a field of view across that side
+# from 2 * atan(5) = 157 deg (past it a pinhole model means nothing: a fisheye's undistorted K) down
+# to 2 * atan(1 / 100) = 1.1 deg (a 10x phone telephoto is about 7 deg).
+FOCAL_PER_SIDE = (0.1, 50.0)
+# A principal point within this share of the larger side of the centre of the image turned by 90
+# deg, and further than SWAP_SHARE from its own image's centre, means image_size is (height, width).
+SWAP_SHARE = 0.05
 
 
 def _checked_k(K: np.ndarray, width: int, height: int, source: str) -> np.ndarray:
@@ -102,12 +115,21 @@ def _checked_k(K: np.ndarray, width: int, height: int, source: str) -> np.ndarra
         raise _fail(
             source, "K", f"must have fy / fx in [{low:g}, {high:g}], got {fy / fx:.6g} (fx = {fx!r}, fy = {fy!r})"
         )
-    if not (-width <= cx <= 2 * width and -height <= cy <= 2 * height):
+    side = max(width, height)
+    turned = math.hypot(cx - (height - 1) / 2, cy - (width - 1) / 2)
+    if width != height and turned <= SWAP_SHARE * side < math.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2):
+        raise _fail(
+            source,
+            "image_size",
+            f"{width}x{height} px looks swapped: the principal point ({cx:g}, {cy:g}) px is the centre of a "
+            f"{height}x{width} px image (image_size is (width, height))",
+        )
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
         raise _fail(
             source,
             "K",
-            f"principal point ({cx!r}, {cy!r}) px lies far outside the {width}x{height} px image "
-            f"(more than its size beyond an edge: cx in [{-width}, {2 * width}], cy in [{-height}, {2 * height}])",
+            f"principal point ({cx!r}, {cy!r}) px lies outside the {width}x{height} px image "
+            f"(cx in [-0.5, {width - 0.5:g}], cy in [-0.5, {height - 0.5:g}] px)",
         )
     K = K.copy()
     K.setflags(write=False)
@@ -129,7 +151,7 @@ def _array_k(K: Any, source: str) -> np.ndarray:
     return array
 
 
-def _array_size(image_size: Any, source: str) -> tuple[int, int]:
+def checked_image_size(image_size: Any, source: str) -> tuple[int, int]:
     if isinstance(image_size, (str, bytes)) or not isinstance(image_size, (Sequence, np.ndarray)):
         raise _fail(source, "image_size", f"must be 2 integers (width, height), got {shown(image_size)}")
     if len(image_size) != 2:
@@ -180,13 +202,14 @@ def checked_camera(
 ) -> Camera:
     """A Camera from values in memory: K (3, 3) real array-like px, a pinhole matrix without
     skew ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], fx, fy > 0, fy / fx in ASPECT_RANGE, the
-    principal point within the image extended by its size on each side); image_size (width,
+    principal point inside the image, the image not its size turned by 90 deg (SWAP_SHARE));
+    image_size (width,
     height) integers px in [1, MAX_IMAGE_SIDE_PX]; dist_coeffs None or OpenCV's 4/5/8/12/14
     coefficients (all zero: None), dist_K None or a K as K is (the distortion's own K). Raises
     CameraError naming ``source`` and the field.
     (``formats.camera_file.read_camera`` reads a camera file into this.)"""
     array = _array_k(K, source)
-    width, height = _array_size(image_size, source)
+    width, height = checked_image_size(image_size, source)
     dist = checked_dist_coeffs(dist_coeffs, source)
     lens_K = None
     if dist is not None and dist_K is not None:

@@ -42,7 +42,10 @@ def test_rectify_serves_the_camera_file_and_reports_its_k_c(frames, tmp_path, ca
     assert main(["rectify", str(tmp_path / "test.npz")]) == 2
     assert "give --camera FILE" in capsys.readouterr().err
     # A camera of another size than the dataset's images is refused in one line.
-    other = write_camera(tmp_path / "other.json", camera.K, (2016, 1512))
+    half = np.array(camera.K, dtype=float)
+    half[:2] *= 0.5
+    half[:2, 2] -= 0.25  # the centre of the top-left pixel stays at (0, 0)
+    other = write_camera(tmp_path / "other.json", half, (2016, 1512))
     assert main(["rectify", str(tmp_path / "test.npz"), "--camera", str(other)]) == 2
     assert "the dataset's images 4032x3024" in capsys.readouterr().err
 
@@ -156,3 +159,14 @@ def test_a_lens_goes_from_the_dataset_through_calibrate_to_a_camera_file_and_rec
     assert main([*argv, "--distortion", "opencv5", "--camera-out", str(tmp_path / "fit.json")]) == 0
     assert "lens (fitted, opencv5)" in capsys.readouterr().out
     assert len(read_camera(tmp_path / "fit.json").dist_coeffs) == 5
+
+
+def test_evaluate_refuses_a_camera_of_another_size_than_the_dataset(frames, tmp_path, capsys):
+    """`evaluate --camera` checks the size as `rectify` does, with or without a model (a 1080p
+    camera on a 4032x3024 dataset once printed Avg(e_c) 190 px and exit 0)."""
+    write_dataset(frames, tmp_path / "frames.npz")
+    hd = write_camera(tmp_path / "hd.json", [[1500.0, 0, 959.5], [0, 1500.0, 539.5], [0, 0, 1]], (1920, 1080))
+    for extra in ([], ["--model", str(asset(DEFAULT_MODEL))]):
+        assert main(["evaluate", str(tmp_path / "frames.npz"), "--camera", str(hd), *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "hd.json: the camera is 1920x1080 px, the dataset's images 4032x3024" in err[0], err

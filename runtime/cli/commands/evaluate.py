@@ -14,7 +14,7 @@ import numpy as np
 
 from dimenet.runtime.bench.real_suite import SETS, format_suite, missing_sets, run_suite
 from dimenet.runtime.cli.arguments import finite_float_in, grid_size, integer_in, noise_sigma, nonempty_path, seed
-from dimenet.runtime.cli.camera_option import add_camera_argument, served_camera
+from dimenet.runtime.cli.camera_option import add_camera_argument, dataset_camera_file, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
@@ -28,7 +28,6 @@ from dimenet.runtime.evaluation.methods import (
     require_platform,
 )
 from dimenet.runtime.evaluation.predictor import load_predictor
-from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.dataset import SPLITS, read_dataset
 from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.jobs.progress import progress
@@ -125,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         predictor = predictor.for_camera(served_camera(predictor.spec, ds, args.camera, predictor.source))
         K_c = predictor.K_c
     else:
-        K_c = read_camera(args.camera).K if args.camera else calibrate_dataset(ds).K_c
+        K_c = dataset_camera_file(args.camera, ds).K if args.camera else calibrate_dataset(ds).K_c
     grid = Grid.parse(args.grid) if args.grid else (predictor.spec.features.grid if predictor else Grid(8, 6))
     chosen = ds.frames_in(args.split)
     if not chosen.any():

@@ -21,10 +21,9 @@ import numpy as np
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.cli.arguments import nonempty_path
-from dimenet.runtime.cli.camera_option import add_camera_argument, served_camera
+from dimenet.runtime.cli.camera_option import add_camera_argument, require_dataset_size, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
-from dimenet.runtime.errors import CameraError
 from dimenet.runtime.evaluation.rectify_points import rectified_records
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera_file import camera_file, read_camera
@@ -168,12 +167,7 @@ def _rectifier(args: argparse.Namespace, frames: Dataset) -> Rectifier:
     else:
         camera = served_camera(model.spec, frames, camera_file, model.source)
     rectifier = Rectifier(model, args.mode, camera)
-    size = tuple(int(v) for v in frames.image_size)
-    if size != rectifier.image_size:
-        raise CameraError(
-            f"{args.camera or model.source}: the camera is {rectifier.image_size[0]}x{rectifier.image_size[1]} px, "
-            f"the dataset's images {size[0]}x{size[1]}"
-        )
+    require_dataset_size(rectifier.image_size, frames, args.camera or model.source)
     return rectifier
 
 
@@ -220,11 +214,23 @@ def _run_points(args: argparse.Namespace) -> int:
     if args.out:
         atomic_write(args.out, lambda f: f.writelines(line.encode("utf-8") for line in lines))
         print(f"{tally['frames']} frames ({tally['refused']} refused, {tally['fallbacks']} fallbacks) -> {args.out}")
+    else:
+        for line in lines:  # flushed line by line: a reader of the pipe gets each frame as it is done
+            sys.stdout.write(line)
+            sys.stdout.flush()
+    return _points_status(tally, args.points)
+
+
+def _points_status(tally: Counter, points: str) -> int:
+    """The exit code of a --points run: 1 (with one line on stderr) when no frame was rectified."""
+    if tally["frames"] > tally["refused"]:
         return 0
-    for line in lines:  # flushed line by line: a reader of the pipe gets each frame as it is done
-        sys.stdout.write(line)
-        sys.stdout.flush()
-    return 0
+    print(
+        f"dimenet: {points}: no frame was rectified ({tally['refused']} of {tally['frames']} refused; "
+        "each record's error says why)",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def _check_out(args: argparse.Namespace) -> None:
@@ -288,8 +294,8 @@ COMMAND = Command(
     name="rectify",
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
     example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz\n"
-    "  dimenet rectify frames.npz --camera cam.json --json   (the bundled generic model, your camera)\n"
-    "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   (an app's recording, streamed)\n"
+    "  dimenet rectify frames.npz --camera cam.json --json   # the bundled generic model, your camera\n"
+    "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,
