@@ -108,8 +108,8 @@ def _run_train(args: argparse.Namespace) -> int:
         init=init,
     )
     print(
-        f"trained {result.best_epoch} epochs (best), val Avg(e) {result.best_val_e:.3f} px, "
-        f"{result.seconds:.0f} s -> {result.run_dir}"
+        f"trained {len(result.history)} epochs, kept epoch {result.best_epoch} "
+        f"(best val Avg(e) {result.best_val_e:.3f} px), {result.seconds:.0f} s -> {result.run_dir}"
     )
     return 0
 
@@ -118,8 +118,8 @@ TRAIN = Command(
     name="train",
     summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, plus a focal term).",
     example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0\n"
-    "  dimenet train family --out runs/generic --epochs 200   (a folder from `dimenet simulate --family`)\n"
-    "  dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30   (fine-tune the default)",
+    "  dimenet train family --out runs/generic --epochs 200   # a folder from `dimenet simulate --family`\n"
+    "  dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30   # fine-tune the default",
     add_arguments=_add_train,
     run=_run_train,
 )

@@ -4,7 +4,8 @@
 
 Rendered: renders ``n`` photos into DIR first (a new or empty folder) unless DIR already holds a
 ``truth.npz`` (then the photos it names, whatever their size, e.g. ``dimenet render --scale 2.52``
-for 1600x1200); then ingests them (timed: photos/s) and reports the detection rate, identity errors,
+for 1600x1200; an --n, --seed or --profile given that its photos were not rendered with is an
+IngestError, never a silent reuse); then ingests them (timed: photos/s) and reports the detection rate, identity errors,
 corner RMS against the true projections and the mean |K* - K_true| of the ingested frames
 (``bench.ingest_score.score``).
 
@@ -16,12 +17,15 @@ A folder that holds files but neither is refused: rendering into it would mix th
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict
 from pathlib import Path
+from typing import Optional
 
 from dimenet.runtime.bench.ingest_score import score
-from dimenet.runtime.errors import IngestError
+from dimenet.runtime.errors import DatasetError, IngestError
+from dimenet.runtime.formats.npz import read_npz
 from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import load_rig, paper_rig
 from dimenet.runtime.geometry import k_params
@@ -52,9 +56,20 @@ def run_real_bench(folder: Path, *, workers: int) -> dict:
     }
 
 
-def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int) -> dict:
+def rendered_with(truth_file: Path) -> dict:
+    """The n, seed and profile a render's truth.npz was written with (its ``meta``)."""
+    arrays = read_npz(truth_file, DatasetError, "render truth file")
+    try:
+        meta = json.loads(str(arrays["meta"]))
+        return {"n": int(arrays["frame_id"].shape[0]), "seed": int(meta["seed"]), "profile": str(meta["profile"])}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"{truth_file}: its meta does not say how the photos were rendered ({exc})") from None
+
+
+def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int, asked: Optional[dict] = None) -> dict:
     """Rendered: render (unless there already) and ingest the photos of ``folder``; the scored figures.
-    Real (a folder with ``rig.json`` and no truth): ``run_real_bench``."""
+    ``asked``: the render options the user gave ({"seed": 1, ...}); photos already in ``folder``
+    rendered otherwise are an IngestError. Real (a folder with ``rig.json`` and no truth): ``run_real_bench``."""
     folder = Path(folder)
     if not (folder / TRUTH_FILE).is_file() and (folder / RIG_FILE).is_file():
         return run_real_bench(folder, workers=workers)
@@ -66,6 +81,16 @@ def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int) -
                 "and their rig); give an empty or new folder to render into"
             )
         write_render(folder, rig, get_profile(profile), n, seed=seed)
+    else:
+        done = rendered_with(folder / TRUTH_FILE)
+        wrong = {k: v for k, v in (asked or {}).items() if done[k] != v}
+        if wrong:
+            asked_text = ", ".join(f"--{k} {v}" for k, v in wrong.items())
+            done_text = ", ".join(f"--{k} {done[k]}" for k in wrong)
+            raise IngestError(
+                f"{folder}: holds photos rendered with {done_text}, not {asked_text}: give a new folder to render "
+                "into, or the options they were rendered with"
+            )
     truth = read_truth(folder / TRUTH_FILE)
     start = time.monotonic()
     result = ingest([folder / str(f) for f in truth.frame_id], rig, workers=workers)

@@ -58,6 +58,34 @@ def one_line(message: str) -> str:
     return _CONTROL.sub(lambda m: repr(m.group())[1:-1], message)
 
 
+# The extra (pyproject.toml) that brings each package a command may import.
+EXTRA_OF = {
+    "dimenet.training": "train",
+    "torch": "train",
+    "safetensors": "train",
+    "tqdm": "train",
+    "matplotlib": "train",
+    "onnx": "export",
+    "ray": "fleet",
+}
+CPU_TORCH = "pip install torch --index-url https://download.pytorch.org/whl/cpu"
+
+
+def missing_extra(exc: ImportError) -> str:
+    """One line naming the package an import missed, its extra and the commands that install it
+    (torch first as a CPU build: a plain `pip install torch` may pull a CUDA build of several GB)."""
+    name = exc.name or str(exc)
+    name = name if name in EXTRA_OF else name.split(".")[0]
+    extra = EXTRA_OF.get(name)
+    if extra is None:
+        return f"an import failed ({one_line(str(exc))}): a package dimenet needs is missing or broken"
+    torch_first = f"{CPU_TORCH}, then " if extra in ("train", "fleet") else ""
+    return (
+        f"{name} is not installed: this command needs the {extra} extra. In the dimenet checkout: "
+        f"{torch_first}pip install '.[{extra}]'"
+    )
+
+
 def _escaping_streams() -> None:
     """Let stdout and stderr print what their encoding cannot hold as backslash escapes."""
     for stream in (sys.stdout, sys.stderr):
@@ -88,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLE_MAIN,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"dimenet {__version__}")
+    parser.add_argument("-V", "--version", action="version", version=f"dimenet {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for cmd in _commands():
         p = sub.add_parser(
@@ -121,11 +149,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"dimenet: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except ImportError as exc:
-        print(
-            f"dimenet: error: {one_line(str(exc.name or exc))} is not installed; "
-            f"this command needs an extra: pip install 'dimenet-runtime[train,export]'",
-            file=sys.stderr,
-        )
+        print(f"dimenet: error: {missing_extra(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("dimenet: interrupted", file=sys.stderr)

@@ -87,7 +87,7 @@ def _ray(address: str):
         import ray
     except ImportError:
         raise EngineError(
-            f"--address {address}: needs Ray, the fleet extra (pip install 'dimenet-runtime[fleet]')"
+            f"--address {address}: needs Ray, the fleet extra (in the dimenet checkout: pip install '.[fleet]')"
         ) from None
     kwargs: dict = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
     if address == "local" or address.startswith("local:"):

@@ -6,7 +6,10 @@ from __future__ import annotations
 import json
 import shutil
 
-from dimenet.runtime.bench.ingest import RIG_FILE, format_ingest_report, run_ingest_bench
+import pytest
+
+from dimenet.runtime.bench.ingest import RIG_FILE, format_ingest_report, rendered_with, run_ingest_bench
+from dimenet.runtime.errors import IngestError
 from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
 from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
@@ -31,3 +34,16 @@ def test_rendered_photos_are_scored_against_their_truth_and_real_ones_counted(tm
     assert counted["photos"] == 2 and counted["boards_in_rig"] == len(paper_rig().boards)
     assert sum(len(b) for b in counted["boards"].values()) == figures["boards_found"] + figures["extra_boards"]
     assert "2 real photos" in format_ingest_report(counted)
+
+
+def test_a_folder_rendered_with_other_options_is_refused_not_reused(tmp_path):
+    """`bench --ingest DIR --seed 1` on photos rendered with seed 0 once scored those silently."""
+    write_render(tmp_path, paper_rig(), scaled_profile(get_profile("galaxy-s8"), 6.0), 1, seed=0)
+    assert rendered_with(tmp_path / TRUTH_FILE) == {"n": 1, "seed": 0, "profile": "galaxy-s8"}
+    for asked, message in (
+        ({"seed": 1}, "--seed 0, not --seed 1"),
+        ({"n": 30, "seed": 0}, "--n 1, not --n 30"),
+        ({"profile": "iphone-12-pro"}, "--profile galaxy-s8, not --profile iphone-12-pro"),
+    ):
+        with pytest.raises(IngestError, match=rf"holds photos rendered with {message}: give a new folder"):
+            run_ingest_bench(tmp_path, n=30, seed=1, profile="galaxy-s8", workers=1, asked=asked)

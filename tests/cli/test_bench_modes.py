@@ -67,7 +67,7 @@ def test_bench_bpnp_without_its_entry_point_is_one_line_naming_the_train_extra(m
     monkeypatch.setattr(bench_command, "entry_points", lambda group: {})  # an install without the training package
     assert main(["bench", "--bpnp", "--repeats", "1"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and "--bpnp needs the train extra (dimenet.training is not installed)" in lines[0], lines
+    assert len(lines) == 1 and "--bpnp needs the train extra (dimenet.training is not installed: " in lines[0], lines
 
 
 def test_bench_without_torch_still_runs_its_help():

@@ -37,6 +37,46 @@ def test_every_command_is_registered_and_its_help_has_an_example(capsys):
         assert "example:" in out and f"dimenet {name}" in out
 
 
+def _examples(text: str) -> list:
+    """The command lines of a --help's example section (each line after "example:" or "examples:")."""
+    lines = text.split("example", 1)[1].splitlines()[1:]
+    return [line.strip() for line in lines if line.strip().startswith("dimenet ")]
+
+
+def test_every_help_example_is_a_line_bash_parses(capsys):
+    """Each example pastes into bash: `bash -n` (parse only) accepts it, comments included."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    texts = [parser.format_help()] + [sub.choices[name].format_help() for name in sorted(sub.choices)]
+    examples = [line for text in texts for line in _examples(text)]
+    assert len(examples) >= len(sub.choices) + 2
+    for line in examples:
+        res = subprocess.run(["bash", "-n", "-c", line], capture_output=True, text=True, timeout=30)
+        assert res.returncode == 0, (line, res.stderr)
+    bad = subprocess.run(["bash", "-n", "-c", "dimenet train x --out y   (a comment)"], capture_output=True, timeout=30)
+    assert bad.returncode != 0  # the check itself catches the old style
+
+
+def test_a_missing_extra_names_the_package_and_the_cpu_torch_line():
+    from dimenet.runtime.cli.main import CPU_TORCH, missing_extra
+
+    torch_line = missing_extra(ModuleNotFoundError("No module named 'torch'", name="torch"))
+    assert torch_line.startswith("torch is not installed: this command needs the train extra")
+    assert CPU_TORCH in torch_line and "pip install '.[train]'" in torch_line and "dimenet-runtime[" not in torch_line
+    onnx_line = missing_extra(ModuleNotFoundError("No module named 'onnx.helper'", name="onnx.helper"))
+    assert (
+        onnx_line.startswith("onnx is not installed: this command needs the export extra") and "torch" not in onnx_line
+    )
+    assert missing_extra(ImportError("cannot import name 'x'")) == (
+        "an import failed (cannot import name 'x'): a package dimenet needs is missing or broken"
+    )
+
+
+def test_dimenet_dash_v_shows_the_version():
+    shown = dimenet("-V")
+    assert shown.returncode == 0 and shown.stdout.startswith("dimenet ")
+
+
 @pytest.mark.parametrize(
     "args, words",
     [
@@ -151,3 +191,16 @@ def test_the_version_has_one_source_and_dimenet_version_shows_it():
     assert runtime.__version__ == metadata.version("dimenet-runtime") == declared
     shown = dimenet("--version")
     assert shown.returncode == 0 and shown.stdout.strip() == f"dimenet {declared}"
+
+
+def test_the_changelog_and_citation_name_the_version_and_the_licence_is_there():
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    declared = re.search(r'^version = "([^"]+)"', (root / "pyproject.toml").read_text(), re.M).group(1)
+    newest = re.search(r"^## (\S+)", (root / "CHANGELOG.md").read_text(), re.M).group(1)
+    cited = re.search(r'^version: "([^"]+)"', (root / "CITATION.cff").read_text(), re.M).group(1)
+    assert newest == cited == declared
+    assert (root / "LICENSE").read_text().startswith("MIT License")
+    assert 'license = { text = "MIT" }' in (root / "pyproject.toml").read_text()

@@ -8,6 +8,7 @@ import json
 import shlex
 import subprocess
 import sys
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -73,6 +74,26 @@ def test_out_writes_the_same_lines_atomically_and_a_refused_frame_is_a_line(reco
     assert all("K" in r for r in records[:1] + records[2:])
     assert main(["rectify", "--points", str(short), "--camera", str(camera_file)]) == 0
     assert _lines(capsys.readouterr().out)[1:] == records
+
+
+def test_a_recording_of_which_no_frame_is_rectified_exits_1(recording, camera_file, tmp_path, capsys):
+    lines = recording.read_text().splitlines()
+    header, rows = lines[0], lines[1:]
+    kept, seen = [], Counter()
+    for row in rows:  # every frame keeps 4 of its points: each is refused
+        seen[row.split(",")[0]] += 1
+        if seen[row.split(",")[0]] <= 4:
+            kept.append(row)
+    few = tmp_path / "few.csv"
+    few.write_text("\n".join([header, *kept]) + "\n")
+    out = tmp_path / "few.jsonl"
+    assert main(["rectify", "--points", str(few), "--camera", str(camera_file), "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == f"6 frames (6 refused, 0 fallbacks) -> {out}\n"
+    assert captured.err == f"dimenet: {few}: no frame was rectified (6 of 6 refused; each record's error says why)\n"
+    assert all("error" in r for r in _lines(out.read_text())[1:])
+    assert main(["rectify", "--points", str(few), "--camera", str(camera_file)]) == 1
+    assert len(_lines(capsys.readouterr().out)) == 7
 
 
 @pytest.mark.parametrize(

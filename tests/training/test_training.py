@@ -253,11 +253,14 @@ def test_clustered_inference_points_are_compact_noisy_candidates_and_spare_other
     assert out.valid is small.valid or np.array_equal(out.valid, small.valid)
 
 
-def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small, tmp_path):
+def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small, tmp_path, capsys):
     from dimenet.runtime.cli.main import main
 
     data = write_dataset(small, tmp_path / "small.npz")
-    assert main(["train", str(data), "--out", str(tmp_path / "run"), "--epochs", "1", "--focal-weight", "0"]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "run"), "--epochs", "2", "--focal-weight", "0"]) == 0
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    best = min(history, key=lambda h: h["val_e_px"])["epoch"]
+    assert capsys.readouterr().out.startswith(f"trained 2 epochs, kept epoch {best} (best val Avg(e) ")
     spec = json.loads((tmp_path / "run" / "spec.json").read_text())
     assert spec["provenance"]["config"]["focal_weight"] == 0.0
     for bad in ("-1", "nan", "inf"):

@@ -16,7 +16,7 @@ import json
 from dimenet.runtime.bench.latency import format_report, run_bench
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism, seed
 from dimenet.runtime.cli.commands.render import MAX_PHOTOS
-from dimenet.runtime.cli.main import CliError, Command
+from dimenet.runtime.cli.main import CliError, Command, missing_extra
 from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.sim.profiles import PROFILES
@@ -237,7 +237,8 @@ def _run_ingest(args: argparse.Namespace) -> int:
     from dimenet.runtime.bench.ingest import format_ingest_report, run_ingest_bench
 
     o = _options(args, INGEST)
-    figures = run_ingest_bench(args.ingest, **o)
+    asked = {name: getattr(args, name) for name in ("n", "seed", "profile") if getattr(args, name) is not None}
+    figures = run_ingest_bench(args.ingest, **o, asked=asked)
     print(json.dumps(figures) if args.json else format_ingest_report(figures))
     return 0
 
@@ -266,10 +267,7 @@ def _bpnp_bench():
             raise ImportError("no bpnp bench registered", name="dimenet.training")
         return entry.load()
     except ImportError as exc:
-        raise CliError(
-            f"dimenet bench: --bpnp needs the train extra ({exc.name or exc} is not installed): "
-            "pip install 'dimenet-runtime[train]'"
-        ) from None
+        raise CliError(f"dimenet bench: --bpnp needs the train extra ({missing_extra(exc)})") from None
 
 
 COMMAND = Command(

@@ -187,7 +187,7 @@ COMMAND = Command(
     "  dimenet simulate --profile galaxy-s8 --platform-k --dist-coeffs 0.08,-0.15,0,0 --out s8-sdk.npz\n"
     "  dimenet simulate --family 100 --seed 0 --natural-frames 10 --out family\n"
     "  dimenet simulate --family 100 --seed 0 --scenes random --out family-scenes\n"
-    "  dimenet simulate --family 100 --seed 0 --out family --address local:2   (the fleet extra: Ray jobs)",
+    "  dimenet simulate --family 100 --seed 0 --out family --address local:2   # the fleet extra: Ray jobs",
     add_arguments=add_arguments,
     run=run,
 )
