@@ -16,6 +16,7 @@ from dimenet.runtime.errors import (
     LabelsError,
     ModelError,
     PhotoError,
+    PointsError,
     RigError,
 )
 
@@ -31,6 +32,7 @@ __all__ = [
     "LabelsError",
     "ModelError",
     "PhotoError",
+    "PointsError",
     "RigError",
     *_RECTIFY,
     "__version__",

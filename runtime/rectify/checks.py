@@ -70,14 +70,17 @@ SPREAD_RATIO = 1e-4
 SPREAD_ABSOLUTE = 1e-10
 
 
-def real_array(value, name: str, shape: str, ndim: int, last: int) -> np.ndarray:
-    """C-contiguous float64 array of ``ndim`` dims ending in ``last`` from any real array-like."""
+def real_array(value, name: str, shape: str, ndim: int, last: int, *, opencv: bool = False) -> np.ndarray:
+    """C-contiguous float64 array of ``ndim`` dims ending in ``last`` from any real array-like;
+    ``opencv``: (N, 1, last) too (as cv2.findChessboardCorners and cv2.projectPoints return them)."""
     try:
         a = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: not an array of numbers ({exc})") from None
     if a.dtype.kind not in "iuf":
         raise InputError(f"{name}: dtype {a.dtype} cannot be cast to float64 coordinates")
+    if opencv and a.ndim == ndim + 1 and a.shape[-2:] == (1, last):
+        a = a.reshape(*a.shape[:-2], last)
     if a.ndim != ndim or a.shape[-1] != last:
         raise InputError(f"{name}: expected shape {shape}, got {a.shape}")
     return np.ascontiguousarray(a, dtype=np.float64)
@@ -307,8 +310,8 @@ def validated_frame(
     """The input rules on one frame: its points as float64 (N, 2) px as given, the same mapped by
     ``to_model`` (the user's pixels -> the model's pinhole pixels) before the spread rule, and (N, 3)
     mm, with the ``covariance_invariants`` of the 3D points; or InputError naming the problem."""
-    p2 = real_array(points_2d, "points_2d", "(N, 2)", 2, 2)
-    p3 = real_array(points_3d, "points_3d", "(N, 3)", 2, 3)
+    p2 = real_array(points_2d, "points_2d", "(N, 2) or (N, 1, 2)", 2, 2, opencv=True)
+    p3 = real_array(points_3d, "points_3d", "(N, 3) or (N, 1, 3)", 2, 3, opencv=True)
     n = len(p2)
     if len(p3) != n:
         raise InputError(f"points_2d has {n} points and points_3d {len(p3)}: they must correspond one to one")
