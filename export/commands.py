@@ -7,16 +7,35 @@ import hashlib
 from pathlib import Path
 
 from dimenet.runtime.cli.arguments import integer_in, nonempty_path
-from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
+from dimenet.runtime.formats.atomic import atomic_write
 
 from .opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 
 
 def _add_export(p: argparse.ArgumentParser) -> None:
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a trained model folder from `dimenet train`")
     p.add_argument(
-        "--out", required=True, type=nonempty_path, metavar="MODEL.onnx", help="ONNX file to write (atomically)"
+        "source",
+        metavar="SOURCE",
+        help="a trained model folder from `dimenet train` (RUN_DIR); with --graph full or --golden also a "
+        "MODEL.onnx or 'default' (the bundled model)",
+    )
+    p.add_argument("--out", type=nonempty_path, metavar="FILE.onnx", help="ONNX file to write (atomically)")
+    p.add_argument(
+        "--graph",
+        choices=("mlp", "full"),
+        default="mlp",
+        help="mlp: the network alone (features [batch, D] -> delta_k [batch, 4]); full: the whole feature of a "
+        "generic model in one graph (a frame's points, K_c, image size and C0 pose -> delta_k, K, sigma px), "
+        "for apps in other languages (default mlp)",
+    )
+    p.add_argument(
+        "--golden",
+        type=nonempty_path,
+        metavar="DIR",
+        help="instead of a model, write DIR/golden.json: about 20 frames across cameras, scenes and fallbacks "
+        "with what the runtime gives for them (models_spec/golden.md)",
     )
     p.add_argument(
         "--opset",
@@ -26,17 +45,45 @@ def _add_export(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _model_bytes(source: str, opset: int) -> bytes:
+    """The dimenet-model/1 bytes of SOURCE: the bundled model, a MODEL.onnx or a RUN_DIR exported now."""
+    from dimenet.runtime.rectify.model import DEFAULT_NAME, default_model_bytes, read_model_file
+
+    if source == DEFAULT_NAME:
+        return default_model_bytes()
+    if Path(source).is_file():
+        return read_model_file(Path(source))
+    from dimenet.training.run_dir import load_run
+
+    from .onnx_export import export_model
+
+    return export_model(*load_run(source), opset=opset)
+
+
 def _run_export(args: argparse.Namespace) -> int:
     from dimenet.training.run_dir import SPEC, WEIGHTS
 
-    from .onnx_export import export_run
+    if (args.out is None) == (args.golden is None):
+        raise CliError("dimenet export: give --out FILE.onnx (a model) or --golden DIR (golden vectors), one of them")
+    if args.golden is not None:
+        from .golden import write_golden
 
-    inputs = [("RUN_DIR", Path(args.run_dir) / name) for name in (WEIGHTS, SPEC)]
+        source = None if args.source == "default" else args.source
+        path = write_golden(args.golden, source)
+        print(f"golden vectors of {args.source} -> {path}")
+        return 0
+    inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + [("SOURCE", Path(args.source))]
     refuse_overwriting_inputs("dimenet export", [("--out", args.out)], inputs)
-    out = Path(export_run(args.run_dir, args.out, opset=args.opset))
-    blob = out.read_bytes()
+    blob = _model_bytes(args.source, args.opset)
+    if args.graph == "full":
+        from .full_graph import full_graph
+
+        blob = full_graph(blob, args.source)
+    elif args.source == "default" or Path(args.source).is_file():
+        raise CliError("dimenet export: --graph mlp exports a RUN_DIR (a model file already is one)")
+    out = Path(atomic_write(args.out, lambda f: f.write(blob)))
     print(
-        f"exported {args.run_dir} -> {out} ({len(blob) / 1024:.0f} KiB, opset {args.opset}, "
+        f"exported {args.source} -> {out} ({args.graph} graph, {len(blob) / 1024:.0f} KiB, "
         f"sha256 {hashlib.sha256(blob).hexdigest()[:16]})"
     )
     return 0
@@ -44,8 +91,11 @@ def _run_export(args: argparse.Namespace) -> int:
 
 EXPORT = Command(
     name="export",
-    summary="Export a trained RUN_DIR to ONNX (features [batch, D] -> delta_k [batch, 4] px, spec in the metadata).",
-    example="dimenet export runs/s8 --out s8.onnx --opset 17",
+    summary="Export a trained RUN_DIR to ONNX (features [batch, D] -> delta_k [batch, 4] px, spec in the metadata), "
+    "a generic model as one full graph, or golden vectors.",
+    example="dimenet export runs/s8 --out s8.onnx --opset 17\n"
+    "  dimenet export default --graph full --out dimenet-full.onnx   # points, K_c, pose in; Delta K, K, sigma out\n"
+    "  dimenet export default --golden golden/",
     add_arguments=_add_export,
     run=_run_export,
 )

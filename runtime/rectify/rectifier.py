@@ -43,13 +43,13 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.errors import CameraError, InputError
-from dimenet.runtime.geometry import frame_error_and_depth, k_params, mean_reprojection_error
+from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify import stages
-from dimenet.runtime.rectify.checks import validated_batch, validated_frame
+from dimenet.runtime.rectify.checks import real_array, validated_batch, validated_frame
 from dimenet.runtime.rectify.inference import network_k
 from dimenet.runtime.rectify.model import OnnxModel, load_model
-from dimenet.runtime.rectify.results import BatchRectification, Rectification
+from dimenet.runtime.rectify.results import BatchRectification, NetworkEstimate, Rectification
 from dimenet.runtime.rectify.spec import ModelSpec, frame_within_bounds
 from dimenet.runtime.rectify.user_camera import Camera, PixelMap, checked_camera, checked_image_size
 
@@ -196,6 +196,28 @@ class Rectifier:
         lap("check")
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
+
+    def network(self, points_2d, points_3d, rvec_c0, tvec_c0) -> NetworkEstimate:
+        """The network's part of ``rectify`` for one frame at a C0 pose the app solved (rvec_c0,
+        tvec_c0 (3,) {W}->{C0} under K_c): the feature, Delta K, K and sigma before any fallback rule,
+        in the camera's pixels; what the full graph (``export.full_graph``) computes. InputError as
+        ``rectify``'s input rules."""
+        cam = self._cam
+        _, p2, p3, invariants_3d = validated_frame(cam.image, cam.to_model, points_2d, points_3d)
+        rvec = real_array(rvec_c0, "rvec_c0", "(3,)", 1, 3)
+        tvec = real_array(tvec_c0, "tvec_c0", "(3,)", 1, 3)
+        feats, e_c = stages.frame_features(cam, p2, p3, rvec, tvec)
+        delta_k = self.model.frame_delta_k(feats)
+        k = cam.k_c + delta_k
+        sigma = None
+        if cam.spec.uncertainty is not None:
+            cov = stages.frame_covariance(cam.spec, feats, len(p2), e_c, invariants_3d)
+            sigma = np.sqrt(np.diagonal(cov))
+        if cam.pixels is not None:
+            k = cam.pixels.k_to_user(k)
+            sigma = None if sigma is None else sigma * cam.user_px
+        K = k_matrix(k)
+        return NetworkEstimate(delta_k=k - k_params(cam.K_c_user), K=K, sigma=sigma, features=feats)
 
     def rectify_batch(
         self, points_2d, points_3d, valid, *, infer_mask=None, refine: bool = False

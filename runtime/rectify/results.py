@@ -53,3 +53,17 @@ class BatchRectification:
     fallback: tuple
     K_c: np.ndarray
     K_cov: Optional[np.ndarray] = None
+
+
+@dataclass(frozen=True)
+class NetworkEstimate:
+    """What the network says of one frame before any fallback rule (``Rectifier.network``, the
+    full graph's outputs): delta_k (4,) (fx, fy, cx, cy) and K (3, 3) = K_c + Delta K in the
+    camera's pixels; sigma (4,) px the standard deviations of Delta K (None: the model has no
+    uncertainty model); features (1, D) float64, what the network read."""
+
+    delta_k: np.ndarray
+    K: np.ndarray
+    sigma: Optional[np.ndarray]
+    features: np.ndarray
+

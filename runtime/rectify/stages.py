@@ -263,11 +263,11 @@ def frame_candidate(cam: ModelCamera, delta_k, feats, n_points: int, e_c: float,
         return None, implausible_reason(delta_k, cam.user_k(k))
     covariance = None
     if cam.spec.uncertainty is not None:  # computed when K_cov is first asked for: the hot path does not pay
-        covariance = partial(_frame_covariance, cam.spec, feats, n_points, e_c, invariants_3d)
+        covariance = partial(frame_covariance, cam.spec, feats, n_points, e_c, invariants_3d)
     return Candidate(K=k_matrix(k), delta_k=delta_k, covariance=covariance), None
 
 
-def _frame_covariance(spec: ModelSpec, feats: np.ndarray, n_points: int, pmd_px: float, invariants_3d: tuple):
+def frame_covariance(spec: ModelSpec, feats: np.ndarray, n_points: int, pmd_px: float, invariants_3d: tuple):
     """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count, mean
     PMD (px) and the ``covariance_invariants`` of its 3D points."""
     cells = occupied_cells(feats[:, : spec.features.grid_size], len(spec.features.channels))[0]

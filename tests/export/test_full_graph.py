@@ -1,0 +1,105 @@
+"""`dimenet export --graph full` (export.full_graph): the whole feature of a generic model in one graph of
+standard ONNX operators, equal to the Python runtime on every golden frame, with a mask, at any pose; and
+the golden set's inputs are what golden_frames() simulates today."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+onnx = pytest.importorskip("onnx")
+import onnxruntime as ort  # noqa: E402
+
+from dimenet.export.full_graph import INPUTS, OUTPUTS, full_graph  # noqa: E402
+from dimenet.export.golden import golden_frames  # noqa: E402
+from dimenet.runtime.errors import ModelError  # noqa: E402
+from dimenet.runtime.geometry import solve_pnp_start  # noqa: E402
+from dimenet.runtime.rectify.model import default_model_bytes  # noqa: E402
+from dimenet.runtime.rectify.rectifier import Rectifier  # noqa: E402
+
+GOLDEN = Path(__file__).resolve().parents[2] / "models_spec" / "golden" / "golden.json"
+# Every operator the full graph may hold: standard ONNX, no control flow, no custom domain.
+FULL_GRAPH_OPS = {
+    "Add", "Cast", "Concat", "Constant", "Cos", "Div", "Equal", "Erf", "Exp", "Floor", "Gather", "Gelu", "Greater",
+    "Identity", "Less", "Log", "MatMul", "Max", "Min", "Mul", "Pow", "ReduceSum", "Reshape", "Sin", "Sqrt", "Sub",
+    "Transpose", "Unsqueeze", "Where",
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def blob() -> bytes:
+    return full_graph(default_model_bytes(), "bundled")
+
+
+@pytest.fixture(scope="module")
+def session(blob):
+    return ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
+
+
+def _run(session, x: dict, rvec, tvec, mask=None) -> dict:
+    n = len(x["points_2d"])
+    feeds = {
+        "points_2d": np.asarray(x["points_2d"], np.float64),
+        "points_3d": np.asarray(x["points_3d"], np.float64),
+        "mask": np.ones(n, bool) if mask is None else mask,
+        "K_c": np.asarray(x["K_c"], np.float64),
+        "image_size": np.asarray(x["image_size"], np.float64),
+        "rvec": np.asarray(rvec, np.float64),
+        "tvec": np.asarray(tvec, np.float64),
+    }
+    return dict(zip([o.name for o in session.get_outputs()], session.run(None, feeds)))
+
+
+def test_the_graph_is_standard_onnx_with_the_documented_signature(blob, session):
+    proto = onnx.load_from_string(blob)
+    assert {n.op_type for n in proto.graph.node} <= FULL_GRAPH_OPS
+    assert all(n.domain in ("", "ai.onnx") for n in proto.graph.node)
+    assert [i.name for i in session.get_inputs()] == list(INPUTS)
+    assert [o.name for o in session.get_outputs()] == list(OUTPUTS)
+    assert any(p.key == "dimenet_model_spec" for p in proto.metadata_props)
+
+
+def test_the_graph_equals_the_runtime_on_every_golden_frame(session):
+    golden = json.loads(GOLDEN.read_text())
+    worst = 0.0
+    for frame in golden["frames"]:
+        x, want = frame["inputs"], frame["expected"]
+        out = _run(session, x, want["rvec"], want["tvec"])
+        for key in ("delta_k", "K", "sigma"):
+            worst = max(worst, float(np.abs(out[key] - np.array(want[key])).max()))
+    assert worst <= 1e-6, worst
+
+
+def test_a_mask_and_any_pose_equal_the_runtime_on_those_points(session):
+    frame = golden_frames()[0]
+    keep = np.zeros(len(frame.points_2d), bool)
+    keep[::3] = True
+    rvec, tvec = solve_pnp_start(frame.points_2d[keep], frame.points_3d[keep], frame.K_c)
+    rect = Rectifier.load(K_c=frame.K_c, image_size=frame.image_size)
+    net = rect.network(frame.points_2d[keep], frame.points_3d[keep], rvec, tvec)
+    x = {"points_2d": frame.points_2d, "points_3d": frame.points_3d, "K_c": frame.K_c, "image_size": frame.image_size}
+    out = _run(session, x, rvec, tvec, keep)
+    np.testing.assert_allclose(out["delta_k"], net.delta_k, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out["sigma"], net.sigma, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out["features"], net.features, rtol=1e-6, atol=1e-9)
+    tilted = _run(session, x, rvec + 0.01, tvec, keep)  # the pose is an input: another pose, another feature
+    assert np.abs(tilted["delta_k"] - out["delta_k"]).max() > 1e-3
+
+
+def test_the_committed_golden_inputs_are_what_the_simulator_gives_today():
+    golden = json.loads(GOLDEN.read_text())
+    frames = golden_frames()
+    assert [f.name for f in frames] == [g["name"] for g in golden["frames"]]
+    for frame, stored in zip(frames, golden["frames"]):
+        np.testing.assert_array_equal(frame.points_2d, np.array(stored["inputs"]["points_2d"]))
+        np.testing.assert_array_equal(frame.K_c, np.array(stored["inputs"]["K_c"]))
+
+
+def test_models_the_graph_does_not_hold_are_refused_by_name(tmp_path):
+    from helpers import DEVICE_MODEL
+
+    with pytest.raises(ModelError, match="the full graph holds generic models"):
+        full_graph(Path(DEVICE_MODEL).read_bytes(), "device.onnx")

@@ -1,0 +1,56 @@
+"""The runtime against the committed golden vectors (models_spec/golden/golden.json, written by
+`dimenet export default --golden`): the network's Delta K, K and sigma at the stored C0 pose, and
+rectify's K, fallback and errors, each within 1e-6 px. A change of the bundled model, the feature,
+a rule or the simulator that moves any of them fails here until the golden set is written again."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dimenet.runtime.rectify.rectifier import Rectifier
+
+GOLDEN = Path(__file__).resolve().parents[2] / "models_spec" / "golden" / "golden.json"
+TOLERANCE_PX = 1e-6
+
+
+@pytest.fixture(scope="module")
+def golden() -> dict:
+    return json.loads(GOLDEN.read_text())
+
+
+def test_the_golden_set_spans_cameras_scenes_and_fallbacks(golden):
+    frames = golden["frames"]
+    assert golden["format"] == "dimenet-golden/1" and 18 <= len(frames) <= 30
+    sizes = {tuple(f["inputs"]["image_size"]) for f in frames}
+    reasons = [f["expected"]["fallback"] for f in frames]
+    assert len(sizes) >= 4 and sum(r is None for r in reasons) >= 15
+    assert {"structure", "worse than K_c", "mean error of"} <= {
+        key for key in ("structure", "worse than K_c", "mean error of") for r in reasons if r and key in r
+    }
+    assert (
+        min(len(f["inputs"]["points_2d"]) for f in frames)
+        <= 66
+        < 320
+        <= max(len(f["inputs"]["points_2d"]) for f in frames)
+    )
+
+
+def test_the_runtime_gives_the_golden_numbers(golden):
+    for frame in golden["frames"]:
+        x, want = frame["inputs"], frame["expected"]
+        rect = Rectifier.load(K_c=np.array(x["K_c"]), image_size=tuple(int(v) for v in x["image_size"]))
+        p2, p3 = np.array(x["points_2d"]), np.array(x["points_3d"])
+        net = rect.network(p2, p3, np.array(want["rvec"]), np.array(want["tvec"]))
+        for got, key in ((net.delta_k, "delta_k"), (net.K, "K"), (net.sigma, "sigma")):
+            np.testing.assert_allclose(
+                got, np.array(want[key]), rtol=0, atol=TOLERANCE_PX, err_msg=f"{frame['name']} {key}"
+            )
+        result = rect.rectify(p2, p3)
+        assert result.fallback == want["fallback"], frame["name"]
+        np.testing.assert_allclose(result.K, np.array(want["rectified_K"]), rtol=0, atol=TOLERANCE_PX)
+        assert abs(result.reprojection_error_px - want["e_px"]) <= TOLERANCE_PX
+        assert abs(result.reprojection_error_kc_px - want["e_c_px"]) <= TOLERANCE_PX
