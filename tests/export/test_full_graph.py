@@ -103,3 +103,23 @@ def test_models_the_graph_does_not_hold_are_refused_by_name(tmp_path):
 
     with pytest.raises(ModelError, match="the full graph holds generic models"):
         full_graph(Path(DEVICE_MODEL).read_bytes(), "device.onnx")
+
+
+def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, capsys):
+    from dimenet.runtime.cli.main import main
+
+    out = tmp_path / "full.onnx"
+    assert main(["export", "default", "--graph", "full", "--out", str(out)]) == 0
+    assert "full graph" in capsys.readouterr().out
+    assert [i.name for i in ort.InferenceSession(str(out)).get_inputs()] == list(INPUTS)
+    assert main(["export", "default", "--golden", str(tmp_path / "golden")]) == 0
+    written = json.loads((tmp_path / "golden" / "golden.json").read_text())
+    assert written == json.loads(GOLDEN.read_text())  # the committed set is this release's
+    for args, words in (
+        (["export", "default", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
+        (["export", "default"], "give --out FILE.onnx (a model) or --golden DIR"),
+        (["export", "default", "--out", str(out), "--golden", str(tmp_path)], "one of them"),
+    ):
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
