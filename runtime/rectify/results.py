@@ -66,4 +66,3 @@ class NetworkEstimate:
     K: np.ndarray
     sigma: Optional[np.ndarray]
     features: np.ndarray
-
