@@ -47,11 +47,17 @@ RANK = {unit: rank for rank, units in enumerate(LAYERS) for unit in units}
 HEAVY = ("torch", "onnx", "ray")  # third parties no runtime package may load
 
 
+# `python -m dimenet`'s file: installed as dimenet/__main__.py (pyproject.toml), not a module of runtime.
+MODULE_ENTRY = "module_entry"
+
+
 def modules() -> dict[str, Path]:
     """Every module of the three packages: dotted name -> file."""
     found = {}
     for package, folder in SOURCES.items():
         for path in sorted(folder.rglob("*.py")):
+            if MODULE_ENTRY in path.relative_to(folder).parts:
+                continue
             parts = path.relative_to(folder).with_suffix("").parts
             parts = parts[:-1] if parts[-1] == "__init__" else parts
             found[".".join((package, *parts))] = path

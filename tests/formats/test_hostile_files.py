@@ -251,7 +251,7 @@ def test_wrong_shapes_in_calibration_and_truth_are_refused(tmp_path):
     [
         ("[" * 100_000 + "]" * 100_000, "nested deeper than 32"),
         ('{"a":' * 5000 + "1" + "}" * 5000, "nested deeper than 32"),
-        ('{"a": ' + "9" * 5000 + "}", "4300 digits"),
+        ('{"a": ' + "9" * 5000 + "}", "the limit (4300"),  # CPython 3.9.2 says "(4300)", 3.11 "(4300 digits)"
         ('{"a": 1, "a": 2}', "'a' appears twice"),
     ],
 )
@@ -295,7 +295,7 @@ def board0(key, value):
     [
         ("[" * 100_000 + "]" * 100_000, "nested deeper than 32"),
         ('{"a":' * 100_000 + "1" + "}" * 100_000, "nested deeper than 32"),
-        (rig_text().replace('"square_mm": 22.0', '"square_mm": ' + "9" * 5000, 1), "4300 digits"),
+        (rig_text().replace('"square_mm": 22.0', '"square_mm": ' + "9" * 5000, 1), "the limit (4300"),
         (rig_text()[:-1] + ', "units": "mm"}', "'units' appears twice"),
         (rig_text(board0("square_mm", 1e300)), "boards[0].square_mm: must be at most 1e+06"),
         (rig_text(lambda d: d["boards"][1]["tvec_mm"].__setitem__(2, -1e300)), "boards[1].tvec_mm[2]"),
