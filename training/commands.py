@@ -11,6 +11,7 @@ from pathlib import Path
 from dimenet.runtime.cli.arguments import grid_size, nonempty_path, seed
 from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
+from dimenet.runtime.rectify.spec import HEADS
 
 from .config import FEATURE_VARIANTS, ReproduceConfig, TrainConfig, epochs, focal_weight, k_c_error, train_frames
 
@@ -41,6 +42,13 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="after the grid, give the network the frame's own Gauss-Newton step on K from the C0 pose and its "
         "posterior sigmas (not the paper's: an encoder that reads how the points fix K, whatever the scene)",
+    )
+    p.add_argument(
+        "--head",
+        default=d.head,
+        choices=HEADS,
+        help="the network's output: mlp (the paper's) or gated_step (Delta K = the MLP's plus a learned share of the "
+        f"data step; needs --data-step) (default {d.head})",
     )
     p.add_argument(
         "--epochs", type=epochs, default=d.epochs, help=f"epochs (default {d.epochs}; the best val epoch is kept)"
@@ -93,6 +101,7 @@ def _run_train(args: argparse.Namespace) -> int:
         grid=args.grid,
         variant=args.features,
         data_step=args.data_step,
+        head=args.head,
         epochs=args.epochs,
         seed=args.seed,
         focal_weight=args.focal_weight,

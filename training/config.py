@@ -11,6 +11,8 @@ from pathlib import Path
 from typing import Optional
 
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.rectify.spec import HEADS
 
 # The flags are range-checked by their argparse types, so a bad value is refused before torch is imported;
 # a fleet manifest's values go through the same types (training/fleet.py).
@@ -29,6 +31,7 @@ class TrainConfig:
     grid: str = "8x6"
     variant: str = "A"
     data_step: bool = False  # the frame's own Gauss-Newton step on K after the grid (rectify.features)
+    head: str = "mlp"  # "gated_step": Delta K = MLP + a learned gate times the data step (training.model)
     epochs: int = 600
     batch_size: int = 32
     lr: float = 2e-3
@@ -55,6 +58,14 @@ class TrainConfig:
     # Learning rate when starting from a model's weights (--init): a tenth of lr keeps what the
     # init knows (at lr, 30 galaxy-s8 frames took the default's natural rho 76 -> 66 %; METHOD.md).
     fine_tune_lr: float = 2e-4
+
+    def __post_init__(self) -> None:
+        if self.head not in HEADS:
+            raise InputError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
+        if self.head == "gated_step" and not self.data_step:
+            raise InputError(
+                "head gated_step needs the data step it gates (--data-step; data_step in a fleet manifest)"
+            )
 
 
 @dataclass(frozen=True)

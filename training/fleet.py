@@ -5,7 +5,7 @@ The manifest (JSON, models_spec/fleet.md):
 with per job a unique ``name`` (its run dir ``DIR/<name>``), a ``dataset`` (a .npz file or a
 family folder, relative to the manifest) and any of `dimenet train`'s options: ``init``,
 ``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``, ``data_step``,
-``k_c_error``.
+``k_c_error``, ``head``.
 
 Every value goes through the argparse type `dimenet train` gives its flag (training/config.py),
 so a manifest passes nothing the command line refuses; a job name may not be one of the files
@@ -32,10 +32,11 @@ from pathlib import Path
 from typing import Optional
 
 from dimenet.runtime.cli.arguments import grid_size, seed
-from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.errors import DimenetError, InputError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.json_text import JsonProblem, an_object, parse_json, required, shown
+from dimenet.runtime.rectify.spec import HEADS
 
 from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, k_c_error, train_frames
 
@@ -52,6 +53,12 @@ def _features(text: str) -> str:
     return text
 
 
+def _head(text: str) -> str:
+    if text not in HEADS:
+        raise argparse.ArgumentTypeError(f"must be one of {', '.join(HEADS)}, got {text!r}")
+    return text
+
+
 # Manifest key -> (TrainConfig field, JSON type, the argparse type of `dimenet train`'s flag).
 _OPTIONS = {
     "seed": ("seed", int, seed),
@@ -62,6 +69,7 @@ _OPTIONS = {
     "train_frames": ("train_frames", int, train_frames),
     "data_step": ("data_step", bool, None),  # `dimenet train --data-step`: a switch, no argparse type
     "k_c_error": ("k_c_error", float, k_c_error),
+    "head": ("head", str, _head),
 }
 _KEYS = {attr: key for key, (attr, _, _) in _OPTIONS.items()}  # TrainConfig field -> manifest key
 
@@ -120,7 +128,11 @@ def _job(d, base: Path, names: set) -> FleetJob:
     if init is not None and init != "default":
         init = str(base / init)
     options = {_OPTIONS[key][0]: _option(key, d[key]) for key in _OPTIONS if key in d}
-    return FleetJob(name=name, dataset=str(base / dataset), init=init, config=replace(TrainConfig(), **options))
+    try:
+        config = replace(TrainConfig(), **options)
+    except InputError as exc:  # a pairing of fields TrainConfig refuses (head gated_step without data_step)
+        raise JsonProblem(str(exc)) from None
+    return FleetJob(name=name, dataset=str(base / dataset), init=init, config=config)
 
 
 def read_manifest(path: str | Path) -> list:

@@ -36,7 +36,7 @@ from dimenet.runtime.rectify.model import (
 from dimenet.runtime.rectify.model import DEFAULT_SOURCE as BUNDLED_SOURCE
 from dimenet.runtime.rectify.spec import ModelSpec
 
-from .model import OUTPUT_SCALE_PX, DimeNet
+from .model import OUTPUT_SCALE_PX, DimeNet, dime_net
 from .run_dir import load_run
 
 DEFAULT_SOURCE = DEFAULT_NAME  # names the bundled default model (a folder of that name: pass "./default")
@@ -112,6 +112,40 @@ def _output_scale(nodes: list, constants: dict, source: str) -> float:
     return scale
 
 
+def _gated_state_dict(graph: onnx.GraphProto, constants: dict, spec: ModelSpec, source: str) -> dict:
+    """The state dict of the gated step head's graph (``training.model``): its MatMuls are fc1, fc2,
+    fc3 in graph order and the step pick (the one that reads the graph's input and gives 4 values);
+    the gate is one Gemm (weight (4, h2) with transB = 1, bias (4,)); the output scale is the last
+    node, a Mul by OUTPUT_SCALE_PX. Any other layout is a ModelError (and ``check_parity`` checks the rest)."""
+    graph_input = graph.input[0].name
+    matrices, pick = [], None
+    for node in graph.node:
+        weight = _matrix(node, constants, source)
+        if weight is not None and node.input[0] == graph_input and weight.shape[0] == 4:
+            pick = weight.T
+        elif weight is not None:
+            matrices.append(weight)
+    gemms = [node for node in graph.node if node.op_type == "Gemm"]
+    sizes = (spec.features.size, *spec.hidden, 4)
+    expected = [(sizes[k + 1], sizes[k]) for k in range(3)]
+    if pick is None or len(gemms) != 1 or [tuple(m.shape) for m in matrices] != expected:
+        raise ModelError(
+            f"{source}: its spec says head gated_step, but the graph does not hold three matrices of (out, in) "
+            f"shapes {expected}, one step pick and one gate"
+        )
+    gate = gemms[0]
+    trans_b = [helper.get_attribute_value(a) for a in gate.attribute if a.name == "transB"]
+    weight, bias = (constants.get(name) for name in gate.input[1:3])
+    if trans_b != [1] or weight is None or bias is None or np.shape(weight) != (4, sizes[2]) or np.shape(bias) != (4,):
+        raise ModelError(f"{source}: its gate is not a Gemm of a (4, {sizes[2]}) weight (transB = 1) and a (4,) bias")
+    last = graph.node[-1]
+    if _output_scale([last], constants, source) != OUTPUT_SCALE_PX:
+        raise ModelError(f"{source}: a gated step head's graph ends with a Mul by {OUTPUT_SCALE_PX:g}")
+    tensors = {f"{name}.weight": m for name, m in zip(LAYERS, matrices)}
+    tensors |= {"gate.weight": weight, "gate.bias": bias, "step_pick": pick}
+    return {name: torch.from_numpy(np.array(v, dtype=np.float32)) for name, v in tensors.items()}
+
+
 def onnx_state_dict(proto: onnx.ModelProto, spec: ModelSpec, source: str) -> dict:
     """The DimeNet state dict (float32 tensors, (out, in)) held by an exported graph: its three
     matrices in graph order, the output scale taken out of the last one (it stays OUTPUT_SCALE_PX
@@ -119,6 +153,8 @@ def onnx_state_dict(proto: onnx.ModelProto, spec: ModelSpec, source: str) -> dic
     bias-free matrices of the spec's sizes (features.size -> hidden -> 4)."""
     graph = proto.graph
     constants = _constants(graph)
+    if spec.head == "gated_step":
+        return _gated_state_dict(graph, constants, spec, source)
     matrices, last = [], -1
     for k, node in enumerate(graph.node):
         weight = _matrix(node, constants, source)
@@ -152,7 +188,7 @@ def onnx_state_dict(proto: onnx.ModelProto, spec: ModelSpec, source: str) -> dic
 
 
 def _model(state_dict: dict, spec: ModelSpec) -> DimeNet:
-    model = DimeNet(spec.features.size, spec.hidden)
+    model = dime_net(spec)
     model.load_state_dict(state_dict)
     return model.eval()
 

@@ -14,7 +14,7 @@ from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.rectify.spec import ModelSpec
 
-from .model import DimeNet
+from .model import DimeNet, dime_net
 
 WEIGHTS, SPEC, HISTORY, CURVE = "weights.safetensors", "spec.json", "history.json", "curve.png"
 
@@ -62,7 +62,7 @@ def load_run(run_dir: str | Path) -> tuple[DimeNet, ModelSpec]:
         raise ModelError(f"{path}: no weights file")
     try:
         state = load_safetensors(path.read_bytes())
-        model = DimeNet(spec.features.size, spec.hidden)
+        model = dime_net(spec)
         model.load_state_dict(state)
     except Exception as exc:  # safetensors raises its own error types for corrupt files
         raise ModelError(f"{path}: unreadable or mismatched weights ({type(exc).__name__}: {exc})") from None

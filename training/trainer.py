@@ -46,7 +46,7 @@ from dimenet.runtime.rectify.user_camera import Camera
 from . import bpnp
 from .config import TrainConfig
 from .init_weights import InitialWeights
-from .model import DimeNet
+from .model import dime_net
 from .run_dir import write_run
 from .uncertainty import uncertainty_fields
 from .units import Unit, augment, first_train_frames, k_bounds, parameter_bounds, resynthesise, training_unit
@@ -207,7 +207,8 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         val_inputs.append(_stack(parts))
 
     hidden = tuple(init.spec.hidden) if init is not None else tuple(config.hidden)
-    model = DimeNet(spec_features.size, hidden)
+    head = init.spec.head if init is not None else config.head
+    model = dime_net(ModelSpec(spec_features, None, None, None, hidden, head=head))
     if init is not None:
         model.load_state_dict(init.state_dict)
     lr = config.lr if init is None else config.fine_tune_lr
@@ -282,7 +283,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
         u = units[0]
         bounds = _with_factory_span(k_bounds(u.train_K_star), [u], config)
         camera = {"K_c": u.camera.K, "image_size": u.camera.image_size, "K_bounds": bounds}
-    spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, **camera)
+    spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, head=head, **camera)
     spec = replace(spec, **uncertainty_fields(model, spec, units, config, init))
     run_dir = write_run(run_dir, model, spec, history)
     return TrainResult(

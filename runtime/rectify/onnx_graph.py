@@ -25,8 +25,9 @@ MAX_MODEL_BYTES = 64 << 20  # 3x the largest model `dimenet train` makes (64x64 
 MAX_FIELDS = 100_000
 # The operators `dimenet export` writes (export.onnx_export, every opset it offers): three MatMuls,
 # exact GELU (one Gelu node at opset >= 20, else Div/Erf/Add/Mul by scalar Constants) and the
-# output scale (Mul).
-EXPORTED_OPS = frozenset({"Add", "Constant", "Div", "Erf", "Gelu", "MatMul", "Mul"})
+# output scale (Mul); the gated step head (spec >= 1.8) adds a MatMul picking the step, the gate's
+# Gemm or MatMul/Add, and its Sigmoid.
+EXPORTED_OPS = frozenset({"Add", "Constant", "Div", "Erf", "Gelu", "Gemm", "MatMul", "Mul", "Sigmoid"})
 ONNX_DOMAINS = ("", "ai.onnx")
 FLOAT = 1  # TensorProto.FLOAT
 EXTERNAL = 1  # TensorProto.EXTERNAL

@@ -28,12 +28,15 @@ from dimenet.runtime.rectify.user_camera import MAX_IMAGE_SIDE_PX, Camera, Pixel
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version and reads every 1.x (the minor
 # versions and what each added: models_spec/model-v1.md).
-VERSION = "1.7.0"
+VERSION = "1.8.0"
 METADATA_KEY = "dimenet_model_spec"
 # Spec >= 1.4, optional: the sha256 of the model file's bytes with this value replaced by
 # WEIGHTS_SHA256_PLACEHOLDER (model-v1.md, "Integrity"; written by export, checked by the runtime).
 WEIGHTS_SHA256_KEY = "weights_sha256"
 WEIGHTS_SHA256_PLACEHOLDER = "0" * 64
+# The network's output head (spec >= 1.8; absent: "mlp", the paper's): "gated_step" adds the
+# feature's data step through a learned gate (training.model; models_spec/model-v1.md).
+HEADS = ("mlp", "gated_step")
 MAX_SPEC_CHARS = 4 << 20  # a spec is a few KiB
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
@@ -112,6 +115,7 @@ def _checked(d: dict) -> dict:
         "provenance": dict(provenance),
         "uncertainty": Uncertainty.from_dict(d["uncertainty"], features.grid.n_cells) if "uncertainty" in d else None,
         "residual_structure_px": _structure_px(d.get("residual_structure_px")),
+        "head": d.get("head", "mlp"),
         "weights_sha256": weights_sha256,
     }
 
@@ -152,7 +156,14 @@ class ModelSpec:
     generic: Optional[GenericCamera] = None
     uncertainty: Optional[Uncertainty] = None
     residual_structure_px: Optional[float] = None
+    head: str = "mlp"
     weights_sha256: Optional[str] = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.head not in HEADS:
+            raise JsonProblem(f"head must be one of {', '.join(HEADS)}, got {shown(self.head)}")
+        if self.head == "gated_step" and not self.features.data_step:
+            raise JsonProblem("head gated_step needs features.data_step (the step it gates)")
 
     def to_dict(self, *, weights_sha256: Optional[str] = None) -> dict:
         d = {"format": FORMAT, "version": VERSION, "features": self.features.to_dict()}
@@ -167,6 +178,8 @@ class ModelSpec:
             d["uncertainty"] = self.uncertainty.to_dict()
         if self.residual_structure_px is not None:
             d["residual_structure_px"] = self.residual_structure_px
+        if self.head != "mlp":
+            d["head"] = self.head
         if weights_sha256 is not None:
             d[WEIGHTS_SHA256_KEY] = weights_sha256
         return d

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -168,21 +169,24 @@ def test_failed_export_leaves_the_previous_file_intact(exported, run_dir, tmp_pa
 
 
 def test_every_opset_the_exporter_offers_writes_only_the_runtime_s_operators(spec):
-    """rectify.onnx_graph.EXPORTED_OPS is the exporter's operator set: each opset's export holds
-    operators of it only, and the runtime loads it (the check on the bytes passes)."""
+    """rectify.onnx_graph.EXPORTED_OPS is the exporter's operator set: each opset's export (the paper's
+    MLP and the gated step head) holds operators of it only, and the runtime loads it."""
     onnx = pytest.importorskip("onnx")
     from dimenet.export.commands import MAX_OPSET, MIN_OPSET
     from dimenet.export.onnx_export import export_model
     from dimenet.runtime.rectify.model import onnx_model_from_bytes
     from dimenet.runtime.rectify.onnx_graph import EXPORTED_OPS, ONNX_DOMAINS
+    from dimenet.training.model import dime_net
 
-    model = random_torch_model(spec, seed=3)
+    gated_spec = replace(spec, features=replace(spec.features, data_step=True), head="gated_step")
+    models = ((random_torch_model(spec, seed=3), spec), (dime_net(gated_spec).eval(), gated_spec))
     used = set()
     for opset in range(MIN_OPSET, MAX_OPSET + 1):
-        blob = export_model(model, spec, opset=opset)
-        nodes = onnx.load_from_string(blob).graph.node
-        assert {n.domain for n in nodes} <= set(ONNX_DOMAINS)
-        assert {n.op_type for n in nodes} <= EXPORTED_OPS, opset
-        used |= {n.op_type for n in nodes}
-        onnx_model_from_bytes(blob, f"opset {opset}")
+        for model, its_spec in models:
+            blob = export_model(model, its_spec, opset=opset)
+            nodes = onnx.load_from_string(blob).graph.node
+            assert {n.domain for n in nodes} <= set(ONNX_DOMAINS)
+            assert {n.op_type for n in nodes} <= EXPORTED_OPS, opset
+            used |= {n.op_type for n in nodes}
+            onnx_model_from_bytes(blob, f"opset {opset}")
     assert used == EXPORTED_OPS  # no operator listed that the exporter never writes
