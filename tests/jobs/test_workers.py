@@ -6,6 +6,7 @@ import math
 import multiprocessing
 import os
 import threading
+from concurrent.futures import ProcessPoolExecutor
 
 import cv2
 import pytest
@@ -33,10 +34,19 @@ def test_more_workers_add_helper_processes_that_join_when_up():
     assert pids[0] == os.getpid()  # this process starts at once, before any helper is up
 
 
-def test_a_short_run_does_not_wait_for_helpers_coming_up_and_they_are_shut_down_after():
-    assert list(run_shared(math.sqrt, [4.0], 3)) == [2.0]
+def test_a_short_run_does_not_wait_for_helpers_coming_up_and_they_are_shut_down_after(monkeypatch):
+    release = threading.Event()
+    submit = ProcessPoolExecutor.submit
+
+    def held_submit(self, *args, **kwargs):  # a helper that takes as long as the test wants to come up
+        release.wait(60)
+        return submit(self, *args, **kwargs)
+
+    monkeypatch.setattr(ProcessPoolExecutor, "submit", held_submit)
+    assert list(run_shared(math.sqrt, [4.0], 3)) == [2.0]  # returned while the helper is held back
     starter = [t for t in threading.enumerate() if t.name == "dimenet-helpers"]
-    assert len(starter) == 1  # still starting the helper: the result did not wait for it
+    assert len(starter) == 1 and starter[0].is_alive()
+    release.set()
     starter[0].join(timeout=60)
     assert not starter[0].is_alive() and not multiprocessing.active_children()
 
