@@ -22,6 +22,7 @@ import torch
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.rectify.integrity import content_sha256
 from dimenet.runtime.rectify.model import (
     INPUT_NAME,
     OUTPUT_NAME,
@@ -29,7 +30,8 @@ from dimenet.runtime.rectify.model import (
     stamped_digests,
     weights_sha256_span,
 )
-from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
+from dimenet.runtime.rectify.onnx_graph import check_model_bytes
+from dimenet.runtime.rectify.spec import CONTENT_SHA256_KEY, METADATA_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 
@@ -75,19 +77,33 @@ def stamp_weights_sha256(blob: bytes) -> bytes:
     return stamped
 
 
+def stamp_content_sha256(blob: bytes) -> bytes:
+    """Model bytes whose spec holds ``content_sha256`` = 64 zeros -> the same bytes with those zeros
+    replaced by the content digest of the spec and the graph's tensors (``rectify.integrity``)."""
+    proto = onnx.load_from_string(blob)
+    text = next(p.value for p in proto.metadata_props if p.key == METADATA_KEY)
+    digest = content_sha256(text, check_model_bytes(blob, "exported model"))
+    entry = f'"{CONTENT_SHA256_KEY}": "{WEIGHTS_SHA256_PLACEHOLDER}"'.encode("ascii")
+    if blob.count(entry) != 1:
+        raise ModelError("export: the placeholder content_sha256 does not occur exactly once in the model's bytes")
+    return blob.replace(entry, f'"{CONTENT_SHA256_KEY}": "{digest}"'.encode("ascii"))
+
+
 def _with_spec(blob: bytes, spec: ModelSpec) -> bytes:
     """The model bytes with the spec JSON in metadata_props, after onnx.checker (full check),
-    stamped with its weights_sha256 (``stamp_weights_sha256``)."""
+    stamped with its content_sha256, then its weights_sha256 (``stamp_content_sha256``,
+    ``stamp_weights_sha256``)."""
     proto = onnx.load_from_string(blob)
     del proto.metadata_props[:]
     entry = proto.metadata_props.add()
-    entry.key, entry.value = METADATA_KEY, spec.to_json(weights_sha256=WEIGHTS_SHA256_PLACEHOLDER)
+    placeholder = WEIGHTS_SHA256_PLACEHOLDER
+    entry.key, entry.value = METADATA_KEY, spec.to_json(weights_sha256=placeholder, content_sha256=placeholder)
     proto.doc_string = f"DIME-Net: grid feature -> Delta K (px); model spec in metadata_props[{METADATA_KEY!r}]"
     try:
         onnx.checker.check_model(proto, full_check=True)
     except onnx.checker.ValidationError as exc:
         raise ModelError(f"export: the exported graph fails onnx.checker ({str(exc).splitlines()[0]})") from None
-    return stamp_weights_sha256(proto.SerializeToString())
+    return stamp_weights_sha256(stamp_content_sha256(proto.SerializeToString()))
 
 
 def _check_parity(model: DimeNet, blob: bytes, size: int) -> None:
@@ -131,6 +147,35 @@ def restamp_model(blob: bytes, source: str = "model") -> bytes:
     stamped = _with_spec(blob, spec)
     onnx_model_from_bytes(stamped, f"{source} (re-stamped)")
     return stamped
+
+
+def ort_format_bytes(blob: bytes, source: str = "model") -> bytes:
+    """An ORT-format (ORT Mobile) conversion of ``dimenet-model/1`` ONNX bytes of spec >= 1.9, by ONNX
+    Runtime itself with its graph optimizations off, so the converted file keeps the graph's nodes
+    and tensors (its Constant nodes become initializers of the same name and values) and its spec:
+    it loads with its content_sha256 checked (``rectify.model``) and gives the same Delta K."""
+    import tempfile
+
+    import onnxruntime as ort
+
+    model = onnx_model_from_bytes(blob, source)
+    if model.spec.content_sha256 is None:
+        raise ModelError(f"{source}: its spec (before 1.9) has no content_sha256: re-stamp or re-export it first")
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    options.add_session_config_entry("session.save_model_format", "ORT")
+    with tempfile.TemporaryDirectory() as folder:
+        options.optimized_model_filepath = str(Path(folder) / "model.ort")
+        ort.InferenceSession(blob, options, providers=["CPUExecutionProvider"])
+        converted = (Path(folder) / "model.ort").read_bytes()
+    loaded = onnx_model_from_bytes(converted, f"{source} (ORT format)")
+    probe = np.random.default_rng(0).normal(size=(PROBE_FRAMES, model.spec.features.size)).astype(np.float32)
+    worst = float(np.abs(loaded.delta_k(probe) - model.delta_k(probe)).max())
+    if not worst <= PARITY_TOLERANCE_PX:
+        raise ModelError(
+            f"export: the ORT-format conversion of {source} gives a Delta K up to {worst:.2e} px off the ONNX file's"
+        )
+    return converted
 
 
 def export_run(run_dir: str | Path, out: str | Path, *, opset: int = DEFAULT_OPSET) -> Path:

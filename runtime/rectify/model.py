@@ -30,8 +30,16 @@ import onnxruntime as ort
 
 from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import InputError, ModelError
+from dimenet.runtime.rectify.integrity import content_sha256
 from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES, check_model_bytes
-from dimenet.runtime.rectify.spec import METADATA_KEY, WEIGHTS_SHA256_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
+from dimenet.runtime.rectify.ort_format import check_ort_bytes, is_ort_format
+from dimenet.runtime.rectify.spec import (
+    CONTENT_SHA256_KEY,
+    METADATA_KEY,
+    WEIGHTS_SHA256_KEY,
+    WEIGHTS_SHA256_PLACEHOLDER,
+    ModelSpec,
+)
 
 DEFAULT_MODEL = "default_model.onnx"  # the bundled default, in dimenet.runtime.assets
 DEFAULT_SOURCE = f"bundled default model ({DEFAULT_MODEL})"  # how errors and reports name it
@@ -189,19 +197,22 @@ def _checked_sha256(blob: bytes, spec: ModelSpec, source: str) -> str:
 def onnx_model_from_bytes(
     blob: bytes, source: str, *, threads: int = 1, providers: Optional[Sequence[str]] = None
 ) -> OnnxModel:
-    """Check the bytes hold only what the exporter writes (``check_model_bytes``), create the ORT
-    session from them, read and validate its spec, check the graph's signature and a probe call
-    against it, and the bytes against its weights_sha256."""
+    """Check the bytes hold only what the exporter writes (``check_model_bytes``; an ORT-format file:
+    ``check_ort_bytes``), create the ORT session from them, read and validate its spec, check the
+    graph's signature and a probe call against it, the spec and tensors against its content_sha256
+    (spec >= 1.9; an ORT-format file must have one) and an ONNX file's bytes against its weights_sha256."""
     options = session_options(threads)
-    check_model_bytes(blob, source)
+    ort_format = is_ort_format(blob)
+    tensors = check_ort_bytes(blob, source) if ort_format else check_model_bytes(blob, source)
     try:
         # On a failure ORT prints an "EP Error" banner to stdout and retries on its fallback
         # provider; the ModelError below is the one line a user gets.
         with contextlib.redirect_stdout(io.StringIO()):
             session = ort.InferenceSession(blob, options, providers=list(providers or DEFAULT_PROVIDERS))
     except Exception as exc:  # ORT raises its own exception types for corrupt files and bad providers
+        kind = "ORT-format" if ort_format else "ONNX"
         raise ModelError(
-            f"{source}: not a loadable ONNX model ({type(exc).__name__}: {str(exc).strip()[:300]})"
+            f"{source}: not a loadable {kind} model ({type(exc).__name__}: {str(exc).strip()[:300]})"
         ) from None
     try:
         text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
@@ -215,7 +226,19 @@ def onnx_model_from_bytes(
     spec = ModelSpec.from_json(text, source=source)
     _check_signature(session, spec, source)
     _check_probe(session, spec, source)
-    sha256 = _checked_sha256(blob, spec, source)
+    sha256 = hashlib.sha256(blob).hexdigest() if ort_format else _checked_sha256(blob, spec, source)
+    if spec.content_sha256 is not None:
+        found = content_sha256(text, tensors)
+        if found != spec.content_sha256:
+            raise ModelError(
+                f"{source}: the model's spec and weights differ from the {CONTENT_SHA256_KEY} in its spec: corrupt "
+                f"or modified (found {found[:16]}..., spec {spec.content_sha256[:16]}...)"
+            )
+    elif ort_format:
+        raise ModelError(
+            f"{source}: an ORT-format model needs the {CONTENT_SHA256_KEY} of spec >= 1.9 to be checked: convert "
+            f"it with `dimenet export MODEL.onnx --format ort` of this release"
+        )
     return OnnxModel(session=session, spec=spec, source=source, sha256=sha256)
 
 

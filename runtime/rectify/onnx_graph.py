@@ -17,6 +17,7 @@ Anything else is a ModelError naming the file. See models_spec/model-v1.md, "Ver
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.json_text import shown
@@ -35,13 +36,23 @@ EXTERNAL = 1  # TensorProto.EXTERNAL
 # Field numbers of onnx.proto (stable across IR versions).
 _MODEL_GRAPH, _MODEL_TRAINING_INFO, _MODEL_FUNCTIONS = 7, 20, 25
 _GRAPH_NODE, _GRAPH_INITIALIZER, _GRAPH_SPARSE_INITIALIZER = 1, 5, 15
-_NODE_NAME, _NODE_OP_TYPE, _NODE_ATTRIBUTE, _NODE_DOMAIN = 3, 4, 5, 7
+_NODE_OUTPUT, _NODE_NAME, _NODE_OP_TYPE, _NODE_ATTRIBUTE, _NODE_DOMAIN = 2, 3, 4, 5, 7
 _ATTRIBUTE_TENSORS = (5, 10)  # t, tensors
 _ATTRIBUTE_GRAPHS = (6, 11)  # g, graphs
 _ATTRIBUTE_SPARSE = (22, 23)  # sparse_tensor, sparse_tensors
 _TENSOR_DIMS, _TENSOR_DATA_TYPE, _TENSOR_SEGMENT, _TENSOR_FLOAT_DATA, _TENSOR_NAME, _TENSOR_RAW_DATA = 1, 2, 3, 4, 8, 9
 _TENSOR_OTHER_DATA = (5, 6, 7, 10, 11)  # int32, string, int64, double, uint64 values
 _TENSOR_EXTERNAL_DATA, _TENSOR_DATA_LOCATION = 13, 14
+
+
+@dataclass(frozen=True)
+class Tensor:
+    """A constant tensor of a model file: its name (a Constant's: its output's), dims and float32
+    values as little-endian bytes; what the content hash covers (``rectify.integrity``)."""
+
+    name: str
+    dims: tuple
+    data: bytes
 
 
 class _Malformed(ValueError):
@@ -77,7 +88,7 @@ def _varint(buf: memoryview, i: int) -> tuple[int, int]:
 
 def _fields(buf: memoryview, budget: _Budget) -> Iterator[tuple[int, int, object]]:
     """(field number, wire type, value) of each field of one message: an int for a varint, a
-    memoryview for a length-delimited field, None for a fixed 32/64-bit one."""
+    memoryview for a length-delimited or a fixed 32/64-bit field (its bytes)."""
     i, n = 0, len(buf)
     while i < n:
         budget.spend()
@@ -88,7 +99,7 @@ def _fields(buf: memoryview, budget: _Budget) -> Iterator[tuple[int, int, object
         if wire == 0:
             value, i = _varint(buf, i)
         elif wire in (1, 5):
-            value, i = None, i + (8 if wire == 1 else 4)
+            value, i = buf[i : i + (8 if wire == 1 else 4)], i + (8 if wire == 1 else 4)
         elif wire == 2:
             length, i = _varint(buf, i)
             value, i = buf[i : i + length], i + length
@@ -103,11 +114,13 @@ def _text(value: memoryview) -> str:
     return bytes(value).decode("utf-8", "replace")
 
 
-def _check_tensor(buf: memoryview, what: str, budget: _Budget) -> None:
-    """A float32 tensor whose values are all in its raw_data or float_data, as many as its dims say."""
-    name, dims, data_type, location, raw, floats, float_fields, other = "", [], 0, 0, None, 0, 0, set()
+def _check_tensor(buf: memoryview, what: str, budget: _Budget, name: str = "") -> Tensor:
+    """A float32 tensor whose values are all in its raw_data or float_data, as many as its dims say.
+    ``name``: the tensor's name when its own is empty (a Constant's output)."""
+    dims, data_type, location, raw, floats, float_fields, other = [], 0, 0, None, 0, 0, set()
+    float_parts = []
     for number, wire, value in _fields(buf, budget):
-        if number == _TENSOR_NAME and wire == 2:
+        if number == _TENSOR_NAME and wire == 2 and _text(value):
             name = _text(value)
         elif number == _TENSOR_DIMS and wire == 0:
             dims.append(value)
@@ -118,10 +131,11 @@ def _check_tensor(buf: memoryview, what: str, budget: _Budget) -> None:
         elif number == _TENSOR_DATA_LOCATION and wire == 0:
             location = value
         elif number == _TENSOR_RAW_DATA and wire == 2:
-            raw = len(value)
+            raw = value
         elif number == _TENSOR_FLOAT_DATA and wire in (2, 5):
-            floats += 4 if wire == 5 else len(value)  # bytes
+            floats += len(value)  # bytes, little-endian float32 (packed or one fixed32)
             float_fields += 1
+            float_parts.append(value)
         elif number in (_TENSOR_EXTERNAL_DATA, _TENSOR_SEGMENT, *_TENSOR_OTHER_DATA):
             other.add(number)
     label = f"{what} {shown(name)}"
@@ -140,9 +154,11 @@ def _check_tensor(buf: memoryview, what: str, budget: _Budget) -> None:
         count *= d
     if raw is not None and float_fields:
         raise ModelError(f"{label} holds its values twice (raw_data and float_data)")
-    held = raw if raw is not None else floats
+    held = len(raw) if raw is not None else floats
     if held != 4 * count:
         raise ModelError(f"{label} declares shape {dims} ({count} float32 values) but holds {held} bytes")
+    data = bytes(raw) if raw is not None else b"".join(bytes(part) for part in float_parts)
+    return Tensor(name, tuple(dims), data)
 
 
 def _packed_varints(buf: memoryview, budget: _Budget) -> list:
@@ -154,12 +170,15 @@ def _packed_varints(buf: memoryview, budget: _Budget) -> list:
     return out
 
 
-def _check_node(buf: memoryview, index: int, budget: _Budget) -> None:
-    name, op_type, domain, attributes = "", "", "", []
+def _check_node(buf: memoryview, index: int, budget: _Budget) -> list:
+    """The node's checks; the tensors its attributes hold, named after its first output."""
+    name, op_type, domain, attributes, outputs = "", "", "", [], []
     for number, wire, value in _fields(buf, budget):
         if wire != 2:
             continue
-        if number == _NODE_NAME:
+        if number == _NODE_OUTPUT:
+            outputs.append(_text(value))
+        elif number == _NODE_NAME:
             name = _text(value)
         elif number == _NODE_OP_TYPE:
             op_type = _text(value)
@@ -179,36 +198,42 @@ def _check_node(buf: memoryview, index: int, budget: _Budget) -> None:
             f"{node} is the operator {shown(op)}, which `dimenet export` never writes "
             f"(a DIME-Net graph holds only {', '.join(sorted(EXPORTED_OPS))})"
         )
-    for number, wire, value in attributes:
-        if number in _ATTRIBUTE_TENSORS and wire == 2:
-            _check_tensor(value, f"the value of {node}", budget)
+    output = outputs[0] if outputs else ""
+    return [
+        _check_tensor(value, f"the value of {node}", budget, output)
+        for number, wire, value in attributes
+        if number in _ATTRIBUTE_TENSORS and wire == 2
+    ]
 
 
-def _check_graph(buf: memoryview, nodes: int, budget: _Budget) -> int:
-    """Checks one occurrence of the model's graph field; returns the count of nodes seen so far."""
+def _check_graph(buf: memoryview, nodes: int, budget: _Budget, tensors: list) -> int:
+    """Checks one occurrence of the model's graph field, adding its tensors to ``tensors``;
+    returns the count of nodes seen so far."""
     for number, wire, value in _fields(buf, budget):
         if wire != 2:
             continue
         if number == _GRAPH_NODE:
-            _check_node(value, nodes, budget)
+            tensors += _check_node(value, nodes, budget)
             nodes += 1
         elif number == _GRAPH_INITIALIZER:
-            _check_tensor(value, "initializer", budget)
+            tensors.append(_check_tensor(value, "initializer", budget))
         elif number == _GRAPH_SPARSE_INITIALIZER:
             raise ModelError("the graph has a sparse initializer: the exporter writes none")
     return nodes
 
 
-def check_model_bytes(blob: bytes, source: str) -> None:
+def check_model_bytes(blob: bytes, source: str) -> list:
     """ModelError naming ``source`` unless the ONNX bytes hold only what the exporter writes
-    (see the module doc); bytes that are no protobuf message are "not a loadable ONNX model"."""
+    (see the module doc); bytes that are no protobuf message are "not a loadable ONNX model".
+    Returns the graph's constant tensors (initializers and Constant values, ``Tensor``)."""
     if len(blob) > MAX_MODEL_BYTES:
         raise ModelError(f"{source}: larger than {MAX_MODEL_BYTES} bytes, too large for a DIME-Net model")
+    tensors: list = []
     try:
         nodes, budget = 0, _Budget()
         for number, wire, value in _fields(memoryview(blob), budget):
             if number == _MODEL_GRAPH and wire == 2:
-                nodes = _check_graph(value, nodes, budget)
+                nodes = _check_graph(value, nodes, budget, tensors)
             elif number == _MODEL_FUNCTIONS:
                 raise ModelError("the model defines functions: the exporter writes none")
             elif number == _MODEL_TRAINING_INFO:
@@ -217,3 +242,4 @@ def check_model_bytes(blob: bytes, source: str) -> None:
         raise ModelError(f"{source}: not a loadable ONNX model (malformed protobuf: {exc})") from None
     except ModelError as exc:
         raise ModelError(f"{source}: {exc}") from None
+    return tensors

@@ -28,11 +28,14 @@ from dimenet.runtime.rectify.user_camera import MAX_IMAGE_SIDE_PX, Camera, Pixel
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version and reads every 1.x (the minor
 # versions and what each added: models_spec/model-v1.md).
-VERSION = "1.8.0"
+VERSION = "1.9.0"
 METADATA_KEY = "dimenet_model_spec"
 # Spec >= 1.4, optional: the sha256 of the model file's bytes with this value replaced by
 # WEIGHTS_SHA256_PLACEHOLDER (model-v1.md, "Integrity"; written by export, checked by the runtime).
 WEIGHTS_SHA256_KEY = "weights_sha256"
+# Spec >= 1.9, optional: the sha256 of the spec and the constant tensors (rectify.integrity), which an
+# ORT-format conversion keeps; written by export with WEIGHTS_SHA256_PLACEHOLDER's zeros first.
+CONTENT_SHA256_KEY = "content_sha256"
 WEIGHTS_SHA256_PLACEHOLDER = "0" * 64
 # The network's output head (spec >= 1.8; absent: "mlp", the paper's): "gated_step" adds the
 # feature's data step through a learned gate (training.model; models_spec/model-v1.md).
@@ -106,9 +109,11 @@ def _checked(d: dict) -> dict:
     provenance = d.get("provenance", {})
     if not isinstance(provenance, dict):
         raise JsonProblem(f"provenance must be an object, got {shown(provenance)}")
-    weights_sha256 = d.get(WEIGHTS_SHA256_KEY)
-    if weights_sha256 is not None and not (isinstance(weights_sha256, str) and _HEX64.fullmatch(weights_sha256)):
-        raise JsonProblem(f"{WEIGHTS_SHA256_KEY} must be 64 lowercase hex digits, got {shown(weights_sha256)}")
+    digests = {}
+    for key in (WEIGHTS_SHA256_KEY, CONTENT_SHA256_KEY):
+        digests[key] = d.get(key)
+        if digests[key] is not None and not (isinstance(digests[key], str) and _HEX64.fullmatch(digests[key])):
+            raise JsonProblem(f"{key} must be 64 lowercase hex digits, got {shown(digests[key])}")
     return {
         **camera,
         "hidden": tuple(integer(h, "hidden", 1) for h in hidden),
@@ -116,7 +121,8 @@ def _checked(d: dict) -> dict:
         "uncertainty": Uncertainty.from_dict(d["uncertainty"], features.grid.n_cells) if "uncertainty" in d else None,
         "residual_structure_px": _structure_px(d.get("residual_structure_px")),
         "head": d.get("head", "mlp"),
-        "weights_sha256": weights_sha256,
+        "weights_sha256": digests[WEIGHTS_SHA256_KEY],
+        "content_sha256": digests[CONTENT_SHA256_KEY],
     }
 
 
@@ -143,8 +149,8 @@ class ModelSpec:
     Delta K covariance (None in 1.0 specs); residual_structure_px: the largest residual structure
     (model px, ``geometry.residual_structure``) the model's training frames held, above which a
     frame keeps K_c (None before spec 1.6: ``checks.STRUCTURE_PX``); provenance: dataset sha256,
-    seed, versions, command; weights_sha256: the
-    integrity hash the model file's spec declared (None for a spec on its own or before 1.4).
+    seed, versions, command; weights_sha256 and content_sha256: the
+    integrity hashes the model file's spec declared (None for a spec on its own, before 1.4 and 1.9).
     It belongs to one file, so ``to_dict`` leaves it out unless given one (export stamps it)."""
 
     features: FeatureSpec
@@ -158,6 +164,7 @@ class ModelSpec:
     residual_structure_px: Optional[float] = None
     head: str = "mlp"
     weights_sha256: Optional[str] = field(default=None, compare=False)
+    content_sha256: Optional[str] = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.head not in HEADS:
@@ -165,7 +172,7 @@ class ModelSpec:
         if self.head == "gated_step" and not self.features.data_step:
             raise JsonProblem("head gated_step needs features.data_step (the step it gates)")
 
-    def to_dict(self, *, weights_sha256: Optional[str] = None) -> dict:
+    def to_dict(self, *, weights_sha256: Optional[str] = None, content_sha256: Optional[str] = None) -> dict:
         d = {"format": FORMAT, "version": VERSION, "features": self.features.to_dict()}
         if self.generic is not None:
             d["generic"] = self.generic.to_dict()
@@ -182,10 +189,13 @@ class ModelSpec:
             d["head"] = self.head
         if weights_sha256 is not None:
             d[WEIGHTS_SHA256_KEY] = weights_sha256
+        if content_sha256 is not None:
+            d[CONTENT_SHA256_KEY] = content_sha256
         return d
 
-    def to_json(self, *, weights_sha256: Optional[str] = None) -> str:
-        return json.dumps(self.to_dict(weights_sha256=weights_sha256), indent=1, sort_keys=True)
+    def to_json(self, *, weights_sha256: Optional[str] = None, content_sha256: Optional[str] = None) -> str:
+        d = self.to_dict(weights_sha256=weights_sha256, content_sha256=content_sha256)
+        return json.dumps(d, indent=1, sort_keys=True)
 
     @classmethod
     def from_dict(cls, d: dict, *, source: str = "model") -> ModelSpec:

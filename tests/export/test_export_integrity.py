@@ -75,7 +75,7 @@ def _independent_digest(blob: bytes, digest: str) -> str:
 
 def test_export_writes_a_verifiable_weights_sha256(blob, spec):
     stored = _meta(blob)
-    assert stored["version"] == VERSION == "1.8.0"
+    assert stored["version"] == VERSION == "1.9.0"
     digest = stored[WEIGHTS_SHA256_KEY]
     assert len(digest) == 64 and digest != WEIGHTS_SHA256_PLACEHOLDER
     assert _independent_digest(blob, digest) == digest
@@ -134,6 +134,7 @@ def _as_spec_1_3(blob: bytes) -> bytes:
     d = json.loads(entry.value)
     d["version"] = "1.3.0"
     del d[WEIGHTS_SHA256_KEY]
+    d.pop("content_sha256", None)
     entry.value = json.dumps(d, indent=1, sort_keys=True)
     return proto.SerializeToString()
 
@@ -141,6 +142,7 @@ def _as_spec_1_3(blob: bytes) -> bytes:
 def test_restamp_gives_an_old_file_the_hash_and_keeps_graph_and_weights(blob):
     old = _as_spec_1_3(blob)
     assert onnx_model_from_bytes(old, "old").spec.weights_sha256 is None
+    assert onnx_model_from_bytes(old, "old").spec.content_sha256 is None
     new = restamp_model(old, "old")
     a, b = onnx.load_from_string(old), onnx.load_from_string(new)
     assert a.graph.SerializeToString() == b.graph.SerializeToString()
@@ -165,5 +167,5 @@ def test_the_earlier_device_model_was_stamped_by_restamp_model():
 
 def test_the_bundled_generic_model_is_as_export_stamps_it():
     bundled = asset(DEFAULT_MODEL).read_bytes()
-    assert _meta(bundled)["version"] == "1.8.0" and "generic" in _meta(bundled)
+    assert _meta(bundled)["version"] == "1.9.0" and "generic" in _meta(bundled)
     assert restamp_model(bundled, "bundled") == bundled  # idempotent, and the one implementation

@@ -1,0 +1,76 @@
+"""What an ORT-format model file (``.ort``, ORT Mobile's; `dimenet export --format ort`) may hold,
+checked on its bytes before ONNX Runtime sees them, as ``rectify.onnx_graph`` checks an ONNX file:
+every node one of ``EXPORTED_OPS`` in the default ONNX domain, no subgraph, every initializer float32
+with its values in the file, as many as its dims say, no sparse initializer. The flatbuffer is read
+with the classes onnxruntime ships (``onnxruntime.tools.ort_format_model``; flatbuffers is one of
+onnxruntime's own requirements). Returns the constant tensors, which the content hash covers
+(``rectify.integrity``): the conversion turns the ONNX file's Constant nodes into initializers of
+their output's name, so the two files hold the same tensors.
+"""
+
+from __future__ import annotations
+
+from dimenet.runtime.errors import ModelError
+from dimenet.runtime.json_text import shown
+from dimenet.runtime.rectify.onnx_graph import EXPORTED_OPS, MAX_MODEL_BYTES, ONNX_DOMAINS, Tensor
+
+ORT_IDENTIFIER = b"ORTM"  # bytes 4-8 of every ORT-format file (its flatbuffer file identifier)
+FLOAT = 1  # fbs TensorDataType.FLOAT
+
+
+def is_ort_format(blob: bytes) -> bool:
+    """Whether the bytes are an ORT-format model (by the flatbuffer's file identifier)."""
+    return blob[4:8] == ORT_IDENTIFIER
+
+
+def _tensor(t, what: str) -> Tensor:
+    name = (t.Name() or b"").decode("utf-8", "replace")
+    label = f"{what} {shown(name)}"
+    if t.DataType() != FLOAT:
+        raise ModelError(f"{label} has ORT data type {t.DataType()}: the exporter writes float32 (1) tensors only")
+    if getattr(t, "ExternalDataOffset", lambda: -1)() >= 0:  # the field is newer than onnxruntime 1.19
+        raise ModelError(f"{label} keeps its values outside the file's tensor: a model file holds its weights inline")
+    dims = tuple(int(d) for d in (t.DimsAsNumpy() if t.DimsLength() else ()))
+    if any(d < 0 for d in dims):
+        raise ModelError(f"{label} declares a negative dimension")
+    count = 1
+    for d in dims:
+        count *= d
+    data = t.RawDataAsNumpy().tobytes() if t.RawDataLength() else b""
+    if len(data) != 4 * count:
+        raise ModelError(f"{label} declares shape {list(dims)} ({count} float32 values) but holds {len(data)} bytes")
+    return Tensor(name, dims, data)
+
+
+def check_ort_bytes(blob: bytes, source: str) -> list:
+    """ModelError naming ``source`` unless the ORT-format bytes hold only what the exporter writes;
+    returns the graph's initializers (``Tensor``)."""
+    if len(blob) > MAX_MODEL_BYTES:
+        raise ModelError(f"{source}: larger than {MAX_MODEL_BYTES} bytes, too large for a DIME-Net model")
+    from onnxruntime.tools.ort_format_model.ort_flatbuffers_py import fbs
+
+    try:
+        graph = fbs.InferenceSession.InferenceSession.GetRootAs(blob, 0).Model().Graph()
+        if graph.SparseInitializersLength():
+            raise ModelError("the graph has a sparse initializer: the exporter writes none")
+        for k in range(graph.NodesLength()):
+            node = graph.Nodes(k)
+            name = (node.Name() or b"").decode("utf-8", "replace")
+            op_type = (node.OpType() or b"").decode("utf-8", "replace")
+            domain = (node.Domain() or b"").decode("utf-8", "replace")
+            where = f"node {k} ({shown(name)})"
+            if domain not in ONNX_DOMAINS or op_type not in EXPORTED_OPS:
+                op = op_type if domain in ONNX_DOMAINS else f"{domain}:{op_type}"
+                raise ModelError(
+                    f"{where} is the operator {shown(op)}, which `dimenet export` never writes "
+                    f"(a DIME-Net graph holds only {', '.join(sorted(EXPORTED_OPS))})"
+                )
+            for j in range(node.AttributesLength()):
+                attribute = node.Attributes(j)
+                if attribute.G() is not None or attribute.GraphsLength():
+                    raise ModelError(f"{where} holds a subgraph: a DIME-Net graph has no control flow")
+        return [_tensor(graph.Initializers(k), "initializer") for k in range(graph.InitializersLength())]
+    except ModelError as exc:
+        raise ModelError(f"{source}: {exc}") from None
+    except Exception as exc:  # a truncated or crafted flatbuffer: struct.error, IndexError, UnicodeError, ...
+        raise ModelError(f"{source}: not a loadable ORT-format model ({type(exc).__name__}: {exc})") from None
