@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from dimenet.runtime.errors import CameraError, InputError
 from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params, mean_reprojection_error
@@ -113,9 +114,9 @@ class Rectifier:
         cls,
         path: Optional[str | Path] = None,
         *,
-        K_c=None,
-        image_size=None,
-        dist_coeffs=None,
+        K_c: Optional[ArrayLike] = None,
+        image_size: Optional[Sequence[int]] = None,
+        dist_coeffs: Optional[ArrayLike] = None,
         threads: int = 1,
         providers: Optional[Sequence[str]] = None,
         mode: str = "dimenet",
@@ -162,7 +163,7 @@ class Rectifier:
         """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""
         return frame_within_bounds(list(k), self.K_bounds.tolist())
 
-    def rectify(self, points_2d, points_3d, *, refine: bool = False) -> Rectification:
+    def rectify(self, points_2d: ArrayLike, points_3d: ArrayLike, *, refine: bool = False) -> Rectification:
         """K and pose of one frame from its correspondences: points_2d (N, 2) px, points_3d (N, 3) mm in {W}
         (or OpenCV's (N, 1, 2) and (N, 1, 3), as cv2.findChessboardCorners returns them).
 
@@ -197,7 +198,9 @@ class Rectifier:
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
 
-    def network(self, points_2d, points_3d, rvec_c0, tvec_c0) -> NetworkEstimate:
+    def network(
+        self, points_2d: ArrayLike, points_3d: ArrayLike, rvec_c0: ArrayLike, tvec_c0: ArrayLike
+    ) -> NetworkEstimate:
         """The network's part of ``rectify`` for one frame at a C0 pose the app solved (rvec_c0,
         tvec_c0 (3,) {W}->{C0} under K_c): the feature, Delta K, K and sigma before any fallback rule,
         in the camera's pixels; what the full graph (``export.full_graph``) computes. InputError as
@@ -220,7 +223,13 @@ class Rectifier:
         return NetworkEstimate(delta_k=k - k_params(cam.K_c_user), K=K, sigma=sigma, features=feats)
 
     def rectify_batch(
-        self, points_2d, points_3d, valid, *, infer_mask=None, refine: bool = False
+        self,
+        points_2d: ArrayLike,
+        points_3d: ArrayLike,
+        valid: ArrayLike,
+        *,
+        infer_mask: Optional[ArrayLike] = None,
+        refine: bool = False,
     ) -> BatchRectification:
         """K and pose of B frames: points_2d (B, P, 2) px, points_3d (B, P, 3) mm, valid (B, P) bool.
 

@@ -45,3 +45,12 @@ def test_python_dash_m_dimenet_is_the_command_and_the_package_is_typed():
     done = subprocess.run([sys.executable, "-m", "dimenet", "--version"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and done.stdout.strip() == f"dimenet {dimenet.runtime.__version__}", done.stderr
     assert resources.files("dimenet.runtime").joinpath("py.typed").is_file()
+
+
+def test_the_rectifier_s_public_methods_are_annotated():
+    from dimenet.runtime.rectify.rectifier import Rectifier
+
+    for method in (Rectifier.load, Rectifier.rectify, Rectifier.rectify_batch, Rectifier.network):
+        signature = inspect.signature(method)
+        missing = [n for n, p in signature.parameters.items() if n not in ("self", "cls") and p.annotation is p.empty]
+        assert not missing and signature.return_annotation is not signature.empty, (method.__name__, missing)
