@@ -17,8 +17,9 @@ model with an uncertainty model) ``sigma`` [4] px, the standard deviations of De
 The graph computes what ``rectify.features.grid_features`` and the pixel map compute, in double:
 the canonical camera (scale s = focal_px / fx_c, ``rectify.user_camera.generic_pixel_map``), the
 C0 transform (Rodrigues), the PMD and {C0} point rows, the cell of each point (clamped, floored),
-the per-cell means by a one-hot product, the scale-free depth factor, the channel scales; then the
-model's own MLP nodes (float32) and the map back (Delta K / s).
+the per-cell means by a one-hot product, the scale-free depth factor, the channel scales, and for a
+model with ``features.data_step`` the frame's Gauss-Newton step (``_data_step``); then the model's own
+MLP nodes (float32, the gated step head's included) and the map back (Delta K / s).
 """
 
 from __future__ import annotations
@@ -28,7 +29,13 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.rectify.features import CHANNELS
+from dimenet.runtime.rectify.features import (
+    CHANNELS,
+    STEP_CLIP_REL,
+    STEP_NOISE_FLOOR_PX,
+    STEP_PRIOR_REL,
+    STEP_VARIANCE_FLOOR,
+)
 from dimenet.runtime.rectify.model import INPUT_NAME, OUTPUT_NAME, onnx_model_from_bytes
 from dimenet.runtime.rectify.spec import METADATA_KEY
 from dimenet.runtime.rectify.uncertainty import D_FLOOR_PX, T_FLOOR
@@ -140,15 +147,118 @@ def _sigma(g: _Builder, spec, weight: str, dx: str, dy: str, counts: str) -> str
     return g.op("Exp", g.op("MatMul", g.const(spec.uncertainty.coef), z))
 
 
+def _inverse(g: _Builder, m: str, n: int) -> str:
+    """The inverse of a symmetric positive definite [n, n] matrix: Gauss-Jordan elimination without
+    pivoting on [m | I], unrolled (the data step's 10 x 10 Hessians; OpenCV's Cholesky in Python)."""
+    aug = g.op("Concat", m, g.const(np.eye(n)), axis=1)
+    ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
+    for k in range(n):
+        k_index = g.const(k, "i", np.int64)
+        row = g.op("Gather", aug, k_index, axis=0)
+        row = g.op("Div", row, g.op("Gather", row, k_index))
+        column = g.op("Unsqueeze", g.op("Gather", aug, k_index, axis=1), ax1)
+        unit = np.zeros((n, 1))
+        unit[k] = 1.0
+        aug = g.op("Sub", aug, g.op("Mul", g.op("Sub", column, g.const(unit)), g.op("Unsqueeze", row, ax0)))
+    return g.op("Slice", aug, g.const([n], "s", np.int64), g.const([2 * n], "e", np.int64), ax1)
+
+
+def _data_step(g: _Builder, weight: str, ab_inv_z: tuple, residuals: tuple, focal: tuple, pmd_scale: float) -> str:
+    """The data step's 8 inputs (``rectify.features.data_steps``, ``geometry.prior_step``) [8]: the
+    Gauss-Newton step over (pose, fx, fy, cx, cy) at the C0 pose and K_c with a prior of
+    STEP_PRIOR_REL fx on K, its data weighted by 1 / s^2 twice (the pose's residuals, then the step's),
+    the step's Delta K clipped to STEP_CLIP_REL fx times the PMD scale, then 1/2 ln(posterior / prior
+    variance). The pose's Jacobian here is the right-hand one of X_C; K's block does not depend on
+    how the pose is parametrised."""
+    a, b, inv_z = ab_inv_z
+    r_u, r_v = residuals
+    fx, fy = focal
+    mul, add, sub = (lambda x, y, op=op: g.op(op, x, y) for op in ("Mul", "Add", "Sub"))
+    zero = g.op("Mul", a, g.const(0.0))
+    one = g.op("Add", zero, g.const(1.0))
+    ab = mul(a, b)
+    j_u = (
+        mul(fx, g.op("Neg", ab)),
+        mul(fx, add(one, mul(a, a))),
+        mul(fx, g.op("Neg", b)),
+        mul(fx, inv_z),
+        zero,
+        mul(fx, g.op("Neg", mul(a, inv_z))),
+        a,
+        zero,
+        one,
+        zero,
+    )
+    j_v = (
+        mul(fy, g.op("Neg", add(one, mul(b, b)))),
+        mul(fy, ab),
+        mul(fy, a),
+        zero,
+        mul(fy, inv_z),
+        mul(fy, g.op("Neg", mul(b, inv_z))),
+        zero,
+        b,
+        zero,
+        one,
+    )
+    ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
+    w = g.op("Unsqueeze", weight, ax1)
+    J_u = g.op("Mul", g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in j_u), axis=1), w)  # [N, 10] masked
+    J_v = g.op("Mul", g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in j_v), axis=1), w)
+    r_u, r_v = g.op("Mul", r_u, weight), g.op("Mul", r_v, weight)
+    J_ut, J_vt = g.op("Transpose", J_u, perm=[1, 0]), g.op("Transpose", J_v, perm=[1, 0])
+    JJ = add(g.op("MatMul", J_ut, J_u), g.op("MatMul", J_vt, J_v))
+    # J r as a sum, not a MatMul of the transposed J by a vector: ONNX Runtime's MatmulTransposeFusion
+    # (extended optimizations) gets that product wrong in double (onnxruntime 1.32).
+    Jr = add(
+        g.op("ReduceSum", g.op("Mul", J_u, g.op("Unsqueeze", r_u, ax1)), ax0, keepdims=0),
+        g.op("ReduceSum", g.op("Mul", J_v, g.op("Unsqueeze", r_v, ax1)), ax0, keepdims=0),
+    )
+    r = g.op("Concat", r_u, r_v, axis=0)
+    rss = g.op("ReduceSum", mul(r, r), ax0, keepdims=0)
+    n_res = g.op("Mul", g.op("ReduceSum", weight, ax0, keepdims=0), g.const(2.0))
+    floor2 = g.const(STEP_NOISE_FLOOR_PX**2)
+
+    def noise_weight(residual_ss: str, params: float) -> str:
+        dof = g.op("Max", g.op("Sub", n_res, g.const(params)), g.const(1.0))
+        return g.op("Div", g.const(1.0), g.op("Max", g.op("Div", residual_ss, dof), floor2))
+
+    prior_var = g.op("Mul", g.op("Mul", fx, g.const(STEP_PRIOR_REL)), g.op("Mul", fx, g.const(STEP_PRIOR_REL)))
+    k_block = np.zeros((10, 10))
+    k_block[6:, 6:] = np.eye(4)
+    prior = g.op("Div", g.const(k_block), prior_var)
+    weight_1 = noise_weight(rss, 6.0)
+    step_1 = g.op("Mul", g.op("MatMul", _inverse(g, add(mul(JJ, weight_1), prior), 10), Jr), weight_1)
+    rss_step = add(
+        sub(rss, mul(g.const(2.0), g.op("ReduceSum", mul(step_1, Jr), ax0, keepdims=0))),
+        g.op("ReduceSum", mul(step_1, g.op("MatMul", JJ, step_1)), ax0, keepdims=0),
+    )
+    weight_2 = noise_weight(rss_step, 10.0)
+    cov = _inverse(g, add(mul(JJ, weight_2), prior), 10)
+    step = g.op("Neg", g.op("Mul", g.op("MatMul", cov, Jr), weight_2))
+    k_part = g.op("Slice", step, g.const([6], "s", np.int64), g.const([10], "e", np.int64), ax0)
+    clip = g.op("Mul", fx, g.const(STEP_CLIP_REL))
+    clipped = g.op("Min", g.op("Max", k_part, g.op("Neg", clip)), clip)
+    variance = g.op(
+        "Slice",
+        g.op("ReduceSum", g.op("Mul", cov, g.const(np.eye(10))), ax1, keepdims=0),
+        g.const([6], "s", np.int64),
+        g.const([10], "e", np.int64),
+        ax0,
+    )
+    log_ratio = g.op(
+        "Mul", g.const(0.5), g.op("Log", g.op("Max", g.op("Div", variance, prior_var), g.const(STEP_VARIANCE_FLOOR)))
+    )
+    return g.op("Concat", g.op("Mul", clipped, g.const(pmd_scale)), log_ratio, axis=0)
+
+
 def full_graph(blob: bytes, source: str = "model") -> bytes:
     """The full graph of a generic ``dimenet-model/1`` file's bytes, with its spec in the metadata.
-    ModelError for a model the graph does not hold yet (a device model, the data step)."""
+    ModelError for a model the graph does not hold yet (a device model)."""
     model = onnx_model_from_bytes(blob, source)
     spec = model.spec
     if spec.generic is None:
         raise ModelError(f"{source}: the full graph holds generic models (as the bundled default), not device models")
-    if spec.features.data_step:
-        raise ModelError(f"{source}: the full graph does not hold the data step (features.data_step) yet")
     mlp = onnx.load_from_string(blob)
     g = _Builder()
     features = spec.features
@@ -208,7 +318,11 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
             "Where", positive, g.op("Div", g.op("Mul", g.const(features.depth_mm), n), safe_sum), g.const(1.0)
         )
         scale = g.op("Mul", scale, g.op("Pow", factor, g.const(features.depth_exponents)))
-    flat = g.op("Reshape", g.op("Mul", chosen, scale), g.const([1, features.size], "shape", np.int64))
+    flat = g.op("Reshape", g.op("Mul", chosen, scale), g.const([1, features.grid_size], "shape", np.int64))
+    if features.data_step:
+        a, b = g.op("Mul", X, inv_z), g.op("Mul", Y, inv_z)
+        step = _data_step(g, weight, (a, b, inv_z), (dx, dy), (fx, fy), features.scale["dx"])
+        flat = g.op("Concat", flat, g.op("Unsqueeze", step, g.const([0], "ax", np.int64)), axis=1)
     feats32 = g.op("Cast", flat, to=TensorProto.FLOAT)
     g.nodes.append(helper.make_node("Identity", [feats32], ["features"]))
     # The model's MLP, its names prefixed, reading the feature.

@@ -23,9 +23,9 @@ from dimenet.runtime.rectify.rectifier import Rectifier  # noqa: E402
 GOLDEN = Path(__file__).resolve().parents[2] / "models_spec" / "golden" / "golden.json"
 # Every operator the full graph may hold: standard ONNX, no control flow, no custom domain.
 FULL_GRAPH_OPS = {
-    "Add", "Cast", "Concat", "Constant", "Cos", "Div", "Equal", "Erf", "Exp", "Floor", "Gather", "Gelu", "Greater",
-    "Identity", "Less", "Log", "MatMul", "Max", "Min", "Mul", "Pow", "ReduceSum", "Reshape", "Sin", "Sqrt", "Sub",
-    "Transpose", "Unsqueeze", "Where",
+    "Add", "Cast", "Concat", "Constant", "Cos", "Div", "Equal", "Erf", "Exp", "Floor", "Gather", "Gelu", "Gemm",
+    "Greater", "Identity", "Less", "Log", "MatMul", "Max", "Min", "Mul", "Neg", "Pow", "ReduceSum", "Reshape",
+    "Sigmoid", "Sin", "Slice", "Sqrt", "Sub", "Transpose", "Unsqueeze", "Where",
 }  # fmt: skip
 
 
@@ -123,3 +123,52 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
         assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], err
+
+
+def test_a_gated_data_step_model_s_graph_equals_the_runtime(tmp_path):
+    """The data step in the graph (two unrolled 10 x 10 inverses) and the gated head's nodes: a random
+    generic model of that kind against ``Rectifier.network`` on golden frames, at ORT's full optimizations
+    (its MatmulTransposeFusion once broke a transposed product by a vector here)."""
+    pytest.importorskip("torch")
+    import torch
+
+    from dimenet.export.onnx_export import export_model
+    from dimenet.runtime.rectify.features import FeatureSpec
+    from dimenet.runtime.rectify.grid import Grid
+    from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
+    from dimenet.training.model import dime_net
+
+    bounds = np.array([[-100.0, 100.0], [-100.0, 100.0], [-300.0, 300.0], [-300.0, 300.0]])
+    spec = ModelSpec(
+        features=FeatureSpec(grid=Grid(8, 6), depth_mm=1000.0, data_step=True),
+        K_c=None,
+        image_size=None,
+        K_bounds=None,
+        hidden=(16, 16),
+        generic=GenericCamera(3000.0, bounds),
+        head="gated_step",
+    )
+    torch.manual_seed(0)
+    path = tmp_path / "gated.onnx"
+    path.write_bytes(export_model(dime_net(spec).eval(), spec))
+    session = ort.InferenceSession(full_graph(path.read_bytes(), "gated"), providers=["CPUExecutionProvider"])
+    assert (
+        {"Gemm", "Sigmoid", "Slice", "Neg"}
+        <= {n.op_type for n in onnx.load_from_string(full_graph(path.read_bytes(), "gated")).graph.node}
+        <= FULL_GRAPH_OPS | {"Gemm", "Sigmoid", "Slice", "Neg"}
+    )
+    worst = 0.0
+    for frame in golden_frames()[::4]:
+        rect = Rectifier.load(path, K_c=frame.K_c, image_size=frame.image_size)
+        rvec, tvec = solve_pnp_start(frame.points_2d, frame.points_3d, frame.K_c)
+        net = rect.network(frame.points_2d, frame.points_3d, rvec, tvec)
+        x = {
+            "points_2d": frame.points_2d,
+            "points_3d": frame.points_3d,
+            "K_c": frame.K_c,
+            "image_size": frame.image_size,
+        }
+        out = _run(session, x, rvec, tvec)
+        np.testing.assert_allclose(out["features"][0, -8:], net.features[0, -8:], rtol=1e-6, atol=1e-6)
+        worst = max(worst, float(np.abs(out["delta_k"] - net.delta_k).max()))
+    assert worst <= 1e-4, worst
