@@ -61,11 +61,9 @@ def _model_bytes(source: str, opset: int) -> bytes:
         return default_model_bytes()
     if Path(source).is_file():
         return read_model_file(Path(source))
-    from dimenet.training.run_dir import load_run
+    from .onnx_export import run_model_bytes
 
-    from .onnx_export import export_model
-
-    return export_model(*load_run(source), opset=opset)
+    return run_model_bytes(source, opset=opset)
 
 
 def _run_export(args: argparse.Namespace) -> int:

@@ -178,8 +178,13 @@ def ort_format_bytes(blob: bytes, source: str = "model") -> bytes:
     return converted
 
 
+def run_model_bytes(run_dir: str | Path, *, opset: int = DEFAULT_OPSET) -> bytes:
+    """The checked ``dimenet-model/1`` ONNX bytes of a RUN_DIR from `dimenet train`."""
+    model, spec = load_run(run_dir)
+    return export_model(model, spec, opset=opset)
+
+
 def export_run(run_dir: str | Path, out: str | Path, *, opset: int = DEFAULT_OPSET) -> Path:
     """Export a RUN_DIR from `dimenet train` to ``out`` (.onnx), atomically. Returns ``out``."""
-    model, spec = load_run(run_dir)
-    blob = export_model(model, spec, opset=opset)
+    blob = run_model_bytes(run_dir, opset=opset)
     return atomic_write(out, lambda f: f.write(blob))
