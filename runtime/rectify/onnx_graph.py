@@ -161,6 +161,17 @@ def _check_tensor(buf: memoryview, what: str, budget: _Budget, name: str = "") -
     return Tensor(name, tuple(dims), data)
 
 
+def check_operator(node: str, op_type: str, domain: str) -> None:
+    """ModelError naming ``node`` unless it is one of EXPORTED_OPS in the default ONNX domain (the
+    rule of an ONNX file's nodes here, and of an ORT-format file's in ``rectify.ort_format``)."""
+    if domain not in ONNX_DOMAINS or op_type not in EXPORTED_OPS:
+        op = op_type if domain in ONNX_DOMAINS else f"{domain}:{op_type}"
+        raise ModelError(
+            f"{node} is the operator {shown(op)}, which `dimenet export` never writes "
+            f"(a DIME-Net graph holds only {', '.join(sorted(EXPORTED_OPS))})"
+        )
+
+
 def _packed_varints(buf: memoryview, budget: _Budget) -> list:
     out, i = [], 0
     while i < len(buf):
@@ -192,12 +203,7 @@ def _check_node(buf: memoryview, index: int, budget: _Budget) -> list:
         raise ModelError(f"{node} holds a subgraph: a DIME-Net graph has no control flow")
     if numbers & set(_ATTRIBUTE_SPARSE):
         raise ModelError(f"{node} holds a sparse tensor: the exporter writes none")
-    if domain not in ONNX_DOMAINS or op_type not in EXPORTED_OPS:
-        op = op_type if domain in ONNX_DOMAINS else f"{domain}:{op_type}"
-        raise ModelError(
-            f"{node} is the operator {shown(op)}, which `dimenet export` never writes "
-            f"(a DIME-Net graph holds only {', '.join(sorted(EXPORTED_OPS))})"
-        )
+    check_operator(node, op_type, domain)
     output = outputs[0] if outputs else ""
     return [
         _check_tensor(value, f"the value of {node}", budget, output)

@@ -1,18 +1,19 @@
 """What an ORT-format model file (``.ort``, ORT Mobile's; `dimenet export --format ort`) may hold,
 checked on its bytes before ONNX Runtime sees them, as ``rectify.onnx_graph`` checks an ONNX file:
-every node one of ``EXPORTED_OPS`` in the default ONNX domain, no subgraph, every initializer float32
-with its values in the file, as many as its dims say, no sparse initializer. The flatbuffer is read
-with the classes onnxruntime ships (``onnxruntime.tools.ort_format_model``; flatbuffers is one of
-onnxruntime's own requirements). Returns the constant tensors, which the content hash covers
-(``rectify.integrity``): the conversion turns the ONNX file's Constant nodes into initializers of
-their output's name, so the two files hold the same tensors.
+every node one of ``EXPORTED_OPS`` in the default ONNX domain (``onnx_graph.check_operator``), no
+subgraph, every initializer float32 with its values in the file, as many as its dims say, no sparse
+initializer. The flatbuffer is read with the classes onnxruntime ships
+(``onnxruntime.tools.ort_format_model``; flatbuffers is one of onnxruntime's own requirements).
+Returns the constant tensors, which the content hash covers (``rectify.integrity``): the conversion
+turns the ONNX file's Constant nodes into initializers of their output's name, so the two files hold
+the same tensors.
 """
 
 from __future__ import annotations
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.json_text import shown
-from dimenet.runtime.rectify.onnx_graph import EXPORTED_OPS, MAX_MODEL_BYTES, ONNX_DOMAINS, Tensor
+from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES, Tensor, check_operator
 
 ORT_IDENTIFIER = b"ORTM"  # bytes 4-8 of every ORT-format file (its flatbuffer file identifier)
 FLOAT = 1  # fbs TensorDataType.FLOAT
@@ -59,12 +60,7 @@ def check_ort_bytes(blob: bytes, source: str) -> list:
             op_type = (node.OpType() or b"").decode("utf-8", "replace")
             domain = (node.Domain() or b"").decode("utf-8", "replace")
             where = f"node {k} ({shown(name)})"
-            if domain not in ONNX_DOMAINS or op_type not in EXPORTED_OPS:
-                op = op_type if domain in ONNX_DOMAINS else f"{domain}:{op_type}"
-                raise ModelError(
-                    f"{where} is the operator {shown(op)}, which `dimenet export` never writes "
-                    f"(a DIME-Net graph holds only {', '.join(sorted(EXPORTED_OPS))})"
-                )
+            check_operator(where, op_type, domain)
             for j in range(node.AttributesLength()):
                 attribute = node.Attributes(j)
                 if attribute.G() is not None or attribute.GraphsLength():
