@@ -48,21 +48,25 @@ SMALL_ANGLE = 1e-12
 
 
 class _Builder:
-    """Nodes and constants of one graph, each name unique."""
+    """Nodes and constants of one graph, each name unique; a constant of a value already held is that one."""
 
     def __init__(self) -> None:
         self.nodes: list = []
         self.initializers: list = []
         self._count = 0
+        self._constants: dict = {}
 
     def name(self, stem: str) -> str:
         self._count += 1
         return f"{stem}_{self._count}"
 
     def const(self, value, stem: str = "c", dtype=np.float64) -> str:
-        name = self.name(stem)
-        self.initializers.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-        return name
+        array = np.asarray(value, dtype=dtype)
+        key = (array.dtype.str, array.shape, array.tobytes())
+        if key not in self._constants:
+            self._constants[key] = self.name(stem)
+            self.initializers.append(numpy_helper.from_array(array, self._constants[key]))
+        return self._constants[key]
 
     def op(self, op_type: str, *inputs: str, stem: str = "", **attrs) -> str:
         out = self.name(stem or op_type.lower())
@@ -140,9 +144,8 @@ def _sigma(g: _Builder, spec, weight: str, dx: str, dy: str, counts: str) -> str
         "log_pmd": g.op("Log", g.op("Max", pmd, g.const(D_FLOOR_PX))),
         "log_thickness": g.op("Log", g.op("Max", _thickness(g, weight), g.const(T_FLOOR))),
     }
-    ax1 = g.const([0], "ax", np.int64)
     z = g.op(
-        "Concat", g.const([1.0]), *(g.op("Unsqueeze", logs[name], ax1) for name in spec.uncertainty.statistics), axis=0
+        "Concat", g.const([1.0]), *(g.op("Unsqueeze", logs[name], ax0) for name in spec.uncertainty.statistics), axis=0
     )
     return g.op("Exp", g.op("MatMul", g.const(spec.uncertainty.coef), z))
 
@@ -168,8 +171,8 @@ def _data_step(g: _Builder, weight: str, ab_inv_z: tuple, residuals: tuple, foca
     Gauss-Newton step over (pose, fx, fy, cx, cy) at the C0 pose and K_c with a prior of
     STEP_PRIOR_REL fx on K, its data weighted by 1 / s^2 twice (the pose's residuals, then the step's),
     the step's Delta K clipped to STEP_CLIP_REL fx times the PMD scale, then 1/2 ln(posterior / prior
-    variance). The pose's Jacobian here is the right-hand one of X_C; K's block does not depend on
-    how the pose is parametrised."""
+    variance). The Jacobian is ``geometry.frame_normal_equations``'s (the pose perturbed on the left),
+    written out per point."""
     a, b, inv_z = ab_inv_z
     r_u, r_v = residuals
     fx, fy = focal
