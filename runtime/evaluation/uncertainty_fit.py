@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.rectify.uncertainty import NOISE_SCALE_PX, PARAMETERS, STATISTICS, Uncertainty
+from dimenet.runtime.rectify.uncertainty import MAX_DATA_BIAS, NOISE_SCALE_PX, PARAMETERS, STATISTICS, Uncertainty
 
 ONE_SIGMA = 0.6827  # share of a Gaussian within one standard deviation
 
@@ -66,6 +66,41 @@ def fit_uncertainty(residuals_px: np.ndarray, stats: np.ndarray) -> Uncertainty:
     return Uncertainty(coef=coef, correlation=second / np.outer(scale, scale))
 
 
+def _smallest_covering(covered, high: float) -> float:
+    """The smallest x in [0, high] with covered(x) >= ONE_SIGMA (covered grows with x): 0 where
+    covered(0) is, ``high`` where even covered(high) is not; bisection between."""
+    low = 0.0
+    if covered(low) >= ONE_SIGMA:
+        return low
+    if covered(high) < ONE_SIGMA:
+        return high
+    for _ in range(40):
+        mid = (low + high) / 2
+        low, high = (mid, high) if covered(mid) < ONE_SIGMA else (low, mid)
+    return high
+
+
+def _widening(variance_ratio, noise_px, noise_scale_px: float) -> np.ndarray:
+    """(F, 4): w(s) sqrt(r (1 - r)) per frame and parameter (``Uncertainty.posterior_scale``)."""
+    w = noise_px**2 / (noise_px**2 + noise_scale_px**2)
+    return w[:, None] * np.sqrt(np.maximum(variance_ratio * (1.0 - variance_ratio), 0.0))
+
+
+def _map_inputs(*arrays, noise_px) -> tuple:
+    """The MAP errors' (F, 4) arrays and their noise (F,) as float64, checked."""
+    arrays = tuple(np.asarray(a, dtype=np.float64) for a in arrays)
+    noise_px = np.asarray(noise_px, dtype=np.float64)
+    F = len(arrays[0])
+    if F < 1 or any(a.shape != (F, 4) for a in arrays) or noise_px.shape != (F,):
+        raise InputError(
+            f"data correlation: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
+            f"got {', '.join(str(a.shape) for a in arrays)} and {noise_px.shape}"
+        )
+    if not all(np.all(np.isfinite(a)) for a in (*arrays, noise_px)):
+        raise InputError("data correlation: every input must be finite")
+    return arrays + (noise_px,)
+
+
 def fit_data_correlation(
     errors_px: np.ndarray,
     sigma_px: np.ndarray,
@@ -79,36 +114,47 @@ def fit_data_correlation(
     variance_ratio (F, 4) its variances over the prior's, noise_px (F,) the frames' 2D noise.
     0 where the posterior already covers 68.27 %, 1 where even rho = 1 does not (the widening
     grows with rho, so bisection finds it)."""
-    errors_px, sigma_px, variance_ratio, noise_px = (
-        np.asarray(a, dtype=np.float64) for a in (errors_px, sigma_px, variance_ratio, noise_px)
+    errors_px, sigma_px, variance_ratio, noise_px = _map_inputs(errors_px, sigma_px, variance_ratio, noise_px=noise_px)
+    g = _widening(variance_ratio, noise_px, noise_scale_px)
+    return np.array(
+        [
+            _smallest_covering(
+                lambda rho, p=p: np.mean(errors_px[:, p] ** 2 <= sigma_px[:, p] ** 2 * (1.0 + 2.0 * rho * g[:, p])),
+                1.0,
+            )
+            for p in range(4)
+        ]
     )
-    F = len(errors_px)
-    if F < 1 or any(a.shape != (F, 4) for a in (errors_px, sigma_px, variance_ratio)) or noise_px.shape != (F,):
-        raise InputError(
-            f"data correlation: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
-            f"got {errors_px.shape}, {sigma_px.shape}, {variance_ratio.shape}, {noise_px.shape}"
-        )
-    if not all(np.all(np.isfinite(a)) for a in (errors_px, sigma_px, variance_ratio, noise_px)):
-        raise InputError("data correlation: every input must be finite")
-    w = noise_px**2 / (noise_px**2 + noise_scale_px**2)
-    g = np.sqrt(np.maximum(variance_ratio * (1.0 - variance_ratio), 0.0))
 
-    def covered(p, rho):
-        return np.mean(np.abs(errors_px[:, p]) <= sigma_px[:, p] * np.sqrt(1.0 + 2.0 * rho * w * g[:, p]))
 
-    rho = np.zeros(4)
-    for p in range(4):
-        low, high = 0.0, 1.0
-        if covered(p, low) >= ONE_SIGMA:
-            continue
-        if covered(p, high) < ONE_SIGMA:
-            rho[p] = high
-            continue
-        for _ in range(40):
-            mid = (low + high) / 2
-            low, high = (mid, high) if covered(p, mid) < ONE_SIGMA else (low, mid)
-        rho[p] = high
-    return rho
+def fit_data_bias(
+    errors_px: np.ndarray,
+    sigma_px: np.ndarray,
+    variance_ratio: np.ndarray,
+    noise_px: np.ndarray,
+    network_sigma_px: np.ndarray,
+    data_correlation: np.ndarray,
+    noise_scale_px: float = NOISE_SCALE_PX,
+) -> np.ndarray:
+    """Per parameter, the b in [0, MAX_DATA_BIAS] with which 68.27 % of F MAP estimates lie within
+    sqrt(widened posterior variance + b^2 sigma_net^2) (``Uncertainty.map_covariance``): the
+    inputs as ``fit_data_correlation``'s, errors_px against the true K, network_sigma_px (F, 4)
+    the network's standard deviations and data_correlation (4,) the fitted rho. 0 where the
+    widened posterior already covers 68.27 %."""
+    errors_px, sigma_px, variance_ratio, network_sigma_px, noise_px = _map_inputs(
+        errors_px, sigma_px, variance_ratio, network_sigma_px, noise_px=noise_px
+    )
+    g = _widening(variance_ratio, noise_px, noise_scale_px)
+    widened2 = sigma_px**2 * (1.0 + 2.0 * np.asarray(data_correlation)[None] * g)
+    return np.array(
+        [
+            _smallest_covering(
+                lambda b, p=p: np.mean(errors_px[:, p] ** 2 <= widened2[:, p] + b * b * network_sigma_px[:, p] ** 2),
+                MAX_DATA_BIAS,
+            )
+            for p in range(4)
+        ]
+    )
 
 
 def coverage(estimate_px: np.ndarray, truth_px: np.ndarray, covariance: np.ndarray) -> dict:

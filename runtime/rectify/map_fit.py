@@ -13,7 +13,8 @@ k_net's principal point (``turned_to_principal_point``), with the analytic norma
 lower the cost ends the fit. The posterior covariance of k is the K block of the inverse
 Gauss-Newton Hessian at the last linearisation, widened per parameter for the network's
 correlation with the data on noisy points when the uncertainty model has one (spec >= 1.3,
-``Uncertainty.posterior_scale``).
+``Uncertainty.posterior_scale``), and for the errors of the frame's own data (spec >= 1.10,
+``Uncertainty.map_covariance``).
 
 One frame's few Gauss-Newton steps on a well-conditioned 10x10 system: the prior keeps K
 observable even from one planar view, where the data alone cannot fix it.
@@ -79,7 +80,7 @@ def map_fit(
     {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
     to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
     own); iterations >= 1 Gauss-Newton steps at most; uncertainty: the network's, whose
-    ``posterior_scale`` widens K_cov (None: the independent-errors posterior)."""
+    ``map_covariance`` widens K_cov (None: the independent-errors posterior)."""
     precision = cv2.invert(K_cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
     R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
@@ -110,9 +111,8 @@ def map_fit(
         residuals = np.ascontiguousarray(r.T)
     K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
     noise_px = weight**-0.5
-    if uncertainty is not None and uncertainty.widens:
-        scale = np.array(uncertainty.posterior_scale((K_cov.diagonal() / K_cov_net.diagonal()).tolist(), noise_px))
-        K_cov = K_cov * (scale[:, None] * scale)
+    if uncertainty is not None:
+        K_cov = uncertainty.map_covariance(K_cov, K_cov_net, noise_px)
     return MapFit(
         k=k,
         rvec=cv2.Rodrigues(R)[0].ravel(),

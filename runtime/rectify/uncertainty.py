@@ -24,6 +24,13 @@ by which mode map widens its posterior: for an estimate weighting prior and data
 2 rho sqrt(r (1 - r)) times the posterior variance. The correlation comes from the noise, so it
 is scaled by w(s) = s^2 / (s^2 + s0^2) with s the frame's 2D noise (px, the MAP fit's) and
 s0 = NOISE_SCALE_PX: at corner-level noise (0.4 px) the two read independent information.
+
+A frame's points also hold errors no noise model knows (a sheet that bends, boards placed off
+their nominal pose): the data term reads them as K, and the network, which reads the frame's own
+step, follows them too. A model whose residuals were fitted against the simulator's true K
+(spec 1.10, ``data_bias``) adds per parameter b_p^2 times the network's covariance to the MAP
+posterior: the share of what the network gets wrong that the frame's data gets wrong with it
+(``fit_data_bias``; zeros: none, as models before spec 1.10).
 """
 
 from __future__ import annotations
@@ -50,6 +57,9 @@ NOISE_SCALE_PX = 2.0
 MAX_POINTS = 100_000
 MAX_PMD_PX = 1_000.0
 SIGMA_MIN_PX, SIGMA_MAX_PX = 1e-6, 1e6
+# Largest data_bias b_p: a frame's data wrong by more than this many times the network's sigma
+# would make MAP no better than the prior alone.
+MAX_DATA_BIAS = 3.0
 
 
 @dataclass(frozen=True)
@@ -60,7 +70,9 @@ class Uncertainty:
     data term's on noisy points, in [0, 1] (zeros: independent, as models before spec 1.3);
     noise_scale_px: the s0 (px) of the noise weight w(s); population_sigma_px (4,) px or None
     (before spec 1.6): the standard deviation of K* - K_c over the training frames, what is known
-    of a frame's K without the network (the K_cov of a frame that keeps K_c)."""
+    of a frame's K without the network (the K_cov of a frame that keeps K_c); data_bias (4,):
+    b_p in [0, MAX_DATA_BIAS], the MAP posterior's added b_p b_q times the network's covariance
+    (zeros: none, as models before spec 1.10)."""
 
     coef: np.ndarray
     correlation: np.ndarray
@@ -68,6 +80,7 @@ class Uncertainty:
     data_correlation: np.ndarray = field(default_factory=lambda: np.zeros(4))
     noise_scale_px: float = NOISE_SCALE_PX
     population_sigma_px: Optional[np.ndarray] = None
+    data_bias: np.ndarray = field(default_factory=lambda: np.zeros(4))
 
     def __post_init__(self):
         if not set(self.statistics) <= set(STATISTICS) or len(set(self.statistics)) != len(self.statistics):
@@ -89,6 +102,12 @@ class Uncertainty:
         if not (math.isfinite(self.noise_scale_px) and self.noise_scale_px > 0):
             raise ValueError(f"uncertainty: noise_scale_px must be a positive number, got {self.noise_scale_px!r}")
         object.__setattr__(self, "data_correlation", rho)
+        bias = np.asarray(self.data_bias, dtype=np.float64)
+        if bias.shape != (4,) or not np.all((bias >= 0) & (bias <= MAX_DATA_BIAS)):
+            raise ValueError(
+                f"uncertainty: data_bias must be 4 values in [0, {MAX_DATA_BIAS:g}], got {self.data_bias!r}"
+            )
+        object.__setattr__(self, "data_bias", bias)
         if self.population_sigma_px is not None:
             pop = np.asarray(self.population_sigma_px, dtype=np.float64)
             if pop.shape != (4,) or not np.all((pop >= SIGMA_MIN_PX) & (pop <= SIGMA_MAX_PX)):
@@ -105,15 +124,30 @@ class Uncertainty:
         """Whether ``posterior_scale`` can differ from 1 (some rho_p > 0)."""
         return any(self._rho)
 
+    def map_covariance(self, posterior: np.ndarray, network: np.ndarray, noise_px: float) -> np.ndarray:
+        """The MAP K_cov (4, 4) px^2 from its independent-errors posterior and the network's
+        covariance ``network`` (4, 4) px^2: widened by ``posterior_scale`` for the noise the two
+        share, plus diag(b) network diag(b) for the errors of the frame's own data (``data_bias``)."""
+        if self.widens:
+            scale = np.array(self.posterior_scale((posterior.diagonal() / network.diagonal()).tolist(), noise_px))
+            posterior = posterior * (scale[:, None] * scale)
+        if self.data_bias.any():
+            posterior = posterior + network * (self.data_bias[:, None] * self.data_bias)
+        return posterior
+
     def to_dict(self) -> dict:
-        return {
-            "parameters": list(PARAMETERS),
-            "statistics": ["1", *self.statistics],
-            "coef": self.coef.tolist(),
-            "correlation": self.correlation.tolist(),
-            "data_correlation": self.data_correlation.tolist(),
-            "noise_scale_px": self.noise_scale_px,
-        } | ({} if self.population_sigma_px is None else {"population_sigma_px": self.population_sigma_px.tolist()})
+        return (
+            {
+                "parameters": list(PARAMETERS),
+                "statistics": ["1", *self.statistics],
+                "coef": self.coef.tolist(),
+                "correlation": self.correlation.tolist(),
+                "data_correlation": self.data_correlation.tolist(),
+                "noise_scale_px": self.noise_scale_px,
+            }
+            | ({} if self.population_sigma_px is None else {"population_sigma_px": self.population_sigma_px.tolist()})
+            | ({"data_bias": self.data_bias.tolist()} if self.data_bias.any() else {})
+        )
 
     @classmethod
     def from_dict(cls, d: Any, n_cells: int) -> Uncertainty:
@@ -146,6 +180,7 @@ class Uncertainty:
             raise JsonProblem(f"uncertainty.noise_scale_px must be a positive number, got {shown(s0)}")
         pop = d.get("population_sigma_px")
         pop = None if pop is None else numbers(pop, (4,), "uncertainty.population_sigma_px")
+        bias = numbers(d.get("data_bias", [0.0] * 4), (4,), "uncertainty.data_bias")
         low, high = log_sigma_range(coef, statistics, n_cells)
         for p, name in enumerate(PARAMETERS):
             if not math.log(SIGMA_MIN_PX) <= low[p] <= high[p] <= math.log(SIGMA_MAX_PX):
@@ -163,6 +198,7 @@ class Uncertainty:
                 data_correlation=rho,
                 noise_scale_px=float(s0),
                 population_sigma_px=pop,
+                data_bias=bias,
             )
         except ValueError as exc:
             raise JsonProblem(str(exc)) from None

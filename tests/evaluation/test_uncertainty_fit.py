@@ -10,8 +10,8 @@ import pytest
 from helpers import constant_uncertainty
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
-from dimenet.runtime.rectify.uncertainty import NOISE_SCALE_PX, Uncertainty
+from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_bias, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.rectify.uncertainty import MAX_DATA_BIAS, NOISE_SCALE_PX, Uncertainty
 
 
 def test_uncertainty_fit_recovers_a_known_noise_model():
@@ -84,3 +84,25 @@ def test_data_correlation_fit_recovers_a_known_correlation():
         fit_data_correlation(errors, sigma * np.nan, ratio, noise)
     with pytest.raises(ValueError, match=r"data_correlation must be 4 values in \[0, 1\]"):
         replace(constant_uncertainty(1.0), data_correlation=np.array([0.0, 0.0, 1.5, 0.0]))
+
+
+def test_data_bias_fit_recovers_a_known_share_of_the_network_sigma():
+    """MAP errors = posterior noise (widened by a known correlation) + b times the network's
+    error: the fit finds b; a covered parameter gets 0, one beyond any b the largest."""
+    rng = np.random.default_rng(1)
+    n = 20000
+    sigma = rng.uniform(0.5, 5.0, (n, 4))
+    ratio = rng.uniform(0.05, 0.95, (n, 4))
+    noise = rng.uniform(0.3, 8.0, n)
+    net = rng.uniform(2.0, 40.0, (n, 4))
+    rho = np.array([0.0, 0.5, 0.2, 0.0])
+    b = np.array([0.0, 0.4, 1.2, 0.0])
+    w = noise**2 / (noise**2 + NOISE_SCALE_PX**2)
+    widened2 = sigma**2 * (1 + 2 * rho * w[:, None] * np.sqrt(ratio * (1 - ratio)))
+    errors = rng.normal(size=(n, 4)) * np.sqrt(widened2 + (b * net) ** 2)
+    errors[:, 0] *= 0.8  # covered by the posterior alone
+    errors[:, 3] = 100.0 * net[:, 3]  # beyond any b: the largest
+    fitted = fit_data_bias(errors, sigma, ratio, noise, net, rho)
+    np.testing.assert_allclose(fitted, [0.0, 0.4, 1.2, MAX_DATA_BIAS], atol=0.04)
+    with pytest.raises(InputError, match=r"\(F, 4\)"):
+        fit_data_bias(errors, sigma, ratio, noise, net[:, :3], rho)

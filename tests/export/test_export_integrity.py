@@ -75,7 +75,7 @@ def _independent_digest(blob: bytes, digest: str) -> str:
 
 def test_export_writes_a_verifiable_weights_sha256(blob, spec):
     stored = _meta(blob)
-    assert stored["version"] == VERSION == "1.9.0"
+    assert stored["version"] == VERSION == "1.10.0"
     digest = stored[WEIGHTS_SHA256_KEY]
     assert len(digest) == 64 and digest != WEIGHTS_SHA256_PLACEHOLDER
     assert _independent_digest(blob, digest) == digest

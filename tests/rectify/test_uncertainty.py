@@ -52,3 +52,23 @@ def test_posterior_scale_hand_computed():
     # nor is a noise-free frame.
     assert u.posterior_scale([1.0, 0.0, 1.0, 0.0], 5.0) == [1.0] * 4
     assert u.posterior_scale([0.5] * 4, 0.0) == [1.0] * 4
+
+
+def test_map_covariance_adds_the_data_bias_share_of_the_network_covariance():
+    network = np.array([[4.0, 1.0, 0, 0], [1.0, 9.0, 0, 0], [0, 0, 16.0, 2.0], [0, 0, 2.0, 25.0]])
+    posterior = np.diag([1.0, 2.0, 3.0, 4.0])
+    plain = constant_uncertainty(1.0)
+    np.testing.assert_array_equal(plain.map_covariance(posterior, network, 3.0), posterior)  # spec < 1.10: as it was
+    b = np.array([0.0, 0.5, 1.0, 2.0])
+    biased = replace(plain, data_bias=b)
+    np.testing.assert_allclose(biased.map_covariance(posterior, network, 3.0), posterior + network * np.outer(b, b))
+    # with a correlation too: the posterior is widened first, then the bias is added
+    both = replace(biased, data_correlation=np.full(4, 0.5))
+    scale = np.array(both.posterior_scale((posterior.diagonal() / network.diagonal()).tolist(), 3.0))
+    np.testing.assert_allclose(
+        both.map_covariance(posterior, network, 3.0), posterior * np.outer(scale, scale) + network * np.outer(b, b)
+    )
+    assert Uncertainty.from_dict(biased.to_dict(), 48).data_bias.tolist() == b.tolist()
+    assert "data_bias" not in plain.to_dict()  # a model without it writes the 1.9 object
+    with pytest.raises(ValueError, match=r"data_bias must be 4 values in \[0, 3\]"):
+        replace(plain, data_bias=np.array([0.0, 0.0, 3.5, 0.0]))
