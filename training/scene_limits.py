@@ -11,7 +11,7 @@ from dimenet.runtime.rectify.checks import STRUCTURE_PX, STRUCTURE_RATIO
 from dimenet.runtime.rectify.grid import Grid
 
 from .config import TrainConfig
-from .units import augment, resynthesise
+from .units import augment, clean, resynthesise
 
 # Augmentation draws of the fitting frames the structure limit is measured on; the share of them
 # the rule may send to K_c, and the margin on the structure at that share.
@@ -31,13 +31,16 @@ def structure_limit(units: list, config: TrainConfig, grid: Grid, rng: np.random
     """The spec's ``residual_structure_px`` (model px): STRUCTURE_MARGIN times the structure
     (``geometry.residual_structure`` of the inference points under K_c at the C0 pose; 0 where its
     F is at most STRUCTURE_RATIO) that a share STRUCTURE_SHARE of the fitting frames exceeds,
-    over STRUCTURE_DRAWS draws of the training augmentation; at least STRUCTURE_PX. Clustered,
-    noisily labelled points now and then fit the smooth field by chance: the largest would let
-    every real frame through."""
+    re-imaged clean (``clean``: what K and the pose make, without the build errors a simulated
+    rig's sheets hold) under STRUCTURE_DRAWS draws of the training augmentation; at least
+    STRUCTURE_PX. The rule keeps K_c on structure that neither OIS nor corner noise makes, so the
+    limit is measured on frames of only those: a family whose rigs sag would otherwise raise it past
+    every real bent sheet. Clustered, noisily labelled points now and then fit the smooth field by
+    chance: the largest would let every real frame through."""
     amplitudes = []
     for unit in units:
         for _ in range(STRUCTURE_DRAWS):
-            frames = augment(resynthesise(unit.fit, unit.truth, rng, config.resynthesis)[0], config, grid, rng)
+            frames = augment(resynthesise(unit.fit, clean(unit.truth), rng, config.resynthesis)[0], config, grid, rng)
             for b in range(frames.n_frames):
                 m = frames.infer_mask[b]
                 if m.sum() < MIN_STRUCTURE_POINTS:

@@ -10,7 +10,7 @@ import numpy as np
 
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, one_plane, two_objects
-from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_correlation, fit_uncertainty
+from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_bias, fit_data_correlation, fit_uncertainty
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.map_fit import map_rectify
 from dimenet.runtime.rectify.spec import ModelSpec
@@ -42,7 +42,9 @@ def fit_network_uncertainty(
     model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, rng: np.random.Generator
 ) -> tuple[Uncertainty, dict]:
     """The uncertainty model of the trained network's K - K' on the early-stopping frames of
-    ``units`` (each camera's ``val``, ``val_truth`` their calibration; in model px), each
+    ``units`` (each camera's ``val``, ``val_truth`` their calibration; in model px), K' the
+    simulator's true K where the dataset holds it (K' - the frame's ``k_bias``: the network
+    follows what the frame's points say, and the uncertainty must cover what they get wrong), each
     draw on the frames re-imaged by ``resynthesise``
     (every frame under another's principal point; K' the K it is then imaged under): so the
     fit sees many pairings of pose and OIS state, not only the few frames' own. The draws:
@@ -53,8 +55,8 @@ def fit_network_uncertainty(
     natural features, whose sparse and noisy spread the augmentation's compact clusters do not
     show). Its data correlation is fitted on the MAP estimates of the draws with added noise
     (the augmentation's and the two-object ones: their K' does not know that noise, while the
-    other draws' K' was fitted to the very points MAP reads). Returns the model and its
-    1-sigma coverage there."""
+    other draws' K' was fitted to the very points MAP reads), its data bias on those and, where the
+    dataset holds the true K, on every draw. Returns the model and its 1-sigma coverage there."""
     draws = max(8, -(-UNCERTAINTY_SAMPLES // sum(unit.val.n_frames for unit in units)))
     few = -(-draws // 3)
     conditions = [(False, lambda ds: ds)] * few
@@ -71,23 +73,27 @@ def fit_network_uncertainty(
             reimaged, K_reimaged = resynthesise(unit.val, unit.val_truth, rng, 1.0)
             drawn = condition(reimaged)
             pred = predictor.predict(drawn)
-            residuals.append((k_params(pred.K) - k_params(K_reimaged))[pred.predicted])
+            k_true = k_params(K_reimaged) - unit.val_truth.k_bias
+            residuals.append((k_params(pred.K) - k_true)[pred.predicted])
             stats.append(pred.stats[pred.predicted])
-            if added_noise:
-                noisy.append((drawn, pred, K_reimaged, predictor))
+            if added_noise or unit.val_truth.k_bias.any():
+                noisy.append((added_noise, drawn, pred, k_true, predictor))
     residuals, stats = np.concatenate(residuals), np.concatenate(stats)
     uncertainty = fit_uncertainty(residuals, stats)
-    uncertainty = replace(uncertainty, data_correlation=fit_data_correlation(*_map_errors(noisy, uncertainty)))
+    map_errors = _map_errors(noisy, uncertainty)
+    rho = fit_data_correlation(*(a[map_errors[-1]] for a in map_errors[:4]))
+    uncertainty = replace(uncertainty, data_correlation=rho, data_bias=fit_data_bias(*map_errors[:5], rho))
     return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
 
 
 def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
-    """Over the frames of ``draws`` [(frames, prediction, K' (F, 3, 3), predictor)] that MAP
-    rectifies under ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4) px, its
-    posterior standard deviations (F, 4) px, its variances over the prior's (F, 4), the frames'
-    2D noise (F,) px."""
-    errors, sigma, ratio, noise = [], [], [], []
-    for frames, pred, K_ref, predictor in draws:
+    """Over the frames of ``draws`` [(noise added, frames, prediction, K' (F, 4) px, predictor)]
+    that MAP rectifies under ``uncertainty`` (not widened): the MAP K's errors against K' (F, 4)
+    px, its posterior standard deviations (F, 4) px, its variances over the prior's (F, 4), the
+    frames' 2D noise (F,) px, the network's standard deviations (F, 4) px, and (F,) bool: the
+    frame's draw added noise."""
+    errors, sigma, ratio, noise, net, added = [], [], [], [], [], []
+    for added_noise, frames, pred, k_ref, predictor in draws:
         K_cov = uncertainty.covariance(pred.stats)
         for f in np.flatnonzero(pred.predicted):
             m = frames.infer_mask[f]
@@ -100,11 +106,14 @@ def _map_errors(draws: list, uncertainty: Uncertainty) -> tuple:
                 predictor.K_c,
             )
             if fit is not None:
-                errors.append(fit.k - k_params(K_ref[f]))
+                errors.append(fit.k - k_ref[f])
                 sigma.append(np.sqrt(np.diag(fit.K_cov)))
                 ratio.append(np.diag(fit.K_cov) / np.diag(K_cov[f]))
                 noise.append(fit.noise_px)
-    return tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio)) + (np.array(noise),)
+                net.append(np.sqrt(np.diag(K_cov[f])))
+                added.append(added_noise)
+    four = tuple(np.array(a).reshape(-1, 4) for a in (errors, sigma, ratio))
+    return four + (np.array(noise), np.array(net).reshape(-1, 4), np.array(added, bool))
 
 
 def uncertainty_fields(model: DimeNet, spec: ModelSpec, units: list, config: TrainConfig, init) -> dict:

@@ -53,18 +53,31 @@ def parameter_bounds(p: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FrameTruth:
-    """Per-frame calibration of the train frames: K* (F, 3, 3) px, pose* {W}->{C}, and the
-    residuals x - pi(K*, pose*) (F, P, 2) px that the calibration leaves (the frame's noise)."""
+    """Per-frame calibration of the train frames: K* (F, 3, 3) px, pose* {W}->{C}, the
+    residuals x - pi(K*, pose*) (F, P, 2) px that the calibration leaves (the frame's noise and
+    the build errors its rig file does not hold), and k_bias (F, 4) px: K* - K_true (fx, fy, cx,
+    cy) where the dataset holds the simulator's K_true, else 0 (what the frame's own fit gets
+    wrong, which the uncertainty model must cover; training/METHOD.md, "sigma against the truth")."""
 
     K_star: np.ndarray
     rvec: np.ndarray
     tvec: np.ndarray
     residual: np.ndarray
+    k_bias: np.ndarray
 
 
-def frame_truth(frames: Dataset, cal_K, cal_rvec, cal_tvec) -> FrameTruth:
+def frame_truth(frames: Dataset, cal_K, cal_rvec, cal_tvec, K_true: Optional[np.ndarray]) -> FrameTruth:
+    """The frames' FrameTruth from their calibration (K* (F, 3, 3) px and pose*) and the
+    simulator's K_true (F, 3, 3) px, or None for a capture."""
     residual = frames.points_2d - project(frames.points_3d, cal_K, cal_rvec, cal_tvec)
-    return FrameTruth(cal_K, cal_rvec, cal_tvec, np.where(frames.valid[..., None], residual, 0.0))
+    k_bias = np.zeros((len(cal_K), 4)) if K_true is None else k_params(cal_K) - k_params(K_true)
+    return FrameTruth(cal_K, cal_rvec, cal_tvec, np.where(frames.valid[..., None], residual, 0.0), k_bias)
+
+
+def clean(truth: FrameTruth) -> FrameTruth:
+    """``truth`` without its residuals: frames re-imaged under it are exactly what K and the pose
+    make, so only the augmentation's noise is left on them."""
+    return replace(truth, residual=np.zeros_like(truth.residual))
 
 
 def resynthesise(
@@ -167,22 +180,27 @@ def training_unit(dataset: Dataset, config: TrainConfig, focal_px: Optional[floa
         if cal.reasons[b] is not None:
             name = dataset.frame_id[b] if dataset.frame_id is not None else f"frame {b}"
             raise DatasetError(f"{name}: a train frame must give K* (the training target): {cal.reasons[b]}")
-    K_c, K_star, frames = cal.K_c, cal.K_star, dataset
+    K_c, K_star, K_true, frames = cal.K_c, cal.K_star, dataset.K_true, dataset
     if focal_px is not None:
         pixels = generic_pixel_map(Camera(K_c, tuple(int(v) for v in dataset.image_size)), focal_px)
         K_c, K_star = pixels.K_to_model(K_c), pixels.K_to_model(K_star)
+        K_true = None if K_true is None else pixels.K_to_model(K_true)
         frames = replace(
             dataset,
             points_2d=pixels.points_to_model(dataset.points_2d),
             image_size=np.round(dataset.image_size * pixels.scale).astype(np.int64),
         )
     fit_idx, val_idx = split_train_val(frames, config)
+
+    def at(idx):
+        return K_star[idx], cal.rvec[idx], cal.tvec[idx], None if K_true is None else K_true[idx]
+
     return Unit(
         name=name,
         fit=frames.select(fit_idx),
         val=frames.select(val_idx),
-        truth=frame_truth(frames.select(fit_idx), K_star[fit_idx], cal.rvec[fit_idx], cal.tvec[fit_idx]),
-        val_truth=frame_truth(frames.select(val_idx), K_star[val_idx], cal.rvec[val_idx], cal.tvec[val_idx]),
+        truth=frame_truth(frames.select(fit_idx), *at(fit_idx)),
+        val_truth=frame_truth(frames.select(val_idx), *at(val_idx)),
         camera=Camera(K_c, tuple(int(v) for v in frames.image_size)),
         train_K_star=K_star[frames.frames_in("train")],
     )

@@ -155,7 +155,7 @@ def test_resynthesis_keeps_frames_when_share_is_zero_and_moves_only_the_principa
     cal = calibrate_dataset(small)
     idx = np.flatnonzero(small.frames_in("train"))
     frames = small.select(idx)
-    truth = frame_truth(frames, cal.K_star[idx], cal.rvec[idx], cal.tvec[idx])
+    truth = frame_truth(frames, cal.K_star[idx], cal.rvec[idx], cal.tvec[idx], None)
     same, K_same = resynthesise(frames, truth, np.random.default_rng(0), share=0.0)
     np.testing.assert_allclose(same.points_2d[frames.valid], frames.points_2d[frames.valid], atol=1e-9)
     np.testing.assert_array_equal(K_same, cal.K_star[idx])
@@ -282,3 +282,57 @@ def test_train_command_passes_the_focal_weight_and_refuses_a_negative_one(small,
         )
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 2 and len(lines) == 1 and "--focal-weight" in lines[0], res.stderr
+
+
+def test_a_simulated_unit_knows_how_far_each_frame_s_own_fit_is_from_the_true_k(small):
+    """k_bias = K* - K_true in the model's pixels: a few px on the simulator's rig (its K* is
+    within ~1 px of the truth), scaled with the points onto a generic model's canonical camera;
+    zeros for a capture, which has no K_true."""
+    unit = training_unit(small, TrainConfig(), None, "small")
+    fit_idx, val_idx = split_train_val(small, TrainConfig())
+    cal = calibrate_dataset(small)
+    np.testing.assert_allclose(
+        unit.val_truth.k_bias, k_params(cal.K_star[val_idx]) - k_params(small.K_true[val_idx]), atol=1e-9
+    )
+    assert 0 < np.abs(unit.truth.k_bias).max() < 10.0
+    canonical = training_unit(small, TrainConfig(), 1000.0, "small")
+    scale = 1000.0 / cal.K_c[0, 0]
+    np.testing.assert_allclose(canonical.truth.k_bias[:, :2], unit.truth.k_bias[:, :2] * scale, rtol=1e-6, atol=1e-6)
+    capture = training_unit(dataclasses.replace(small, K_true=None), TrainConfig(), None, "capture")
+    assert not capture.truth.k_bias.any() and not capture.val_truth.k_bias.any()
+
+
+def test_uncertainty_residuals_are_taken_against_the_true_k(fitting, monkeypatch):
+    """The same draws with every frame's own fit 500 px further from the truth in cx give
+    residuals 500 px larger there and the same elsewhere: sigma covers what the frame's points
+    get wrong, not only the network's distance from them."""
+    from dimenet.training import uncertainty as network_uncertainty
+
+    _, model, spec, _, unit = fitting
+    seen = []
+    fit = network_uncertainty.fit_uncertainty
+
+    def spy(residuals, stats):
+        seen.append(residuals)
+        return fit(residuals, stats)
+
+    monkeypatch.setattr(network_uncertainty, "fit_uncertainty", spy)
+    shifted = dataclasses.replace(unit.val_truth, k_bias=unit.val_truth.k_bias + [0.0, 0.0, 500.0, 0.0])
+    for u in (unit, dataclasses.replace(unit, val_truth=shifted)):
+        network_uncertainty.fit_network_uncertainty(model, spec, [u], TrainConfig(), np.random.default_rng(0))
+    np.testing.assert_allclose(seen[1] - seen[0], np.broadcast_to([0.0, 0.0, 500.0, 0.0], seen[0].shape), atol=1e-6)
+
+
+def test_the_structure_limit_is_measured_on_frames_without_their_build_errors(small):
+    """A smooth field added to every fitting frame's residuals (a sagging sheet) leaves the
+    limit where it was: it is what OIS and the augmentation's noise make, not the rig's bends."""
+    from dimenet.runtime.rectify.grid import Grid
+    from dimenet.training.scene_limits import structure_limit
+
+    cfg = TrainConfig()
+    unit = training_unit(small, cfg, None, "small")
+    x = unit.fit.points_2d / unit.fit.image_size - 0.5
+    field = 40.0 * np.nan_to_num(x**2)  # px, up to 10 px at the corners
+    bent = dataclasses.replace(unit, truth=dataclasses.replace(unit.truth, residual=unit.truth.residual + field))
+    limits = [structure_limit([u], cfg, Grid.parse(cfg.grid), np.random.default_rng(4)) for u in (unit, bent)]
+    assert limits[0] == limits[1]
