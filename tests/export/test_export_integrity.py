@@ -167,5 +167,5 @@ def test_the_earlier_device_model_was_stamped_by_restamp_model():
 
 def test_the_bundled_generic_model_is_as_export_stamps_it():
     bundled = asset(DEFAULT_MODEL).read_bytes()
-    assert _meta(bundled)["version"] == "1.9.0" and "generic" in _meta(bundled)
+    assert _meta(bundled)["version"] == "1.10.0" and "generic" in _meta(bundled)
     assert restamp_model(bundled, "bundled") == bundled  # idempotent, and the one implementation
