@@ -20,8 +20,9 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.sim.natural import random_natural
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
-from dimenet.runtime.sim.scenes import FILL, build_errors_mm, framed, random_rig
+from dimenet.runtime.sim.scenes import FILL, build_errors_mm, extent_mm, framed, random_rig
 from dimenet.runtime.sim.simulator import simulate
 
 # Image sizes (width, height) px: 16:9 and 4:3 stream and photo sizes, 1280 to 8000 px wide.
@@ -241,14 +242,18 @@ def family_member(
     camera's far distance to its near one (``scenes.framed``; held-out families draw other framings than the
     training's: ``training/reproduce``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS (stroke 0:
     the principal point never moves, only focus breathing changes f); the rig as built departs from its points
-    (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off."""
+    (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off; its natural frames see a
+    random room, street or table of the rig's size around the rig's first board (``natural.random_natural``, a
+    fourth stream)."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
-    rig, offsets = None, None
+    rig, offsets, natural = None, None, None
     if scenes == "random":
         rig = random_rig(_stream(seed, 3, index))
         profile = framed(profile if has_ois(seed, index) else replace(profile, ois_stroke_deg=0.0), rig, fill)
         offsets = build_errors_mm(rig, _stream(seed, 5, index))
+        if natural_frames:
+            natural = random_natural(rig.boards[0], extent_mm(rig), _stream(seed, 6, index))
     ds = simulate(
         profile,
         seed=camera_seed(seed, index),
@@ -258,6 +263,7 @@ def family_member(
         platform_k=platform_k,
         rig=rig,
         rig_offsets_mm=offsets,
+        natural=natural,
     )
     family = {"seed": int(seed), "index": index, "cameras": int(n), "scenes": scenes}
     return replace(ds, meta={**ds.meta, "family": family})

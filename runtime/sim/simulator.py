@@ -121,6 +121,23 @@ class Scene:
         return (self.points.min(0) + self.points.max(0)) / 2.0
 
 
+@dataclass(frozen=True)
+class NaturalSet:
+    """A natural scene as the simulator photographs it: ``scene`` (a board, group 0, and the labelled features,
+    group -1), the labels' 2D noise ``label_sigma_px`` (std per axis), the features' 3D error ``model_sigma_mm``
+    (std per axis), the fewest features a usable frame sees (``min_seen``), and the scene's kind."""
+
+    scene: Scene
+    label_sigma_px: float
+    model_sigma_mm: float
+    min_seen: int
+    kind: str
+
+    def view_ok(self, scene: Scene, seen: np.ndarray) -> bool:
+        """Usable: the board seen whole and at least ``min_seen`` features."""
+        return bool(seen[scene.group == 0].all()) and int(np.count_nonzero(seen[scene.group < 0])) >= self.min_seen
+
+
 def board_surface(board: Board) -> np.ndarray:
     """(3, 3) the board's printed pattern, one square beyond the inner corners, as (corner, edge a, edge b)."""
     nx, ny = board.inner_corners
@@ -341,6 +358,7 @@ def simulate(
     dist_coeffs: Optional[Sequence[float]] = None,
     platform_k: bool = False,
     rig_offsets_mm: Optional[np.ndarray] = None,
+    natural: Optional[NaturalSet] = None,
 ) -> Dataset:
     """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
     test frames, then ``planar_frames`` planar test frames.
@@ -358,6 +376,8 @@ def simulate(
     ``platform_k`` states the model). Without either, the dataset is as before, array for array.
     ``rig_offsets_mm`` (P, 3) mm in {W}: the built rig's corners lie there off the rig's points (``scenes.
     build_errors_mm``); the camera images the built rig (seen where the rig is), the dataset's 3D points stay the rig's.
+    ``natural``: the natural frames' scene, noise and 3D error (``sim.natural.random_natural``; None: the paper's
+    LEGO buildings beside the rig's first board, with the profile's label and model noise).
     """
     profile = get_profile(profile) if isinstance(profile, str) else profile
     for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
@@ -373,7 +393,12 @@ def simulate(
         if offsets.shape != rig_set.points.shape or not np.all(np.isfinite(offsets)):
             raise InputError(f"rig_offsets_mm must be finite, one (x, y, z) per rig point {rig_set.points.shape}")
         built = rig_set.points + offsets
-    nature = natural_scene(rig.boards[0])
+    if natural is None:
+        nature, usable = natural_scene(rig.boards[0]), natural_view_ok
+        label_sigma_px, model_sigma_mm = profile.label_sigma_px, profile.model_sigma_mm
+    else:
+        nature, usable = natural.scene, natural.view_ok
+        label_sigma_px, model_sigma_mm = natural.label_sigma_px, natural.model_sigma_mm
     n_rig = profile.n_train + profile.n_test
     n_shot = n_rig + natural_frames
     F, P = n_shot + planar_frames, max(len(rig_set.points), len(nature.points))
@@ -388,10 +413,10 @@ def simulate(
         p3[k, :n][seen] = rig_set.points[seen]
         valid[k, :n], infer[k, :n] = seen, seen
     building = nature.group < 0
-    model_points = nature.points + building[:, None] * rng.normal(0.0, profile.model_sigma_mm, nature.points.shape)
-    noise_px = np.where(building, profile.label_sigma_px, profile.corner_sigma_px)[:, None]
+    model_points = nature.points + building[:, None] * rng.normal(0.0, model_sigma_mm, nature.points.shape)
+    noise_px = np.where(building, label_sigma_px, profile.corner_sigma_px)[:, None]
     for k in range(n_rig, n_shot):
-        K_true[k], _, _, px, seen = shoot(nature, profile, rng, natural_view_ok, dist_coeffs=dist)
+        K_true[k], _, _, px, seen = shoot(nature, profile, rng, usable, dist_coeffs=dist)
         n = len(px)
         p2[k, :n][seen] = (px + rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
         p3[k, :n][seen] = model_points[seen]
@@ -416,6 +441,13 @@ def simulate(
         "rig": rig_to_dict(rig),
         "natural_board": rig.boards[0].name,
     }
+    if natural is not None:
+        meta["natural_scene"] = {
+            "kind": natural.kind,
+            "features": int(np.count_nonzero(building)),
+            "label_sigma_px": label_sigma_px,
+            "model_sigma_mm": model_sigma_mm,
+        }
     if dist is not None:
         p2 = distort_points(p2, profile.nominal_K, dist)
     if platform_k:

@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--natural-frames",
         type=integer_in(0, MAX_EXTRA_FRAMES),
         default=0,
-        help="natural-scene (LEGO buildings) test frames to add (the paper has 34; default 0), per camera",
+        help="natural-scene test frames to add (the paper has 34; default 0), per camera: the paper's LEGO "
+        "buildings, or with --scenes random a room, street or table of the camera's own",
     )
     p.add_argument(
         "--planar-frames",
