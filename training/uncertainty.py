@@ -55,8 +55,9 @@ def fit_network_uncertainty(
     natural features, whose sparse and noisy spread the augmentation's compact clusters do not
     show). Its data correlation is fitted on the MAP estimates of the draws with added noise
     (the augmentation's and the two-object ones: their K' does not know that noise, while the
-    other draws' K' was fitted to the very points MAP reads), its data bias on those and, where the
-    dataset holds the true K, on every draw. Returns the model and its 1-sigma coverage there."""
+    other draws' K' was fitted to the very points MAP reads); its data bias, where the dataset holds
+    the true K, on the draws without added noise (what MAP gets wrong there is the frame's build
+    errors, which no noise model knows; elsewhere 0). Returns the model and its 1-sigma coverage there."""
     draws = max(8, -(-UNCERTAINTY_SAMPLES // sum(unit.val.n_frames for unit in units)))
     few = -(-draws // 3)
     conditions = [(False, lambda ds: ds)] * few
@@ -80,9 +81,10 @@ def fit_network_uncertainty(
                 noisy.append((added_noise, drawn, pred, k_true, predictor))
     residuals, stats = np.concatenate(residuals), np.concatenate(stats)
     uncertainty = fit_uncertainty(residuals, stats)
-    map_errors = _map_errors(noisy, uncertainty)
-    rho = fit_data_correlation(*(a[map_errors[-1]] for a in map_errors[:4]))
-    uncertainty = replace(uncertainty, data_correlation=rho, data_bias=fit_data_bias(*map_errors[:5], rho))
+    *map_errors, added = _map_errors(noisy, uncertainty)
+    rho = fit_data_correlation(*(a[added] for a in map_errors[:4]))
+    bias = np.zeros(4) if added.all() else fit_data_bias(*(a[~added] for a in map_errors), rho)
+    uncertainty = replace(uncertainty, data_correlation=rho, data_bias=bias)
     return uncertainty, coverage(residuals, np.zeros_like(residuals), uncertainty.covariance(stats))
 
 
