@@ -26,6 +26,7 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     monkeypatch.setattr(generic, "FINE_TUNE_FRAMES", 20)
     monkeypatch.setattr(generic, "FRESH_SCENES", {"rig": (101, 2, (0.2, 0.8)), "far": (202, 1, (0.2, 1 / 3))})
     monkeypatch.setattr(generic, "OIS_OFF_FAMILY", (11, 2))  # its camera 1 has no OIS
+    monkeypatch.setattr(generic, "FRESH_NATURAL", (404, 2, 8))
     data = {"galaxy-s8": simulate("galaxy-s8", seed=2, natural_frames=4, planar_frames=4)}
     device = {"galaxy-s8": load_onnx_predictor(DEVICE_MODEL)}
     config = ReproduceConfig(out_dir=tmp_path, epochs=2)
@@ -43,13 +44,16 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     assert len(results["fresh_family"]) == 2 and all(r["rho"] > 0.5 for r in results["fresh_family"])
     assert set(results["fine_tune"]["rows"]) == {"rig 64 pts", "natural"}
     scenes = results["fresh_scenes"]
-    assert [len(scenes[name]) for name in ("rig", "far")] == [2, 1]
+    assert [len(scenes[name]) for name in ("rig", "far", "natural")] == [2, 1, 2]
+    assert all(r["kind"] in ("room", "buildings", "objects") and r["features"] >= 15 for r in scenes["natural"])
+    assert any(r["all"]["map"] is not None for r in scenes["natural"])
     # the bundled model on random rigs: better than K_c in mode map (the frame's points carry it), every case measured
     assert all(
         r[case]["map"] > 0.3 for rows in (scenes["rig"], scenes["far"]) for r in rows for case in ("all", "small")
     )
     assert scenes["ois_off"]["cameras"] == 1 and scenes["ois_off"]["frames"] == 20
     assert all(0.0 <= v <= 1.0 for v in scenes["ois_off"]["within"].values())
+    assert "| natural | 2 |" in "\n".join(_generic_report(results))
     inv = results["invariance"]
     assert inv["half_vs_full_mean_px"] < 1e-6 and inv["m_vs_mm_max_px"] < 1e-6
     assert inv["half_points_full_k_c_silent"] == 0

@@ -34,6 +34,9 @@ FRESH_FAMILY_CAMERAS = 20
 # trains on seed 0), one framed as the training's, one far (a fifth to a third of the image width); and the
 # cameras without OIS of a third (OIS_OFF_FAMILY: seed, cameras; about a fifth of them).
 FRESH_SCENES = {"rig": (101, 12, FILL), "far": (202, 12, (0.2, 1 / 3))}
+# Held-out natural scenes: seed, cameras, natural test frames each (a room, a street or a table of the camera's
+# own around a board; sim.natural), read on the frames' board corners as the paper's LEGO test is.
+FRESH_NATURAL = (404, 12, 10)
 OIS_OFF_FAMILY = (11, 40)
 OIS_OFF_SIGMAS = 2.0  # a frame of a camera without OIS is right when K is within this many sigma of K_true
 FINE_TUNE_FRAMES = 30
@@ -95,7 +98,8 @@ def _bundled_predictor() -> Predictor:
 
 def fresh_scenes(generic: Optional[Predictor] = None) -> dict:
     """The generic model (default: the bundled one) on held-out scene families: per FRESH_SCENES family
-    and camera, rho of both modes on its rig test frames at every point and at SMALL_POINTS; and, on
+    and camera, rho of both modes on its rig test frames at every point and at SMALL_POINTS; per camera
+    of the FRESH_NATURAL family, rho of both modes on its natural test frames (``natural``); and, on
     the cameras without OIS of OIS_OFF_FAMILY, the share of frames whose K (as `rectify` returns it,
     fallbacks included) is within OIS_OFF_SIGMAS of K_true on every parameter. Each camera's K_c is
     calibrated on its train split. A job of ``runtime.jobs.engine.run_all`` too."""
@@ -114,8 +118,32 @@ def fresh_scenes(generic: Optional[Predictor] = None) -> dict:
                 row[case] = {m: _rho(ev, m) for m in ("dimenet", "map")}
             rows.append(row)
         out[name] = rows
+    out["natural"] = natural_scenes(generic)
     out["ois_off"] = ois_off_coverage(generic)
     return out
+
+
+def natural_scenes(generic: Predictor) -> list:
+    """Per camera of the FRESH_NATURAL family: its scene's kind and features, and rho of both modes on its
+    natural test frames (``all``; None where the frames' e_c is within noise of e*: cameras without OIS)."""
+    seed, n, frames = FRESH_NATURAL
+    rows = []
+    family = simulate_family(n, seed, scenes="random", natural_frames=frames)
+    for i, (camera, ds) in enumerate(progress(family, total=n, desc="reproduce: held-out natural scenes")):
+        p = generic.for_camera(dataset_camera(ds))
+        ev = evaluate(_test(ds, "natural"), p.K_c, p, methods=("dimenet", "map"))
+        scene = ds.meta["natural_scene"]
+        rows.append(
+            {
+                "camera": camera.name,
+                "ois": has_ois(seed, i),
+                "kind": scene["kind"],
+                "features": scene["features"],
+                "all": {m: _rho(ev, m) for m in ("dimenet", "map")},
+                "small": {"dimenet": None, "map": None},
+            }
+        )
+    return rows
 
 
 def ois_off_coverage(generic: Predictor) -> dict:

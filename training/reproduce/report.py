@@ -220,8 +220,11 @@ def _scenes_report(sc: dict) -> list:
         "",
         'Random rigs (2–6 boards, built with sag and placement errors; models_spec/simulator.md, "Scene family") '
         "of seeds the default's training never drew: `rig` framed as the training family is (a fifth of the image "
-        "width to most of it), `far` from a fifth to a third. Rig test frames, K_c calibrated on each camera's "
-        f"train split; ρ % median / worst camera, at every point and at {SMALL_POINTS} inference points.",
+        "width to most of it), `far` from a fifth to a third: rig test frames. `natural`: each camera's own room, "
+        "street or table (16–600 labels with 0.3–5 px noise and a 3D error, around a board whose corners the "
+        "errors are read on, as the paper's LEGO test): natural test frames, ρ n/a on cameras without OIS. K_c "
+        f"calibrated on each camera's train split; ρ % median / worst camera, at every point and at {SMALL_POINTS} "
+        "inference points.",
         "",
         f"| family | cameras | dimenet | map | dimenet {SMALL_POINTS} pts | map {SMALL_POINTS} pts |",
         "|---|---|---|---|---|---|",
