@@ -12,7 +12,7 @@ from typing import Optional
 
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.rectify.spec import HEADS
+from dimenet.runtime.rectify.spec import head_problem
 
 # The flags are range-checked by their argparse types, so a bad value is refused before torch is imported;
 # a fleet manifest's values go through the same types (training/fleet.py).
@@ -60,12 +60,9 @@ class TrainConfig:
     fine_tune_lr: float = 2e-4
 
     def __post_init__(self) -> None:
-        if self.head not in HEADS:
-            raise InputError(f"head must be one of {', '.join(HEADS)}, got {self.head!r}")
-        if self.head == "gated_step" and not self.data_step:
-            raise InputError(
-                "head gated_step needs the data step it gates (--data-step; data_step in a fleet manifest)"
-            )
+        problem = head_problem(self.head, self.data_step, "--data-step (data_step in a fleet manifest)")
+        if problem:
+            raise InputError(problem)
 
 
 @dataclass(frozen=True)

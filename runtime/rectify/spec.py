@@ -14,7 +14,7 @@ import json
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -40,6 +40,18 @@ WEIGHTS_SHA256_PLACEHOLDER = "0" * 64
 # The network's output head (spec >= 1.8; absent: "mlp", the paper's): "gated_step" adds the
 # feature's data step through a learned gate (training.model; models_spec/model-v1.md).
 HEADS = ("mlp", "gated_step")
+
+
+def head_problem(head: Any, data_step: bool, step_name: str) -> Optional[str]:
+    """Why a network of output ``head`` cannot sit on a feature with (``data_step``) or without the
+    data step, named ``step_name`` where the caller sets it; None when it can."""
+    if head not in HEADS:
+        return f"head must be one of {', '.join(HEADS)}, got {shown(head)}"
+    if head == "gated_step" and not data_step:
+        return f"head gated_step needs {step_name} (the data step it gates)"
+    return None
+
+
 MAX_SPEC_CHARS = 4 << 20  # a spec is a few KiB
 _HEX64 = re.compile(r"[0-9a-f]{64}")
 
@@ -167,10 +179,9 @@ class ModelSpec:
     content_sha256: Optional[str] = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
-        if self.head not in HEADS:
-            raise JsonProblem(f"head must be one of {', '.join(HEADS)}, got {shown(self.head)}")
-        if self.head == "gated_step" and not self.features.data_step:
-            raise JsonProblem("head gated_step needs features.data_step (the step it gates)")
+        problem = head_problem(self.head, self.features.data_step, "features.data_step")
+        if problem:
+            raise JsonProblem(problem)
 
     def to_dict(self, *, weights_sha256: Optional[str] = None, content_sha256: Optional[str] = None) -> dict:
         d = {"format": FORMAT, "version": VERSION, "features": self.features.to_dict()}

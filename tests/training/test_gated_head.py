@@ -86,3 +86,14 @@ def test_a_gated_head_needs_the_data_step():
     stepped = ModelSpec.from_dict({**spec_dict, "features": {**spec_dict["features"], "data_step": True}})
     assert stepped.head == "gated_step" and ModelSpec.from_dict(stepped.to_dict()).head == "gated_step"
     assert "head" not in replace(stepped, head="mlp").to_dict()
+
+
+def test_a_training_config_states_the_head_rule_in_the_command_s_words():
+    from dimenet.runtime.errors import InputError
+    from dimenet.training.config import TrainConfig
+
+    with pytest.raises(InputError, match=r"head gated_step needs --data-step \(data_step in a fleet manifest\)"):
+        TrainConfig(head="gated_step")
+    with pytest.raises(InputError, match="head must be one of mlp, gated_step, got 'wide'"):
+        TrainConfig(head="wide", data_step=True)
+    assert TrainConfig(head="gated_step", data_step=True).head == "gated_step"
