@@ -17,7 +17,6 @@ A folder that holds files but neither is refused: rendering into it would mix th
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -25,8 +24,7 @@ from typing import Optional
 
 from dimenet.runtime.bench.ingest_score import score
 from dimenet.runtime.errors import DatasetError, IngestError
-from dimenet.runtime.formats.npz import read_npz
-from dimenet.runtime.formats.render_truth import read_truth
+from dimenet.runtime.formats.render_truth import Truth, read_truth
 from dimenet.runtime.formats.rig import load_rig, paper_rig
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.ingest.pipeline import ingest
@@ -56,12 +54,10 @@ def run_real_bench(folder: Path, *, workers: int) -> dict:
     }
 
 
-def rendered_with(truth_file: Path) -> dict:
-    """The n, seed and profile a render's truth.npz was written with (its ``meta``)."""
-    arrays = read_npz(truth_file, DatasetError, "render truth file")
+def rendered_with(truth: Truth, truth_file: Path) -> dict:
+    """The n, seed and profile a render's truth (read from ``truth_file``) was written with (its ``meta``)."""
     try:
-        meta = json.loads(str(arrays["meta"]))
-        return {"n": int(arrays["frame_id"].shape[0]), "seed": int(meta["seed"]), "profile": str(meta["profile"])}
+        return {"n": len(truth.frame_id), "seed": int(truth.meta["seed"]), "profile": str(truth.meta["profile"])}
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{truth_file}: its meta does not say how the photos were rendered ({exc})") from None
 
@@ -81,9 +77,10 @@ def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int, a
                 "and their rig); give an empty or new folder to render into"
             )
         write_render(folder, rig, get_profile(profile), n, seed=seed)
-    else:
-        done = rendered_with(folder / TRUTH_FILE)
-        wrong = {k: v for k, v in (asked or {}).items() if done[k] != v}
+    truth = read_truth(folder / TRUTH_FILE)
+    if asked:
+        done = rendered_with(truth, folder / TRUTH_FILE)
+        wrong = {k: v for k, v in asked.items() if done[k] != v}
         if wrong:
             asked_text = ", ".join(f"--{k} {v}" for k, v in wrong.items())
             done_text = ", ".join(f"--{k} {done[k]}" for k in wrong)
@@ -91,7 +88,6 @@ def run_ingest_bench(folder, *, n: int, seed: int, profile: str, workers: int, a
                 f"{folder}: holds photos rendered with {done_text}, not {asked_text}: give a new folder to render "
                 "into, or the options they were rendered with"
             )
-    truth = read_truth(folder / TRUTH_FILE)
     start = time.monotonic()
     result = ingest([folder / str(f) for f in truth.frame_id], rig, workers=workers)
     seconds = time.monotonic() - start

@@ -5,22 +5,24 @@ is scored against it by ``bench.ingest_score``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
 from dimenet.runtime.errors import DatasetError
-from dimenet.runtime.formats.dataset import LENS_KEYS
+from dimenet.runtime.formats.dataset import LENS_KEYS, MAX_META_CHARS
 from dimenet.runtime.formats.npz import read_npz
+from dimenet.runtime.json_text import JsonProblem, parse_json
 
 
 @dataclass(frozen=True)
 class Truth:
     """Per photo: file name (N,), K (N, 3, 3) px, pose {W}->{C} (N, 3) rad / mm, every rig corner's true
     pixel (N, P, 2) and whether its board is shown whole (N, P); the rig's board of each corner (P,);
-    the lens the photos were taken through (dist_coeffs (n,) about dist_K (3, 3) px), or None."""
+    the lens the photos were taken through (dist_coeffs (n,) about dist_K (3, 3) px), or None; meta: how they
+    were rendered (``sim.render``'s seed, profile, ...; {} for a file without it)."""
 
     frame_id: np.ndarray
     K: np.ndarray
@@ -33,6 +35,7 @@ class Truth:
     covered_board: np.ndarray  # (N,) int, -1 for none
     dist_coeffs: Optional[np.ndarray] = None
     dist_K: Optional[np.ndarray] = None
+    meta: dict = field(default_factory=dict)
 
 
 def _truth_array(arrays: dict, key: str, kinds: str, shape: tuple, named: str) -> np.ndarray:
@@ -65,6 +68,12 @@ def read_truth(path: str | Path) -> Truth:
                 "dist_coeffs": _truth_array(arrays, "dist_coeffs", "f", (n,), "(n,)"),
                 "dist_K": _truth_array(arrays, "dist_K", "f", (3, 3), "(3, 3)"),
             }
+        try:
+            meta = parse_json(str(arrays["meta"]), max_chars=MAX_META_CHARS) if "meta" in arrays else {}
+        except JsonProblem as exc:
+            raise DatasetError(f"meta: {exc}") from None
+        if not isinstance(meta, dict):
+            raise DatasetError("meta: must be a JSON object")
         return Truth(
             frame_id=_truth_array(arrays, "frame_id", "U", (N,), "(N,)"),
             K=_truth_array(arrays, "K", "f", (N, 3, 3), "(N, 3, 3)"),
@@ -76,6 +85,7 @@ def read_truth(path: str | Path) -> Truth:
             upside_down=_truth_array(arrays, "upside_down", "b", (N,), "(N,)"),
             covered_board=_truth_array(arrays, "covered_board", "iu", (N,), "(N,)"),
             **lens,
+            meta=meta,
         )
     except DatasetError as exc:
         raise DatasetError(f"{path}: {exc}") from None

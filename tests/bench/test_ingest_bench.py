@@ -3,13 +3,15 @@ same photos as a folder of real photos with their rig (no truth: timed and count
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
 import pytest
 
 from dimenet.runtime.bench.ingest import RIG_FILE, format_ingest_report, rendered_with, run_ingest_bench
-from dimenet.runtime.errors import IngestError
+from dimenet.runtime.errors import DatasetError, IngestError
+from dimenet.runtime.formats.render_truth import read_truth
 from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
 from dimenet.runtime.sim.profiles import get_profile
 from dimenet.runtime.sim.render import TRUTH_FILE, scaled_profile, write_render
@@ -39,7 +41,10 @@ def test_rendered_photos_are_scored_against_their_truth_and_real_ones_counted(tm
 def test_a_folder_rendered_with_other_options_is_refused_not_reused(tmp_path):
     """`bench --ingest DIR --seed 1` on photos rendered with seed 0 once scored those silently."""
     write_render(tmp_path, paper_rig(), scaled_profile(get_profile("galaxy-s8"), 6.0), 1, seed=0)
-    assert rendered_with(tmp_path / TRUTH_FILE) == {"n": 1, "seed": 0, "profile": "galaxy-s8"}
+    truth = read_truth(tmp_path / TRUTH_FILE)
+    assert rendered_with(truth, tmp_path / TRUTH_FILE) == {"n": 1, "seed": 0, "profile": "galaxy-s8"}
+    with pytest.raises(DatasetError, match="its meta does not say how the photos were rendered"):
+        rendered_with(dataclasses.replace(truth, meta={}), tmp_path / TRUTH_FILE)
     for asked, message in (
         ({"seed": 1}, "--seed 0, not --seed 1"),
         ({"n": 30, "seed": 0}, "--n 1, not --n 30"),

@@ -244,6 +244,11 @@ def test_wrong_shapes_in_calibration_and_truth_are_refused(tmp_path):
     truth["seen"] = np.ones((F, P + 1), bool)
     np.savez(tmp_path / "truth.npz", **truth)
     refused(read_truth, tmp_path / "truth.npz", "seen", "(N, P)")
+    for meta, words in (('{"a": 1, "a": 2}', "'a' appears twice"), ("[1, 2]", "a JSON object")):
+        truth = truth_arrays()
+        truth["meta"] = np.array(meta)
+        np.savez(tmp_path / "truth.npz", **truth)
+        refused(read_truth, tmp_path / "truth.npz", "meta", words)
 
 
 @pytest.mark.parametrize(
