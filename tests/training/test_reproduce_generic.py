@@ -52,12 +52,12 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
         r[case]["map"] > 0.3 for rows in (scenes["rig"], scenes["far"]) for r in rows for case in ("all", "small")
     )
     assert scenes["ois_off"]["cameras"] == 1 and scenes["ois_off"]["frames"] == 20
-    assert all(0.0 <= v <= 1.0 for v in scenes["ois_off"]["within"].values())
-    assert "| natural | 2 |" in "\n".join(_generic_report(results))
+    assert all(0.0 <= v <= 1.0 for key in ("within", "within_true") for v in scenes["ois_off"][key].values())
     inv = results["invariance"]
     assert inv["half_vs_full_mean_px"] < 1e-6 and inv["m_vs_mm_max_px"] < 1e-6
     assert inv["half_points_full_k_c_silent"] == 0
     text = "\n".join(_generic_report(results))
     assert "## The generic default model beside the per-device ones" in text and "family-s101-001" in text
     assert "### Held-out scene families" in text and "| far | 1 |" in text and "Cameras without OIS (1 of" in text
+    assert "| natural | 2 |" in text and "moves from K_c by at most 2σ" in text and "within 2σ of K_true" in text
     assert np.isfinite(rows["galaxy-s8 planar"]["generic"]["map"])
