@@ -108,6 +108,7 @@ class Uncertainty:
                 f"uncertainty: data_bias must be 4 values in [0, {MAX_DATA_BIAS:g}], got {self.data_bias!r}"
             )
         object.__setattr__(self, "data_bias", bias)
+        object.__setattr__(self, "_bias", np.outer(bias, bias) if bias.any() else None)  # per frame: one product
         if self.population_sigma_px is not None:
             pop = np.asarray(self.population_sigma_px, dtype=np.float64)
             if pop.shape != (4,) or not np.all((pop >= SIGMA_MIN_PX) & (pop <= SIGMA_MAX_PX)):
@@ -131,8 +132,8 @@ class Uncertainty:
         if self.widens:
             scale = np.array(self.posterior_scale((posterior.diagonal() / network.diagonal()).tolist(), noise_px))
             posterior = posterior * (scale[:, None] * scale)
-        if self.data_bias.any():
-            posterior = posterior + network * (self.data_bias[:, None] * self.data_bias)
+        if self._bias is not None:
+            posterior = posterior + network * self._bias
         return posterior
 
     def to_dict(self) -> dict:
