@@ -16,6 +16,7 @@ Anything else is a ModelError naming the file. See models_spec/model-v1.md, "Ver
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -117,8 +118,7 @@ def _text(value: memoryview) -> str:
 def _check_tensor(buf: memoryview, what: str, budget: _Budget, name: str = "") -> Tensor:
     """A float32 tensor whose values are all in its raw_data or float_data, as many as its dims say.
     ``name``: the tensor's name when its own is empty (a Constant's output)."""
-    dims, data_type, location, raw, floats, float_fields, other = [], 0, 0, None, 0, 0, set()
-    float_parts = []
+    dims, data_type, location, raw, float_parts, other = [], 0, 0, None, [], set()
     for number, wire, value in _fields(buf, budget):
         if number == _TENSOR_NAME and wire == 2 and _text(value):
             name = _text(value)
@@ -133,9 +133,7 @@ def _check_tensor(buf: memoryview, what: str, budget: _Budget, name: str = "") -
         elif number == _TENSOR_RAW_DATA and wire == 2:
             raw = value
         elif number == _TENSOR_FLOAT_DATA and wire in (2, 5):
-            floats += len(value)  # bytes, little-endian float32 (packed or one fixed32)
-            float_fields += 1
-            float_parts.append(value)
+            float_parts.append(value)  # little-endian float32 bytes (packed or one fixed32)
         elif number in (_TENSOR_EXTERNAL_DATA, _TENSOR_SEGMENT, *_TENSOR_OTHER_DATA):
             other.add(number)
     label = f"{what} {shown(name)}"
@@ -147,18 +145,30 @@ def _check_tensor(buf: memoryview, what: str, budget: _Budget, name: str = "") -
         raise ModelError(f"{label} holds values in a field of another type than float32: the exporter writes none")
     if data_type != FLOAT:
         raise ModelError(f"{label} has ONNX data type {data_type}: the exporter writes float32 (1) tensors only")
-    if any(d >= 1 << 63 for d in dims):
-        raise ModelError(f"{label} declares a negative dimension")
-    count = 1
-    for d in dims:
-        count *= d
-    if raw is not None and float_fields:
+    if raw is not None and float_parts:
         raise ModelError(f"{label} holds its values twice (raw_data and float_data)")
-    held = len(raw) if raw is not None else floats
-    if held != 4 * count:
-        raise ModelError(f"{label} declares shape {dims} ({count} float32 values) but holds {held} bytes")
     data = bytes(raw) if raw is not None else b"".join(bytes(part) for part in float_parts)
-    return Tensor(name, tuple(dims), data)
+    return float_tensor(label, name, dims, data)
+
+
+def float_tensor(label: str, name: str, dims, data: bytes) -> Tensor:
+    """The Tensor of a float32 tensor's dims and value bytes (little-endian), checked: no negative
+    dimension (an ONNX file's unsigned varint at or above 2^63 is one) and as many values as the
+    dims say; ModelError naming ``label`` (the rule of an ONNX file's tensors here, and of an
+    ORT-format file's in ``rectify.ort_format``)."""
+    dims = tuple(int(d) for d in dims)
+    if any(d < 0 or d >= 1 << 63 for d in dims):
+        raise ModelError(f"{label} declares a negative dimension")
+    count = math.prod(dims)
+    if len(data) != 4 * count:
+        raise ModelError(f"{label} declares shape {list(dims)} ({count} float32 values) but holds {len(data)} bytes")
+    return Tensor(name, dims, data)
+
+
+def check_size(blob: bytes, source: str) -> None:
+    """ModelError naming ``source`` when the bytes are more than MAX_MODEL_BYTES (any model file format)."""
+    if len(blob) > MAX_MODEL_BYTES:
+        raise ModelError(f"{source}: larger than {MAX_MODEL_BYTES} bytes, too large for a DIME-Net model")
 
 
 def check_operator(node: str, op_type: str, domain: str) -> None:
@@ -232,8 +242,7 @@ def check_model_bytes(blob: bytes, source: str) -> list:
     """ModelError naming ``source`` unless the ONNX bytes hold only what the exporter writes
     (see the module doc); bytes that are no protobuf message are "not a loadable ONNX model".
     Returns the graph's constant tensors (initializers and Constant values, ``Tensor``)."""
-    if len(blob) > MAX_MODEL_BYTES:
-        raise ModelError(f"{source}: larger than {MAX_MODEL_BYTES} bytes, too large for a DIME-Net model")
+    check_size(blob, source)
     tensors: list = []
     try:
         nodes, budget = 0, _Budget()

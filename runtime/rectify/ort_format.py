@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.json_text import shown
-from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES, Tensor, check_operator
+from dimenet.runtime.rectify.onnx_graph import Tensor, check_operator, check_size, float_tensor
 
 ORT_IDENTIFIER = b"ORTM"  # bytes 4-8 of every ORT-format file (its flatbuffer file identifier)
 FLOAT = 1  # fbs TensorDataType.FLOAT
@@ -31,23 +31,14 @@ def _tensor(t, what: str) -> Tensor:
         raise ModelError(f"{label} has ORT data type {t.DataType()}: the exporter writes float32 (1) tensors only")
     if getattr(t, "ExternalDataOffset", lambda: -1)() >= 0:  # the field is newer than onnxruntime 1.19
         raise ModelError(f"{label} keeps its values outside the file's tensor: a model file holds its weights inline")
-    dims = tuple(int(d) for d in (t.DimsAsNumpy() if t.DimsLength() else ()))
-    if any(d < 0 for d in dims):
-        raise ModelError(f"{label} declares a negative dimension")
-    count = 1
-    for d in dims:
-        count *= d
-    data = t.RawDataAsNumpy().tobytes() if t.RawDataLength() else b""
-    if len(data) != 4 * count:
-        raise ModelError(f"{label} declares shape {list(dims)} ({count} float32 values) but holds {len(data)} bytes")
-    return Tensor(name, dims, data)
+    dims = t.DimsAsNumpy().tolist() if t.DimsLength() else []
+    return float_tensor(label, name, dims, t.RawDataAsNumpy().tobytes() if t.RawDataLength() else b"")
 
 
 def check_ort_bytes(blob: bytes, source: str) -> list:
     """ModelError naming ``source`` unless the ORT-format bytes hold only what the exporter writes;
     returns the graph's initializers (``Tensor``)."""
-    if len(blob) > MAX_MODEL_BYTES:
-        raise ModelError(f"{source}: larger than {MAX_MODEL_BYTES} bytes, too large for a DIME-Net model")
+    check_size(blob, source)
     from onnxruntime.tools.ort_format_model.ort_flatbuffers_py import fbs
 
     try:
