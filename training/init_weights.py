@@ -188,7 +188,7 @@ def onnx_state_dict(proto: onnx.ModelProto, spec: ModelSpec, source: str) -> dic
 
 
 def _model(state_dict: dict, spec: ModelSpec) -> DimeNet:
-    model = dime_net(spec)
+    model = dime_net(spec.features, spec.hidden, spec.head)
     model.load_state_dict(state_dict)
     return model.eval()
 

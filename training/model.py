@@ -53,9 +53,8 @@ class DimeNet(nn.Module):
         return out * OUTPUT_SCALE_PX
 
 
-def dime_net(spec) -> DimeNet:
-    """The DimeNet a ModelSpec describes (its feature size, hidden widths and head)."""
-    step = None
-    if spec.head == "gated_step":
-        step = (spec.features.grid_size, spec.features.scale["dx"])
-    return DimeNet(spec.features.size, spec.hidden, step)
+def dime_net(features, hidden: tuple, head: str) -> DimeNet:
+    """The DimeNet of a feature (``rectify.features.FeatureSpec``), hidden widths and head (a
+    ModelSpec's ``features``, ``hidden``, ``head``)."""
+    step = (features.grid_size, features.scale["dx"]) if head == "gated_step" else None
+    return DimeNet(features.size, hidden, step)

@@ -62,7 +62,7 @@ def load_run(run_dir: str | Path) -> tuple[DimeNet, ModelSpec]:
         raise ModelError(f"{path}: no weights file")
     try:
         state = load_safetensors(path.read_bytes())
-        model = dime_net(spec)
+        model = dime_net(spec.features, spec.hidden, spec.head)
         model.load_state_dict(state)
     except Exception as exc:  # safetensors raises its own error types for corrupt files
         raise ModelError(f"{path}: unreadable or mismatched weights ({type(exc).__name__}: {exc})") from None

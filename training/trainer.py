@@ -208,7 +208,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
 
     hidden = tuple(init.spec.hidden) if init is not None else tuple(config.hidden)
     head = init.spec.head if init is not None else config.head
-    model = dime_net(ModelSpec(spec_features, None, None, None, hidden, head=head))
+    model = dime_net(spec_features, hidden, head)
     if init is not None:
         model.load_state_dict(init.state_dict)
     lr = config.lr if init is None else config.fine_tune_lr

@@ -179,7 +179,8 @@ def test_every_opset_the_exporter_offers_writes_only_the_runtime_s_operators(spe
     from dimenet.training.model import dime_net
 
     gated_spec = replace(spec, features=replace(spec.features, data_step=True), head="gated_step")
-    models = ((random_torch_model(spec, seed=3), spec), (dime_net(gated_spec).eval(), gated_spec))
+    gated = dime_net(gated_spec.features, gated_spec.hidden, gated_spec.head).eval()
+    models = ((random_torch_model(spec, seed=3), spec), (gated, gated_spec))
     used = set()
     for opset in range(MIN_OPSET, MAX_OPSET + 1):
         for model, its_spec in models:

@@ -150,7 +150,7 @@ def test_a_gated_data_step_model_s_graph_equals_the_runtime(tmp_path):
     )
     torch.manual_seed(0)
     path = tmp_path / "gated.onnx"
-    path.write_bytes(export_model(dime_net(spec).eval(), spec))
+    path.write_bytes(export_model(dime_net(spec.features, spec.hidden, spec.head).eval(), spec))
     session = ort.InferenceSession(full_graph(path.read_bytes(), "gated"), providers=["CPUExecutionProvider"])
     assert (
         {"Gemm", "Sigmoid", "Slice", "Neg"}

@@ -37,7 +37,7 @@ def spec() -> ModelSpec:
 
 def test_the_head_adds_the_gated_step_in_px_and_zero_stays_zero(spec):
     torch.manual_seed(0)
-    net = dime_net(spec).eval()
+    net = dime_net(spec.features, spec.hidden, spec.head).eval()
     with torch.no_grad():
         net.fc3.weight.zero_()  # the MLP's own term off: only the gated step remains
         features = torch.zeros(2, spec.features.size)
@@ -48,13 +48,13 @@ def test_the_head_adds_the_gated_step_in_px_and_zero_stays_zero(spec):
         gate = torch.sigmoid(net.gate(net.act(net.fc2(net.act(net.fc1(features[1:]))))))[0]
     assert torch.all(out[0] == 0)
     torch.testing.assert_close(out[1], gate * step_px, rtol=1e-5, atol=1e-6)
-    fresh = dime_net(spec)
+    fresh = dime_net(spec.features, spec.hidden, spec.head)
     assert torch.all(fresh.gate.bias == GATE_START) and not fresh.step_pick.requires_grad
 
 
 def test_export_keeps_parity_and_fine_tuning_reads_the_same_weights(spec):
     torch.manual_seed(1)
-    net = dime_net(spec).eval()
+    net = dime_net(spec.features, spec.hidden, spec.head).eval()
     blob = export_model(net, spec)
     loaded = onnx_model_from_bytes(blob, "gated")
     assert loaded.spec.head == "gated_step"
