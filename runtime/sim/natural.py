@@ -16,12 +16,11 @@ board, facing -y.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
 from dimenet.runtime.formats.rig import Board
-from dimenet.runtime.sim.simulator import NaturalSet, Scene, board_surface, box_surfaces
+from dimenet.runtime.sim.simulator import NaturalSet, board_and_features, board_surface, box_surfaces, facing_board
 
 NATURAL_KINDS = ("room", "buildings", "objects")
 NATURAL_POINTS = (16, 600)  # labelled features per scene, log-uniform
@@ -117,25 +116,14 @@ def random_natural(board: Board, extent_mm: float, rng: np.random.Generator) -> 
     faces, boxes = _KINDS[kind](extent_mm, clear, rng)
     n = int(round(math.exp(rng.uniform(*np.log(NATURAL_POINTS)))))
     features, normals = _faces_points(faces, n, rng)
-    nx, ny = board.inner_corners
-    middle = replace(
-        board,
-        rvec=(0.0, 0.0, 0.0),
-        tvec_mm=(-(nx - 1) * board.square_mm / 2.0, -(ny - 1) * board.square_mm / 2.0, -extent_mm * 0.05),
-    )
+    middle = facing_board(board, -extent_mm * 0.05)
     # Features the board covers are not there to label: keep those off its pattern.
     corner, a, b = board_surface(middle)
     uv = np.linalg.lstsq(np.stack([a, b], 1), (features - corner).T, rcond=None)[0].T
     hidden = np.all((uv >= 0) & (uv <= 1), 1) & (features[:, 2] > middle.tvec_mm[2])
     features, normals = features[~hidden], normals[~hidden]
-    scene = Scene(
-        points=np.concatenate([middle.points(), features]),
-        normals=np.concatenate([np.tile(-middle.normal(), (middle.n_points, 1)), normals]),
-        group=np.r_[np.zeros(middle.n_points, np.int64), np.full(len(features), -1)],
-        surfaces=np.concatenate([board_surface(middle)[None], boxes]),
-    )
     return NaturalSet(
-        scene=scene,
+        scene=board_and_features(middle, features, normals, boxes),
         label_sigma_px=float(rng.uniform(*LABEL_NOISE_PX)),
         model_sigma_mm=float(rng.uniform(*MODEL_ERROR) * extent_mm),
         min_seen=max(MIN_SEEN[0], int(math.ceil(MIN_SEEN[1] * len(features)))),

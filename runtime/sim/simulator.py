@@ -230,24 +230,26 @@ def buildings() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return points, normals, surfaces
 
 
+def facing_board(board: Board, z_mm: float = 0.0) -> Board:
+    """``board`` facing the camera (no turn), its inner corners centred on (0, 0, z_mm) in {W}."""
+    half = (np.asarray(board.inner_corners) - 1) * board.square_mm / 2.0
+    return replace(board, rvec=(0.0, 0.0, 0.0), tvec_mm=(-float(half[0]), -float(half[1]), z_mm))
+
+
+def board_and_features(board: Board, features: np.ndarray, normals: np.ndarray, boxes: np.ndarray) -> Scene:
+    """A natural set-up: ``board``'s corners (group 0, seen from its printed side) and labelled features (N, 3) mm
+    (group -1) with their normals; opaque: the board's pattern and ``boxes`` (M, 3, 3)."""
+    return Scene(
+        points=np.concatenate([board.points(), features]),
+        normals=np.concatenate([np.tile(-board.normal(), (board.n_points, 1)), normals]),
+        group=np.r_[np.zeros(board.n_points, np.int64), np.full(len(features), -1)],
+        surfaces=np.concatenate([board_surface(board)[None], boxes]),
+    )
+
+
 def natural_scene(board: Board) -> Scene:
     """The LEGO test set-up: ``board``'s pattern facing the camera at the origin, buildings beside it."""
-    middle = replace(
-        board,
-        rvec=(0.0, 0.0, 0.0),
-        tvec_mm=(
-            -(board.inner_corners[0] - 1) * board.square_mm / 2.0,
-            -(board.inner_corners[1] - 1) * board.square_mm / 2.0,
-            0.0,
-        ),
-    )
-    features, feature_normals, boxes = buildings()
-    return Scene(
-        points=np.concatenate([middle.points(), features]),
-        normals=np.concatenate([np.tile(-middle.normal(), (middle.n_points, 1)), feature_normals]),
-        group=np.r_[np.zeros(middle.n_points, np.int64), np.full(len(features), -1)],
-        surfaces=np.concatenate([board_surface(middle)[None], boxes]),
-    )
+    return board_and_features(facing_board(board), *buildings())
 
 
 def lens_image(pinhole_px: np.ndarray, profile: DeviceProfile, dist_coeffs: np.ndarray) -> tuple:
