@@ -67,7 +67,7 @@ def fit_network_uncertainty(
     conditions += [
         (True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0, rng))
     ] * draws
-    residuals, stats, noisy = [], [], []
+    residuals, stats, map_draws = [], [], []
     for unit in units:
         predictor = torch_predictor(model, spec, "training").for_camera(unit.camera)
         for added_noise, condition in conditions:
@@ -78,10 +78,10 @@ def fit_network_uncertainty(
             residuals.append((k_params(pred.K) - k_true)[pred.predicted])
             stats.append(pred.stats[pred.predicted])
             if added_noise or unit.val_truth.k_bias.any():
-                noisy.append((added_noise, drawn, pred, k_true, predictor))
+                map_draws.append((added_noise, drawn, pred, k_true, predictor))
     residuals, stats = np.concatenate(residuals), np.concatenate(stats)
     uncertainty = fit_uncertainty(residuals, stats)
-    *map_errors, added = _map_errors(noisy, uncertainty)
+    *map_errors, added = _map_errors(map_draws, uncertainty)
     rho = fit_data_correlation(*(a[added] for a in map_errors[:4]))
     bias = np.zeros(4) if added.all() else fit_data_bias(*(a[~added] for a in map_errors), rho)
     uncertainty = replace(uncertainty, data_correlation=rho, data_bias=bias)

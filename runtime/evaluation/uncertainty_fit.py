@@ -81,24 +81,26 @@ def _smallest_covering(covered, high: float, share: float = ONE_SIGMA) -> float:
     return high
 
 
-def _widening(variance_ratio, noise_px, noise_scale_px: float) -> np.ndarray:
-    """(F, 4): w(s) sqrt(r (1 - r)) per frame and parameter (``Uncertainty.posterior_scale``)."""
+def _widened_variance(sigma_px, variance_ratio, noise_px, noise_scale_px: float, rho) -> np.ndarray:
+    """(F, 4) px^2: the MAP posterior variance widened for the network's correlation rho (a number or
+    (4,)) with the data, sigma^2 (1 + 2 rho w(s) sqrt(r (1 - r))) (``Uncertainty.posterior_scale``)."""
     w = noise_px**2 / (noise_px**2 + noise_scale_px**2)
-    return w[:, None] * np.sqrt(np.maximum(variance_ratio * (1.0 - variance_ratio), 0.0))
+    g = w[:, None] * np.sqrt(np.maximum(variance_ratio * (1.0 - variance_ratio), 0.0))
+    return sigma_px**2 * (1.0 + 2.0 * np.asarray(rho) * g)
 
 
-def _map_inputs(*arrays, noise_px) -> tuple:
-    """The MAP errors' (F, 4) arrays and their noise (F,) as float64, checked."""
+def _map_inputs(what: str, *arrays, noise_px) -> tuple:
+    """The MAP errors' (F, 4) arrays and their noise (F,) as float64, checked (InputError naming ``what``)."""
     arrays = tuple(np.asarray(a, dtype=np.float64) for a in arrays)
     noise_px = np.asarray(noise_px, dtype=np.float64)
     F = len(arrays[0])
     if F < 1 or any(a.shape != (F, 4) for a in arrays) or noise_px.shape != (F,):
         raise InputError(
-            f"data correlation: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
+            f"{what}: errors, sigmas and variance ratios must be (F, 4) and the noise (F,), "
             f"got {', '.join(str(a.shape) for a in arrays)} and {noise_px.shape}"
         )
     if not all(np.all(np.isfinite(a)) for a in (*arrays, noise_px)):
-        raise InputError("data correlation: every input must be finite")
+        raise InputError(f"{what}: every input must be finite")
     return arrays + (noise_px,)
 
 
@@ -115,17 +117,15 @@ def fit_data_correlation(
     variance_ratio (F, 4) its variances over the prior's, noise_px (F,) the frames' 2D noise.
     0 where the posterior already covers 68.27 %, 1 where even rho = 1 does not (the widening
     grows with rho, so bisection finds it)."""
-    errors_px, sigma_px, variance_ratio, noise_px = _map_inputs(errors_px, sigma_px, variance_ratio, noise_px=noise_px)
-    g = _widening(variance_ratio, noise_px, noise_scale_px)
-    return np.array(
-        [
-            _smallest_covering(
-                lambda rho, p=p: np.mean(errors_px[:, p] ** 2 <= sigma_px[:, p] ** 2 * (1.0 + 2.0 * rho * g[:, p])),
-                1.0,
-            )
-            for p in range(4)
-        ]
+    errors_px, sigma_px, variance_ratio, noise_px = _map_inputs(
+        "data correlation", errors_px, sigma_px, variance_ratio, noise_px=noise_px
     )
+    e2 = errors_px**2
+
+    def covered(rho: float, p: int) -> float:
+        return np.mean(e2[:, p] <= _widened_variance(sigma_px, variance_ratio, noise_px, noise_scale_px, rho)[:, p])
+
+    return np.array([_smallest_covering(lambda rho, p=p: covered(rho, p), 1.0) for p in range(4)])
 
 
 def fit_data_bias(
@@ -146,10 +146,9 @@ def fit_data_bias(
     a frame's data errors are heavy-tailed (a sheet bends or it does not), and a share that covers
     68 % of each parameter at 1 sigma left 19 % of the OIS-off frames outside (training/METHOD.md)."""
     errors_px, sigma_px, variance_ratio, network_sigma_px, noise_px = _map_inputs(
-        errors_px, sigma_px, variance_ratio, network_sigma_px, noise_px=noise_px
+        "data bias", errors_px, sigma_px, variance_ratio, network_sigma_px, noise_px=noise_px
     )
-    g = _widening(variance_ratio, noise_px, noise_scale_px)
-    widened2 = sigma_px**2 * (1.0 + 2.0 * np.asarray(data_correlation)[None] * g)
+    widened2 = _widened_variance(sigma_px, variance_ratio, noise_px, noise_scale_px, data_correlation)
     e2, net2 = errors_px**2 / 4.0, network_sigma_px**2  # within 2 sigma
     b = _smallest_covering(lambda b: np.mean(np.all(e2 <= widened2 + b * b * net2, 1)), MAX_DATA_BIAS, TWO_SIGMA)
     return np.full(4, b)
