@@ -100,12 +100,11 @@ def _rotation(g: _Builder, rvec: str) -> str:
     return g.op("Add", g.op("Add", g.const(np.eye(3)), g.op("Mul", a, rx)), g.op("Mul", b, rx2))
 
 
-def _thickness(g: _Builder, weight: str) -> str:
-    """``rectify.uncertainty.thickness`` of the masked 3D points: det(C) tr(C) / e2(C)^2 of their
-    covariance C, clipped to [0, 1/3], 0 when e2 = 0."""
+def _thickness(g: _Builder, weight: str, n: str) -> str:
+    """``rectify.uncertainty.thickness`` of the masked 3D points (``n`` of them): det(C) tr(C) / e2(C)^2
+    of their covariance C, clipped to [0, 1/3], 0 when e2 = 0."""
     ax0 = g.const([0], "ax", np.int64)
     w = g.op("Unsqueeze", weight, g.const([1], "ax", np.int64))
-    n = g.op("ReduceSum", weight, ax0, keepdims=0)
     mean = g.op("Div", g.op("ReduceSum", g.op("Mul", "points_3d", w), ax0, keepdims=1), n)
     centred = g.op("Sub", "points_3d", mean)
     cov = g.op("Div", g.op("MatMul", g.op("Transpose", g.op("Mul", centred, w), perm=[1, 0]), centred), n)
@@ -125,11 +124,10 @@ def _thickness(g: _Builder, weight: str) -> str:
     return g.op("Where", positive, g.op("Min", ratio, g.const(1 / 3)), g.const(0.0))
 
 
-def _sigma(g: _Builder, spec, weight: str, dx: str, dy: str, counts: str) -> str:
+def _sigma(g: _Builder, spec, weight: str, n: str, dx: str, dy: str, counts: str) -> str:
     """sigma [4] model px of ``Uncertainty.frame_covariance``: exp(coef . z), z = [1, then the spec's
     statistics among log n, log occupied cells, log max(mean PMD, D_FLOOR_PX), log max(thickness, T_FLOOR)]."""
     ax0 = g.const([0], "ax", np.int64)
-    n = g.op("ReduceSum", weight, ax0, keepdims=0)
     occupied = g.op(
         "ReduceSum",
         g.op("Cast", g.op("Greater", counts, g.const(0.0)), to=TensorProto.DOUBLE),
@@ -142,7 +140,7 @@ def _sigma(g: _Builder, spec, weight: str, dx: str, dy: str, counts: str) -> str
         "log_points": g.op("Log", n),
         "log_cells": g.op("Log", occupied),
         "log_pmd": g.op("Log", g.op("Max", pmd, g.const(D_FLOOR_PX))),
-        "log_thickness": g.op("Log", g.op("Max", _thickness(g, weight), g.const(T_FLOOR))),
+        "log_thickness": g.op("Log", g.op("Max", _thickness(g, weight, n), g.const(T_FLOOR))),
     }
     z = g.op(
         "Concat", g.const([1.0]), *(g.op("Unsqueeze", logs[name], ax0) for name in spec.uncertainty.statistics), axis=0
@@ -166,7 +164,9 @@ def _inverse(g: _Builder, m: str, n: int) -> str:
     return g.op("Slice", aug, g.const([n], "s", np.int64), g.const([2 * n], "e", np.int64), ax1)
 
 
-def _data_step(g: _Builder, weight: str, ab_inv_z: tuple, residuals: tuple, focal: tuple, pmd_scale: float) -> str:
+def _data_step(
+    g: _Builder, weight: str, n: str, ab_inv_z: tuple, residuals: tuple, focal: tuple, pmd_scale: float
+) -> str:
     """The data step's 8 inputs (``rectify.features.data_steps``, ``geometry.prior_step``) [8]: the
     Gauss-Newton step over (pose, fx, fy, cx, cy) at the C0 pose and K_c with a prior of
     STEP_PRIOR_REL fx on K, its data weighted by 1 / s^2 twice (the pose's residuals, then the step's),
@@ -219,7 +219,7 @@ def _data_step(g: _Builder, weight: str, ab_inv_z: tuple, residuals: tuple, foca
     )
     r = g.op("Concat", r_u, r_v, axis=0)
     rss = g.op("ReduceSum", mul(r, r), ax0, keepdims=0)
-    n_res = g.op("Mul", g.op("ReduceSum", weight, ax0, keepdims=0), g.const(2.0))
+    n_res = g.op("Mul", n, g.const(2.0))
     floor2 = g.const(STEP_NOISE_FLOOR_PX**2)
 
     def noise_weight(residual_ss: str, params: float) -> str:
@@ -294,6 +294,7 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
     cell = g.op("Add", g.column(cell_xy, 0), g.op("Mul", g.column(cell_xy, 1), g.const(float(cols))))
     n_cells = cols * rows
     weight = g.op("Cast", "mask", to=TensorProto.DOUBLE)
+    n = g.op("ReduceSum", weight, g.const([0], "ax", np.int64), keepdims=0)  # the inference points
     one_hot = g.op(
         "Mul",
         g.op(
@@ -314,7 +315,6 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
     if features.depth_mm is not None:
         ax0 = g.const([0], "ax", np.int64)
         z_sum = g.op("ReduceSum", g.op("Mul", Z, weight), ax0, keepdims=0)
-        n = g.op("ReduceSum", weight, ax0, keepdims=0)
         positive = g.op("Greater", z_sum, g.const(0.0))
         safe_sum = g.op("Where", positive, z_sum, g.const(1.0))
         factor = g.op(
@@ -324,7 +324,7 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
     flat = g.op("Reshape", g.op("Mul", chosen, scale), g.const([1, features.grid_size], "shape", np.int64))
     if features.data_step:
         a, b = g.op("Mul", X, inv_z), g.op("Mul", Y, inv_z)
-        step = _data_step(g, weight, (a, b, inv_z), (dx, dy), (fx, fy), features.scale["dx"])
+        step = _data_step(g, weight, n, (a, b, inv_z), (dx, dy), (fx, fy), features.scale["dx"])
         flat = g.op("Concat", flat, g.op("Unsqueeze", step, g.const([0], "ax", np.int64)), axis=1)
     feats32 = g.op("Cast", flat, to=TensorProto.FLOAT)
     g.nodes.append(helper.make_node("Identity", [feats32], ["features"]))
@@ -342,7 +342,7 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
         copy.input[:] = [rename.setdefault(i, f"mlp/{i}") for i in node.input]
         copy.output[:] = [rename.setdefault(o, f"mlp/{o}") for o in node.output]
         g.nodes.append(copy)
-    sigma = _sigma(g, spec, weight, dx, dy, counts) if spec.uncertainty is not None else None
+    sigma = _sigma(g, spec, weight, n, dx, dy, counts) if spec.uncertainty is not None else None
     # Back to the user's pixels: Delta K / s, K = K_c + Delta K.
     delta = g.op(
         "Div", g.op("Reshape", g.op("Cast", "mlp/delta_k", to=TensorProto.DOUBLE), g.const([4], "shape", np.int64)), s
