@@ -57,7 +57,8 @@ class FrameTruth:
     residuals x - pi(K*, pose*) (F, P, 2) px that the calibration leaves (the frame's noise and
     the build errors its rig file does not hold), and k_bias (F, 4) px: K* - K_true (fx, fy, cx,
     cy) where the dataset holds the simulator's K_true, else 0 (what the frame's own fit gets
-    wrong, which the uncertainty model must cover; training/METHOD.md, "sigma against the truth")."""
+    wrong, which the uncertainty model must cover; training/METHOD.md, "Do no harm with a model that
+    follows the frame")."""
 
     K_star: np.ndarray
     rvec: np.ndarray
