@@ -44,15 +44,18 @@ def _faces_points(faces: list, n: int, rng: np.random.Generator) -> tuple[np.nda
     return np.concatenate(points), np.concatenate(normals)
 
 
-def _box_faces(low, high) -> list:
-    """The faces of the box [low, high] (mm) a camera in front of it and above its base can see, as (corner,
-    edge a, edge b, outward normal): its front (-z), top (-y) and two sides; features are labelled there."""
-    faces = []
+def _box(low, high) -> tuple[list, np.ndarray]:
+    """The box [low, high] (mm): the faces a camera in front of it and above its base can see, as (corner, edge a,
+    edge b, outward normal) (its front (-z), top (-y) and two sides; features are labelled there), and all six
+    as opaque surfaces (``box_surfaces``)."""
+    surfaces = box_surfaces(low, high)
     sides = ((0, -1), (0, 1), (1, -1), (1, 1), (2, -1), (2, 1))  # box_surfaces' order
-    for (corner, a, b), (axis, side) in zip(box_surfaces(low, high), sides):
-        if (axis, side) not in ((1, 1), (2, 1)):
-            faces.append((corner, a, b, np.eye(3)[axis] * side))
-    return faces
+    faces = [
+        (corner, a, b, np.eye(3)[axis] * side)
+        for (corner, a, b), (axis, side) in zip(surfaces, sides)
+        if (axis, side) not in ((1, 1), (2, 1))
+    ]
+    return faces, surfaces
 
 
 def _room(extent: float, clear: float, rng: np.random.Generator) -> tuple[list, np.ndarray]:
@@ -68,8 +71,8 @@ def _room(extent: float, clear: float, rng: np.random.Generator) -> tuple[list, 
     ]
     size = extent * rng.uniform(0.2, 0.35, 3) * (1.0, 0.5, 1.0)
     low = np.array([rng.uniform(-half, half - size[0]), floor - size[1], rng.uniform(0.0, back - size[2])])
-    faces += _box_faces(low, low + size)
-    return faces, box_surfaces(low, low + size)
+    seen, surfaces = _box(low, low + size)
+    return faces + seen, surfaces
 
 
 def _buildings(extent: float, clear: float, rng: np.random.Generator) -> tuple[list, np.ndarray]:
@@ -84,8 +87,9 @@ def _buildings(extent: float, clear: float, rng: np.random.Generator) -> tuple[l
         height, deep = extent * rng.uniform(0.3, 0.8), extent * rng.uniform(0.15, 0.4)
         low = np.array([x + 0.05 * w, ground - height, rng.uniform(0.0, 0.3) * extent])
         high = low + (0.9 * w, height, deep)
-        faces += _box_faces(low, high)
-        boxes.append(box_surfaces(low, high))
+        seen, surfaces = _box(low, high)
+        faces += seen
+        boxes.append(surfaces)
         x += w
     return faces, np.concatenate(boxes)
 
@@ -100,8 +104,9 @@ def _objects(extent: float, clear: float, rng: np.random.Generator) -> tuple[lis
         size = extent * rng.uniform(0.1, 0.3, 3)
         x = rng.uniform(clear, max(clear, extent / 2.0 - size[0]))
         low = np.array([x if rng.random() < 0.5 else -x - size[0], table - size[1], -extent * rng.uniform(0.1, 0.45)])
-        faces += _box_faces(low, low + size)
-        boxes.append(box_surfaces(low, low + size))
+        seen, surfaces = _box(low, low + size)
+        faces += seen
+        boxes.append(surfaces)
     return faces, np.concatenate(boxes)
 
 
