@@ -123,3 +123,22 @@ def pid_slow_here(seconds: float) -> int:
     if multiprocessing.parent_process() is None:
         time.sleep(seconds)
     return os.getpid()
+
+
+def assert_json_close(actual, expected, *, rtol: float = 1e-9, atol: float = 1e-9, where: str = "") -> None:
+    """Two parsed JSON trees equal, their floats within rtol / atol: what the simulator and the
+    runtime give varies in the last bits from run to run, the structure, strings, integers and
+    booleans do not."""
+    if isinstance(expected, dict):
+        assert isinstance(actual, dict) and actual.keys() == expected.keys(), where
+        for key in expected:
+            assert_json_close(actual[key], expected[key], rtol=rtol, atol=atol, where=f"{where}.{key}")
+    elif isinstance(expected, list):
+        assert isinstance(actual, list) and len(actual) == len(expected), where
+        for i, (a, e) in enumerate(zip(actual, expected)):
+            assert_json_close(a, e, rtol=rtol, atol=atol, where=f"{where}[{i}]")
+    elif isinstance(expected, float):
+        assert isinstance(actual, (int, float)) and not isinstance(actual, bool), where
+        assert abs(actual - expected) <= atol + rtol * abs(expected), f"{where}: {actual} != {expected}"
+    else:
+        assert actual == expected and type(actual) is type(expected), where

@@ -12,6 +12,7 @@ import pytest
 
 onnx = pytest.importorskip("onnx")
 import onnxruntime as ort  # noqa: E402
+from helpers import assert_json_close  # noqa: E402
 
 from dimenet.export.full_graph import INPUTS, OUTPUTS, full_graph  # noqa: E402
 from dimenet.export.golden import golden_frames  # noqa: E402
@@ -93,9 +94,9 @@ def test_the_committed_golden_inputs_are_what_the_simulator_gives_today():
     golden = json.loads(GOLDEN.read_text())
     frames = golden_frames()
     assert [f.name for f in frames] == [g["name"] for g in golden["frames"]]
-    for frame, stored in zip(frames, golden["frames"]):
-        np.testing.assert_array_equal(frame.points_2d, np.array(stored["inputs"]["points_2d"]))
-        np.testing.assert_array_equal(frame.K_c, np.array(stored["inputs"]["K_c"]))
+    for frame, stored in zip(frames, golden["frames"]):  # equal but for the last bits, which differ between CPUs
+        np.testing.assert_allclose(frame.points_2d, np.array(stored["inputs"]["points_2d"]), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(frame.K_c, np.array(stored["inputs"]["K_c"]), rtol=1e-12, atol=1e-9)
 
 
 def test_models_the_graph_does_not_hold_are_refused_by_name(tmp_path):
@@ -114,7 +115,9 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
     assert [i.name for i in ort.InferenceSession(str(out)).get_inputs()] == list(INPUTS)
     assert main(["export", "default", "--golden", str(tmp_path / "golden")]) == 0
     written = json.loads((tmp_path / "golden" / "golden.json").read_text())
-    assert written == json.loads(GOLDEN.read_text())  # the committed set is this release's
+    # The committed set is this release's (but for the last bits, which differ between CPUs; ΔK, K and
+    # sigma to 1e-6 px or 1e-8 of their size).
+    assert_json_close(written, json.loads(GOLDEN.read_text()), rtol=1e-8, atol=1e-6)
     for args, words in (
         (["export", "default", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
         (["export", "default"], "give --out FILE.onnx (a model) or --golden DIR"),
