@@ -13,9 +13,11 @@ from dimenet.runtime.rectify.grid import Grid
 from .config import TrainConfig
 from .units import augment, clean, resynthesise
 
-# Augmentation draws of the fitting frames the structure limit is measured on; the share of them
-# the rule may send to K_c, and the margin on the structure at that share.
-STRUCTURE_DRAWS = 3
+# Augmentation draws of the fitting frames the structure limit is measured on; the fewest inference
+# points a frame it reads holds; the share of them the rule may send to K_c, and the margin on the
+# structure at that share.
+STRUCTURE_DRAWS = 10
+STRUCTURE_LIMIT_POINTS = 100
 STRUCTURE_SHARE = 0.001
 STRUCTURE_MARGIN = 1.25
 
@@ -30,20 +32,21 @@ def population_sigma(units: list) -> np.ndarray:
 def structure_limit(units: list, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> float:
     """The spec's ``residual_structure_px`` (model px): STRUCTURE_MARGIN times the structure
     (``geometry.residual_structure`` of the inference points under K_c at the C0 pose; 0 where its
-    F is at most STRUCTURE_RATIO) that a share STRUCTURE_SHARE of the fitting frames exceeds,
-    re-imaged clean (``clean``: what K and the pose make, without the build errors a simulated
-    rig's sheets hold) under STRUCTURE_DRAWS draws of the training augmentation; at least
-    STRUCTURE_PX. The rule keeps K_c on structure that neither OIS nor corner noise makes, so the
-    limit is measured on frames of only those: a family whose rigs sag would otherwise raise it past
-    every real bent sheet. Clustered, noisily labelled points now and then fit the smooth field by
-    chance: the largest would let every real frame through."""
+    F is at most STRUCTURE_RATIO) that a share STRUCTURE_SHARE of the fitting frames of at least
+    STRUCTURE_LIMIT_POINTS inference points exceeds, re-imaged clean (``clean``: what K and the pose
+    make, without the build errors a simulated rig's sheets hold) under STRUCTURE_DRAWS draws of
+    the training augmentation; at least STRUCTURE_PX. The rule keeps K_c on structure that neither
+    OIS nor corner noise makes, so the limit is measured on frames of only those: a family whose
+    rigs sag would otherwise raise it past every real bent sheet. Clustered, noisily labelled points
+    fit the smooth field by chance, the fewer the more (up to 4 px at 40 points): read on them, the
+    share's structure was the draw's luck (0.5 to 1.65 px across seeds; training/METHOD.md)."""
     amplitudes = []
     for unit in units:
         for _ in range(STRUCTURE_DRAWS):
             frames = augment(resynthesise(unit.fit, clean(unit.truth), rng, config.resynthesis)[0], config, grid, rng)
             for b in range(frames.n_frames):
                 m = frames.infer_mask[b]
-                if m.sum() < MIN_STRUCTURE_POINTS:
+                if m.sum() < max(MIN_STRUCTURE_POINTS, STRUCTURE_LIMIT_POINTS):
                     continue
                 x, X = np.ascontiguousarray(frames.points_2d[b][m]), np.ascontiguousarray(frames.points_3d[b][m])
                 s = residual_structure(x, X, unit.camera.K, *solve_pnp_start(x, X, unit.camera.K))

@@ -336,3 +336,19 @@ def test_the_structure_limit_is_measured_on_frames_without_their_build_errors(sm
     bent = dataclasses.replace(unit, truth=dataclasses.replace(unit.truth, residual=unit.truth.residual + field))
     limits = [structure_limit([u], cfg, Grid.parse(cfg.grid), np.random.default_rng(4)) for u in (unit, bent)]
     assert limits[0] == limits[1]
+
+
+def test_the_structure_limit_does_not_read_the_chance_fits_of_a_few_noisy_labels(small, monkeypatch):
+    """Every fitting frame cut to 30-40 noisily labelled points (6 px): their residuals fit the smooth
+    field by chance, which set the limit by the draw's luck (0.5 to 4.4 px across seeds here); the
+    limit reads frames of at least STRUCTURE_LIMIT_POINTS points, so these leave it at its floor."""
+    from dimenet.runtime.rectify.checks import STRUCTURE_PX
+    from dimenet.runtime.rectify.grid import Grid
+    from dimenet.training import scene_limits
+
+    cfg = TrainConfig(cluster_share=1.0, cluster_points=(30, 40), max_label_noise_px=6.0, full_share=0.0)
+    unit = training_unit(small, cfg, None, "small")
+    limit = lambda: scene_limits.structure_limit([unit], cfg, Grid.parse(cfg.grid), np.random.default_rng(0))  # noqa: E731
+    assert limit() == STRUCTURE_PX
+    monkeypatch.setattr(scene_limits, "STRUCTURE_LIMIT_POINTS", 0)
+    assert limit() > 2 * STRUCTURE_PX  # what they gave before
