@@ -31,6 +31,7 @@ from onnx import TensorProto, helper, numpy_helper
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify.features import (
     CHANNELS,
+    MOMENT_INDEX,
     STEP_CLIP_REL,
     STEP_NOISE_FLOOR_PX,
     STEP_PRIOR_REL,
@@ -167,7 +168,7 @@ def _inverse(g: _Builder, m: str, n: int) -> str:
 def _data_step(
     g: _Builder, weight: str, n: str, ab_inv_z: tuple, residuals: tuple, focal: tuple, pmd_scale: float
 ) -> str:
-    """The data step's 8 inputs (``rectify.features.data_steps``, ``geometry.prior_step``) [8]: the
+    """The data step's 8 inputs (``rectify.features.gram_inputs``, ``geometry.prior_step``) [8]: the
     Gauss-Newton step over (pose, fx, fy, cx, cy) at the C0 pose and K_c with a prior of
     STEP_PRIOR_REL fx on K, its data weighted by 1 / s^2 twice (the pose's residuals, then the step's),
     the step's Delta K clipped to STEP_CLIP_REL fx times the PMD scale, then 1/2 ln(posterior / prior
@@ -255,6 +256,26 @@ def _data_step(
     return g.op("Concat", g.op("Mul", clipped, g.const(pmd_scale)), log_ratio, axis=0)
 
 
+def _moments(g: _Builder, weight: str, n: str, ab_inv_z: tuple, residuals: tuple, pmd_scale: float) -> str:
+    """The moments (``rectify.features.gram_inputs``) [MOMENT_SIZE]: the mean over the points of every
+    product of two of [1, a, b, ab, a^2, b^2, z, a z, b z, s dx, s dy], z = (1/Z) n / sum(1/Z) and s the
+    PMD's scale, gathered from the raveled 11 x 11 Gram."""
+    a, b, inv_z = ab_inv_z
+    ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
+    inv_z_sum = g.op("ReduceSum", g.op("Mul", inv_z, weight), ax0, keepdims=0)
+    positive = g.op("Greater", inv_z_sum, g.const(0.0))
+    z_scale = g.op("Where", positive, g.op("Div", n, g.op("Where", positive, inv_z_sum, g.const(1.0))), g.const(1.0))
+    z = g.op("Mul", inv_z, z_scale)
+    one = g.op("Add", g.op("Mul", a, g.const(0.0)), g.const(1.0))
+    columns = (one, a, b, g.op("Mul", a, b), g.op("Mul", a, a), g.op("Mul", b, b), z, g.op("Mul", a, z))
+    columns += (g.op("Mul", b, z), *(g.op("Mul", r, g.const(pmd_scale)) for r in residuals))
+    Q = g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in columns), axis=1)  # [N, 11]
+    Q_w = g.op("Mul", Q, g.op("Unsqueeze", weight, ax1))
+    gram = g.op("Div", g.op("MatMul", g.op("Transpose", Q_w, perm=[1, 0]), Q_w), n)
+    flat = g.op("Reshape", gram, g.const([121], "shape", np.int64))
+    return g.op("Gather", flat, g.const(MOMENT_INDEX, "moments", np.int64), axis=0)
+
+
 def full_graph(blob: bytes, source: str = "model") -> bytes:
     """The full graph of a generic ``dimenet-model/1`` file's bytes, with its spec in the metadata.
     ModelError for a model the graph does not hold yet (a device model)."""
@@ -322,10 +343,14 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
         )
         scale = g.op("Mul", scale, g.op("Pow", factor, g.const(features.depth_exponents)))
     flat = g.op("Reshape", g.op("Mul", chosen, scale), g.const([1, features.grid_size], "shape", np.int64))
-    if features.data_step:
+    if features.data_step or features.moments:
         a, b = g.op("Mul", X, inv_z), g.op("Mul", Y, inv_z)
+    if features.data_step:
         step = _data_step(g, weight, n, (a, b, inv_z), (dx, dy), (fx, fy), features.scale["dx"])
         flat = g.op("Concat", flat, g.op("Unsqueeze", step, g.const([0], "ax", np.int64)), axis=1)
+    if features.moments:
+        moments = _moments(g, weight, n, (a, b, inv_z), (dx, dy), features.scale["dx"])
+        flat = g.op("Concat", flat, g.op("Unsqueeze", moments, g.const([0], "ax", np.int64)), axis=1)
     feats32 = g.op("Cast", flat, to=TensorProto.FLOAT)
     g.nodes.append(helper.make_node("Identity", [feats32], ["features"]))
     # The model's MLP, its names prefixed, reading the feature.

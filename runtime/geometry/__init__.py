@@ -16,7 +16,13 @@ from dimenet.runtime.geometry.distortion import (
 from dimenet.runtime.geometry.homography import homography_floor, plane_coordinates
 from dimenet.runtime.geometry.least_squares import calibrate, solve_pnp
 from dimenet.runtime.geometry.lens_bundle import fit_lens_bundle
-from dimenet.runtime.geometry.normal_equations import frame_normal_equations, prior_posterior, prior_step
+from dimenet.runtime.geometry.normal_equations import (
+    frame_normal_equations,
+    gram_normal_equations,
+    monomial_gram,
+    prior_posterior,
+    prior_step,
+)
 from dimenet.runtime.geometry.pnp import (
     MIN_POINTS,
     MIN_POSE_POINTS,
@@ -123,6 +129,8 @@ __all__ = [
     "dlt_camera",
     "planar_focal",
     "frame_normal_equations",
+    "gram_normal_equations",
+    "monomial_gram",
     "prior_posterior",
     "prior_step",
 ]

@@ -30,6 +30,35 @@ def _jacobian_basis() -> np.ndarray:
 _JACOBIAN_BASIS = _jacobian_basis()
 
 
+def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """(11, 11) Q Q^T of one frame's N points, Q (11, N) their monomials q = [1, a, b, ab, a^2, b^2,
+    1/Z, a/Z, b/Z] (a = X/Z, b = Y/Z) then their residuals r_u, r_v: xy_inv_z (3, N) the points
+    in {C} as X, Y (mm) and 1/Z (1/mm), residuals (2, N) px. Everything the normal equations
+    (``gram_normal_equations``) and the moment feature (``rectify.features``) read of the points."""
+    Q = np.empty((11, xy_inv_z.shape[1]))
+    Q[6] = inv_z = xy_inv_z[2]
+    ab = np.multiply(xy_inv_z[:2], inv_z, out=Q[1:3])  # a, b
+    np.multiply(ab[0], ab[1], out=Q[3])
+    np.multiply(ab, ab, out=Q[4:6])
+    np.multiply(ab, inv_z, out=Q[7:9])
+    Q[0] = 1.0
+    Q[9:] = residuals
+    return Q @ Q.T
+
+
+def gram_normal_equations(G: np.ndarray, fx: float, fy: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """J J^T (10, 10), J r (10,) and r.r (px^2) of ``frame_normal_equations`` from the frame's
+    ``monomial_gram`` G (11, 11) and the focal lengths (px) its residuals were taken under.
+
+    Every entry of J is a linear combination of the nine monomials q (``_jacobian_basis``), so
+    J J^T = C (q q^T) C^T summed over u and v, and J r likewise."""
+    C = np.dot((fx, fy, 1.0), _JACOBIAN_BASIS).reshape(20, 9)
+    # J J^T: sum over c in (u, v) and q of (C q q^T)[2i + c, q] C[2j + c, q]; J r likewise.
+    JJ = (C @ G[:9, :9]).reshape(10, 18) @ C.reshape(10, 18).T
+    Cr = C @ G[:9, 9:]
+    return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10])
+
+
 def frame_normal_equations(
     xy_inv_z: np.ndarray, points_2d: np.ndarray, k
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
@@ -39,29 +68,16 @@ def frame_normal_equations(
     points_2d (N, 2) px. With r the residuals pi(K, X_C) - x and J (10, 2N) their Jacobian for
     p = (w (3) rad, tau (3) mm, fx, fy, cx, cy), the pose perturbed on the left (X_C ->
     exp([w]x) X_C + tau, so R -> exp([w]x) R, t -> exp([w]x) t + tau), returns J J^T (10, 10),
-    J r (10,), r.r (px^2) and r (2, N) px (the u residuals, then the v residuals).
-
-    Every entry of J is a linear combination of nine per-point monomials q (see
-    ``_jacobian_basis``), so J J^T = C (q q^T) C^T summed over u and v: one N-long product
-    of an (11, N) array with itself (q and r) instead of forming J.
+    J r (10,), r.r (px^2) and r (2, N) px (the u residuals, then the v residuals): one N-long
+    product of the (11, N) monomials and residuals with themselves (``monomial_gram``) instead
+    of forming J.
     """
     fx, fy, cx, cy = k
-    Q = np.empty((11, xy_inv_z.shape[1]))  # q (9 rows), then r_u, r_v
-    Q[6] = inv_z = xy_inv_z[2]
-    ab = np.multiply(xy_inv_z[:2], inv_z, out=Q[1:3])  # a, b
-    np.multiply(ab[0], ab[1], out=Q[3])
-    np.multiply(ab, ab, out=Q[4:6])
-    np.multiply(ab, inv_z, out=Q[7:9])
-    Q[0] = 1.0
-    r = np.multiply(ab, ((fx,), (fy,)), out=Q[9:])
+    inv_z = xy_inv_z[2]
+    r = xy_inv_z[:2] * inv_z * ((fx,), (fy,))
     r += ((cx,), (cy,))
     r -= points_2d.T
-    G = Q @ Q.T
-    C = np.dot((fx, fy, 1.0), _JACOBIAN_BASIS).reshape(20, 9)
-    # J J^T: sum over c in (u, v) and q of (C q q^T)[2i + c, q] C[2j + c, q]; J r likewise.
-    JJ = (C @ G[:9, :9]).reshape(10, 18) @ C.reshape(10, 18).T
-    Cr = C @ G[:9, 9:]
-    return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10]), r
+    return (*gram_normal_equations(monomial_gram(xy_inv_z, r), fx, fy), r)
 
 
 def prior_step(

@@ -28,7 +28,7 @@ from dimenet.runtime.rectify.user_camera import MAX_IMAGE_SIDE_PX, Camera, Pixel
 FORMAT = "dimenet-model/1"
 # semver of the spec; a reader refuses another major version and reads every 1.x (the minor
 # versions and what each added: models_spec/model-v1.md).
-VERSION = "1.10.0"
+VERSION = "1.11.0"
 METADATA_KEY = "dimenet_model_spec"
 # Spec >= 1.4, optional: the sha256 of the model file's bytes with this value replaced by
 # WEIGHTS_SHA256_PLACEHOLDER (model-v1.md, "Integrity"; written by export, checked by the runtime).

@@ -75,7 +75,7 @@ def _independent_digest(blob: bytes, digest: str) -> str:
 
 def test_export_writes_a_verifiable_weights_sha256(blob, spec):
     stored = _meta(blob)
-    assert stored["version"] == VERSION == "1.10.0"
+    assert stored["version"] == VERSION == "1.11.0"
     digest = stored[WEIGHTS_SHA256_KEY]
     assert len(digest) == 64 and digest != WEIGHTS_SHA256_PLACEHOLDER
     assert _independent_digest(blob, digest) == digest
@@ -167,5 +167,5 @@ def test_the_earlier_device_model_was_stamped_by_restamp_model():
 
 def test_the_bundled_generic_model_is_as_export_stamps_it():
     bundled = asset(DEFAULT_MODEL).read_bytes()
-    assert _meta(bundled)["version"] == "1.10.0" and "generic" in _meta(bundled)
+    assert _meta(bundled)["version"] == "1.11.0" and "generic" in _meta(bundled)
     assert restamp_model(bundled, "bundled") == bundled  # idempotent, and the one implementation

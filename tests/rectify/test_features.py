@@ -8,6 +8,7 @@ from dimenet.runtime.json_text import JsonProblem
 from dimenet.runtime.rectify.features import (
     CHANNELS,
     DEFAULT_SCALE,
+    MOMENT_SIZE,
     STEP_PRIOR_REL,
     STEP_SIZE,
     FeatureSpec,
@@ -42,13 +43,14 @@ def reference_features(p2, p3, mask, K_c, rvec, tvec, spec):
     return out.reshape(-1)
 
 
+@pytest.mark.parametrize("grid", [Grid(8, 6), Grid(1, 1)])  # one cell sums every point without a cell index
 @pytest.mark.parametrize("depth_mm", [None, 500.0])
 @pytest.mark.parametrize("variant", ["A", "B", "C", "D", "E"])
-def test_vectorised_feature_equals_per_point_reference(variant, depth_mm):
+def test_vectorised_feature_equals_per_point_reference(variant, depth_mm, grid):
     rng = np.random.default_rng(0)
     x, X, K, rvec, tvec = random_frames(rng, frames=3, points=50, noise_px=2.0)
     mask = rng.random((3, 50)) > 0.3
-    spec = FeatureSpec(grid=Grid(8, 6), variant=variant, depth_mm=depth_mm)
+    spec = FeatureSpec(grid=grid, variant=variant, depth_mm=depth_mm)
     K_c = K_TEST.copy()
     K_c[0, 2] += 12.0
     feats = grid_features(x, X, mask, K_c, IMAGE, spec, poses=(rvec, tvec))
@@ -168,6 +170,60 @@ def test_data_step_reads_a_k_shift_from_a_3d_frame_and_knows_a_plane_does_not_fi
     )
     planar = grid_features(xp, Xp, None, K_TEST, IMAGE, spec)[:, spec.grid_size :]
     assert np.all(planar[:, 4:].max(1) > step[:, 4:].max() + 2.0)  # some parameter is left to the prior
+
+
+def reference_moments(p2, p3, mask, K_c, rvec, tvec):
+    """The moments written from their definition, point by point: the mean over the inference points
+    of every product of two of [1, a, b, ab, a^2, b^2, z, a z, b z, s dx, s dy], the upper triangle in
+    row order less [1 * 1] and [1 * z]."""
+    R = g.rvec_to_matrix(rvec)
+    cam = [R @ X + tvec for X, m in zip(p3, mask) if m]
+    pmd = [(K_c @ (Xc / Xc[2]))[:2] - x for Xc, x, m in zip([R @ X + tvec for X in p3], p2, mask) if m]
+    mean_inv_z = np.mean([1 / Xc[2] for Xc in cam])
+    s = DEFAULT_SCALE["dx"]
+    total = np.zeros((11, 11))
+    for Xc, d in zip(cam, pmd):
+        a, b, z = Xc[0] / Xc[2], Xc[1] / Xc[2], 1 / Xc[2] / mean_inv_z
+        q = np.array([1, a, b, a * b, a * a, b * b, z, a * z, b * z, s * d[0], s * d[1]])
+        total += np.outer(q, q)
+    mean = total / len(cam)
+    return [mean[i, j] for i in range(11) for j in range(i, 11) if (i, j) not in ((0, 0), (0, 6))]
+
+
+def test_moments_equal_their_definition_and_ignore_the_world_unit_and_the_point_order():
+    spec = FeatureSpec(grid=Grid(1, 1), variant="B", data_step=True, moments=True, depth_mm=500.0)
+    assert FeatureSpec.from_dict(spec.to_dict()) == spec
+    assert "moments" not in FeatureSpec(data_step=True).to_dict()  # a model without them reads as before
+    assert spec.size == 2 + STEP_SIZE + MOMENT_SIZE and MOMENT_SIZE == 64
+    with pytest.raises(JsonProblem, match="moments must be true or false"):
+        FeatureSpec.from_dict({**spec.to_dict(), "moments": 1})
+    rng = np.random.default_rng(7)
+    x, X, K, rvec, tvec = random_frames(rng, frames=3, points=50, noise_px=1.5)
+    mask = rng.random((3, 50)) > 0.3
+    feats = grid_features(x, X, mask, K_TEST, IMAGE, spec, poses=(rvec, tvec))
+    for b in range(3):
+        want = reference_moments(x[b], X[b], mask[b], K_TEST, rvec[b], tvec[b])
+        np.testing.assert_allclose(feats[b, -MOMENT_SIZE:], want, rtol=1e-9, atol=1e-12)
+    # The step is as without the moments, and metres give the millimetres' moments.
+    step_only = FeatureSpec(grid=Grid(1, 1), variant="B", data_step=True, depth_mm=500.0)
+    np.testing.assert_array_equal(
+        feats[:, :-MOMENT_SIZE], grid_features(x, X, mask, K_TEST, IMAGE, step_only, poses=(rvec, tvec))
+    )
+    np.testing.assert_allclose(
+        grid_features(x, X / 1000.0, mask, K_TEST, IMAGE, spec, poses=(rvec, tvec / 1000.0)),
+        feats,
+        rtol=1e-7,
+        atol=1e-9,
+    )
+    unmasked = grid_features(x, X, None, K_TEST, IMAGE, spec, poses=(rvec, tvec))
+    for b in range(3):  # the rectifier's one frame equals the batch
+        alone = grid_features(
+            x[b : b + 1], X[b : b + 1], None, K_TEST, IMAGE, spec, poses=(rvec[b : b + 1], tvec[b : b + 1])
+        )
+        np.testing.assert_allclose(alone[0], unmasked[b], rtol=1e-12, atol=1e-15)
+    order = rng.permutation(50)
+    shuffled = grid_features(x[:, order], X[:, order], mask[:, order], K_TEST, IMAGE, spec, poses=(rvec, tvec))
+    np.testing.assert_allclose(shuffled, feats, rtol=1e-9, atol=1e-12)
 
 
 def test_too_few_inference_points_is_named():

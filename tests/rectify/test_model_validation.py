@@ -310,7 +310,7 @@ def test_the_bundled_generic_model_is_spec_1_6_and_its_hash_verifies_without_onn
     model = onnx_model_from_bytes(blob, "bundled")
     assert model.spec.generic is not None and model.spec.K_c is None and model.spec.uncertainty is not None
     d = model.spec.to_dict(weights_sha256=model.spec.weights_sha256)
-    assert d["version"] == VERSION == "1.10.0"
+    assert d["version"] == VERSION == "1.11.0"
     # spec 1.6: what the do-no-harm rules read (the structure limit, the population spread)
     assert 0 < model.spec.residual_structure_px < 5 and model.spec.uncertainty.population_sigma_px.shape == (4,)
     digest = model.spec.weights_sha256
