@@ -44,6 +44,12 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         "posterior sigmas (not the paper's: an encoder that reads how the points fix K, whatever the scene)",
     )
     p.add_argument(
+        "--moments",
+        action="store_true",
+        help="after the grid (and the data step), give the network the point set's moments: how the points spread "
+        "over the image and in depth and how the PMD varies over them, whatever their layout (not the paper's)",
+    )
+    p.add_argument(
         "--head",
         default=d.head,
         choices=HEADS,
@@ -101,6 +107,7 @@ def _run_train(args: argparse.Namespace) -> int:
         grid=args.grid,
         variant=args.features,
         data_step=args.data_step,
+        moments=args.moments,
         head=args.head,
         epochs=args.epochs,
         seed=args.seed,

@@ -31,6 +31,7 @@ class TrainConfig:
     grid: str = "8x6"
     variant: str = "A"
     data_step: bool = False  # the frame's own Gauss-Newton step on K after the grid (rectify.features)
+    moments: bool = False  # the point set's moments after the grid and step (rectify.features)
     head: str = "mlp"  # "gated_step": Delta K = MLP + a learned gate times the data step (training.model)
     epochs: int = 600
     batch_size: int = 32

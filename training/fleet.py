@@ -4,7 +4,7 @@ The manifest (JSON, models_spec/fleet.md):
 ``{"jobs": [{"name": "s8", "dataset": "s8.npz", "init": "default", "seed": 0, "epochs": 600}, ...]}``
 with per job a unique ``name`` (its run dir ``DIR/<name>``), a ``dataset`` (a .npz file or a
 family folder, relative to the manifest) and any of `dimenet train`'s options: ``init``,
-``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``, ``data_step``,
+``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``, ``data_step``, ``moments``,
 ``k_c_error``, ``head``.
 
 Every value goes through the argparse type `dimenet train` gives its flag (training/config.py),
@@ -68,6 +68,7 @@ _OPTIONS = {
     "focal_weight": ("focal_weight", float, focal_weight),
     "train_frames": ("train_frames", int, train_frames),
     "data_step": ("data_step", bool, None),  # `dimenet train --data-step`: a switch, no argparse type
+    "moments": ("moments", bool, None),  # `dimenet train --moments`
     "k_c_error": ("k_c_error", float, k_c_error),
     "head": ("head", str, _head),
 }

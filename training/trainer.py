@@ -143,6 +143,7 @@ def _feature_spec(config: TrainConfig, generic: bool, init: Optional[InitialWeig
         variant=config.variant,
         depth_mm=GENERIC_DEPTH_MM if generic else None,
         data_step=config.data_step,
+        moments=config.moments,
     )
 
 

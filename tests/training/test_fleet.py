@@ -112,9 +112,9 @@ def test_manifest_values_within_the_caps_are_the_command_line_s(tmp_path):
     job = {"name": "a", "dataset": "x.npz", "epochs": 100000, "seed": 2**32 - 1, "focal_weight": 1000}
     path.write_text(json.dumps({"jobs": [{**job, "grid": "64x64", "features": "E", "train_frames": 2}]}))
     (config,) = [j.config for j in read_manifest(path)]
-    path.write_text(json.dumps({"jobs": [{**job, "data_step": True, "k_c_error": 1}]}))
+    path.write_text(json.dumps({"jobs": [{**job, "data_step": True, "moments": True, "k_c_error": 1}]}))
     (scenes,) = [j.config for j in read_manifest(path)]
-    assert (scenes.data_step, scenes.k_c_error) == (True, 1.0)
+    assert (scenes.data_step, scenes.moments, scenes.k_c_error) == (True, True, 1.0)
     assert (config.epochs, config.seed, config.focal_weight, config.grid, config.variant, config.train_frames) == (
         100000,
         2**32 - 1,

@@ -17,7 +17,7 @@ from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.rectify.features import STEP_SIZE
+from dimenet.runtime.rectify.features import MOMENT_SIZE, STEP_SIZE
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.config import TrainConfig
@@ -56,12 +56,15 @@ def test_a_family_trains_a_generic_model_that_serves_an_unseen_camera(family, ge
     assert ev.fallbacks["dimenet"] < test.n_frames and np.isfinite(ev.methods["map"]["overall"].avg_e)
 
 
-def test_a_scene_encoder_trains_with_the_data_step_and_factory_k_c(family, generic_run, tmp_path):
-    """--data-step and --k-c-error 1 (every camera, every epoch, under a factory-like K_c): the spec says so,
-    the plausible Delta K widens by the factory span either way, and the model serves an unseen camera."""
-    run = train(family[:2], TrainConfig(epochs=2, seed=1, data_step=True, k_c_error=1.0), tmp_path / "run")
+def test_a_scene_encoder_trains_with_the_data_step_moments_and_factory_k_c(family, generic_run, tmp_path):
+    """--data-step, --moments and --k-c-error 1 (every camera, every epoch, under a factory-like K_c): the
+    spec says so, the plausible Delta K widens by the factory span either way, and the model serves an
+    unseen camera."""
+    config = TrainConfig(epochs=2, seed=1, data_step=True, moments=True, k_c_error=1.0)
+    run = train(family[:2], config, tmp_path / "run")
     _, spec = load_run(run.run_dir)
-    assert spec.features.data_step and spec.features.size == spec.features.grid_size + STEP_SIZE
+    assert spec.features.data_step and spec.features.moments
+    assert spec.features.size == spec.features.grid_size + STEP_SIZE + MOMENT_SIZE
     plain = load_run(generic_run.run_dir)[1].generic.delta_bounds
     widened = spec.generic.delta_bounds
     f_span = FACTORY_F_REL * spec.generic.focal_px
