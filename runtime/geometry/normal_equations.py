@@ -30,11 +30,9 @@ def _jacobian_basis() -> np.ndarray:
 _JACOBIAN_BASIS = _jacobian_basis()
 
 
-def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
-    """(11, 11) Q Q^T of one frame's N points, Q (11, N) their monomials q = [1, a, b, ab, a^2, b^2,
-    1/Z, a/Z, b/Z] (a = X/Z, b = Y/Z) then their residuals r_u, r_v: xy_inv_z (3, N) the points
-    in {C} as X, Y (mm) and 1/Z (1/mm), residuals (2, N) px. Everything the normal equations
-    (``gram_normal_equations``) and the moment feature (``rectify.features``) read of the points."""
+def _monomials(xy_inv_z: np.ndarray) -> np.ndarray:
+    """(11, N): rows 0-8 the monomials q = [1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z] (a = X/Z, b = Y/Z)
+    of the points xy_inv_z (3, N) (X, Y mm and 1/Z 1/mm in {C}); rows 9-10 left for the residuals."""
     Q = np.empty((11, xy_inv_z.shape[1]))
     Q[6] = inv_z = xy_inv_z[2]
     ab = np.multiply(xy_inv_z[:2], inv_z, out=Q[1:3])  # a, b
@@ -42,6 +40,15 @@ def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
     np.multiply(ab, ab, out=Q[4:6])
     np.multiply(ab, inv_z, out=Q[7:9])
     Q[0] = 1.0
+    return Q
+
+
+def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+    """(11, 11) Q Q^T of one frame's N points, Q (11, N) their monomials q = [1, a, b, ab, a^2, b^2,
+    1/Z, a/Z, b/Z] (a = X/Z, b = Y/Z) then their residuals r_u, r_v: xy_inv_z (3, N) the points
+    in {C} as X, Y (mm) and 1/Z (1/mm), residuals (2, N) px. Everything the normal equations
+    (``gram_normal_equations``) and the moment feature (``rectify.features``) read of the points."""
+    Q = _monomials(xy_inv_z)
     Q[9:] = residuals
     return Q @ Q.T
 
@@ -69,15 +76,15 @@ def frame_normal_equations(
     p = (w (3) rad, tau (3) mm, fx, fy, cx, cy), the pose perturbed on the left (X_C ->
     exp([w]x) X_C + tau, so R -> exp([w]x) R, t -> exp([w]x) t + tau), returns J J^T (10, 10),
     J r (10,), r.r (px^2) and r (2, N) px (the u residuals, then the v residuals): one N-long
-    product of the (11, N) monomials and residuals with themselves (``monomial_gram``) instead
-    of forming J.
+    product of the (11, N) monomials and residuals with themselves (as ``monomial_gram``'s)
+    instead of forming J.
     """
     fx, fy, cx, cy = k
-    inv_z = xy_inv_z[2]
-    r = xy_inv_z[:2] * inv_z * ((fx,), (fy,))
+    Q = _monomials(xy_inv_z)
+    r = np.multiply(Q[1:3], ((fx,), (fy,)), out=Q[9:])  # the residuals from a, b in place: mode map's hot path
     r += ((cx,), (cy,))
     r -= points_2d.T
-    return (*gram_normal_equations(monomial_gram(xy_inv_z, r), fx, fy), r)
+    return (*gram_normal_equations(Q @ Q.T, fx, fy), r)
 
 
 def prior_step(
