@@ -40,13 +40,13 @@ def structure_limit(units: list, config: TrainConfig, grid: Grid, rng: np.random
     rigs sag would otherwise raise it past every real bent sheet. Clustered, noisily labelled points
     fit the smooth field by chance, the fewer the more (up to 4 px at 40 points): read on them, the
     share's structure was the draw's luck (0.5 to 1.65 px across seeds; training/METHOD.md)."""
-    amplitudes = []
+    amplitudes, fewest = [], max(MIN_STRUCTURE_POINTS, STRUCTURE_LIMIT_POINTS)
     for unit in units:
         for _ in range(STRUCTURE_DRAWS):
             frames = augment(resynthesise(unit.fit, clean(unit.truth), rng, config.resynthesis)[0], config, grid, rng)
             for b in range(frames.n_frames):
                 m = frames.infer_mask[b]
-                if m.sum() < max(MIN_STRUCTURE_POINTS, STRUCTURE_LIMIT_POINTS):
+                if m.sum() < fewest:
                     continue
                 x, X = np.ascontiguousarray(frames.points_2d[b][m]), np.ascontiguousarray(frames.points_3d[b][m])
                 s = residual_structure(x, X, unit.camera.K, *solve_pnp_start(x, X, unit.camera.K))

@@ -344,7 +344,7 @@ def gram_inputs(points: np.ndarray, mask, K_c, spec: FeatureSpec) -> np.ndarray:
     (``grid_features``'s: the PMD in rows 0-1, X, Y, 1/Z in {C0} in rows 2-4), mask (F, N) bool
     their inference points (None: all), K_c (3, 3) px."""
     fx_c, fy_c = float(K_c[0, 0]), float(K_c[1, 1])
-    prior_var = (STEP_PRIOR_REL * fx_c) ** 2
+    prior_var, clip_px = (STEP_PRIOR_REL * fx_c) ** 2, STEP_CLIP_REL * fx_c
     precision = np.eye(4) / prior_var
     pmd_scale = spec.scale["dx"]
     out = np.empty((len(points), spec.size - spec.grid_size))
@@ -355,18 +355,18 @@ def gram_inputs(points: np.ndarray, mask, K_c, spec: FeatureSpec) -> np.ndarray:
         if spec.data_step:
             JJ, Jr, rss = gram_normal_equations(G, fx_c, fy_c)
             step, cov, _ = prior_step(JJ, Jr, rss, 2 * n, precision, noise_floor_px=STEP_NOISE_FLOOR_PX)
-            out[b, :STEP_SIZE] = _step_inputs(step[6:].tolist(), cov.diagonal()[6:].tolist(), fx_c, pmd_scale)
+            out[b, :STEP_SIZE] = _step_inputs(
+                step[6:].tolist(), cov.diagonal()[6:].tolist(), prior_var, clip_px, pmd_scale
+            )
         if spec.moments:
             out[b, -MOMENT_SIZE:] = _moment_inputs(G, n, pmd_scale)
     return out
 
 
-def _step_inputs(step_px: list, variance_px2: list, fx_c: float, pmd_scale: float) -> list:
+def _step_inputs(step_px: list, variance_px2: list, prior_var: float, clip_px: float, pmd_scale: float) -> list:
     """The data step's STEP_SIZE inputs from its step (4,) px and posterior variances (4,) px^2 of
-    (fx, fy, cx, cy) under K_c of focal fx_c px: the clipped step times the PMD's scale, then the log
-    sigma ratios (floats: 3 against 9 µs for numpy's calls on 4 values)."""
-    prior_var = (STEP_PRIOR_REL * fx_c) ** 2
-    clip_px = STEP_CLIP_REL * fx_c
+    (fx, fy, cx, cy), its prior's variance (px^2) and clip (px): the clipped step times the PMD's
+    scale, then the log sigma ratios (floats: 3 against 9 µs for numpy's calls on 4 values)."""
     shown = [min(max(d, -clip_px), clip_px) * pmd_scale for d in step_px]
     return shown + [0.5 * math.log(max(v / prior_var, STEP_VARIANCE_FLOOR)) for v in variance_px2]
 
