@@ -20,6 +20,7 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.sim.image_errors import draw_image_errors
 from dimenet.runtime.sim.natural import random_natural
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
 from dimenet.runtime.sim.scenes import FILL, build_errors_mm, extent_mm, framed, random_rig
@@ -43,7 +44,9 @@ OIS_STROKE_DEG = (0.7, 1.8)  # ... then clipped to this range (paper profiles: 0
 CORNER_SIGMA_PX = (0.1, 0.6)  # corner detection noise std per axis, uniform (px of that camera)
 FAMILY_FRAMES = (80, 20)  # rig frames (train, test) per camera
 SCENES = ("paper", "random")  # what a camera sees: the paper's rig at its distances, or a rig of its own (sim.scenes)
-OIS_OFF_SHARE = 0.2  # with random scenes, this share of cameras has no OIS (front cameras, OIS disabled)
+OIS_OFF_SHARE = 0.2  # with random scenes, this share of cameras has no OIS (front cameras, OIS disabled) ...
+VIDEO_SHARE = 0.15  # ... and this share of those with OIS is a video camera with a larger stroke ...
+VIDEO_STROKE_DEG = (1.8, 3.0)  # ... uniform, its shake std the stroke over STROKE_OVER_SHAKE
 
 # The paper's scale: label noise and border margin were set for a 4032 px wide camera, the rig
 # distances for the galaxy-s8's field of view.
@@ -178,6 +181,19 @@ def has_ois(seed: int, index: int) -> bool:
     return bool(_stream(seed, 4, index).uniform() >= OIS_OFF_SHARE)
 
 
+def ois_camera(profile: DeviceProfile, seed: int, index: int) -> DeviceProfile:
+    """Camera ``index`` of a random-scene family of ``seed`` as its OIS makes it: no OIS (stroke 0) on
+    OIS_OFF_SHARE of the cameras (``has_ois``); on VIDEO_SHARE of the others (their own stream) a video camera,
+    stroke U(VIDEO_STROKE_DEG) and hand shake the stroke over U(STROKE_OVER_SHAKE); else ``profile``."""
+    if not has_ois(seed, index):
+        return replace(profile, ois_stroke_deg=0.0)
+    rng = _stream(seed, 8, index)
+    if rng.uniform() >= VIDEO_SHARE:
+        return profile
+    stroke_deg = rng.uniform(*VIDEO_STROKE_DEG)
+    return replace(profile, ois_stroke_deg=stroke_deg, shake_sigma_deg=stroke_deg / rng.uniform(*STROKE_OVER_SHAKE))
+
+
 def family_profiles(n: int, seed: int, frames: tuple[int, int] = FAMILY_FRAMES) -> list[DeviceProfile]:
     """The ``n`` cameras (1 .. 1000) of the family of ``seed``, each with ``frames`` = (train, test)
     rig frames. Deterministic per seed; camera i does not depend on ``n`` (a family's first m
@@ -240,18 +256,20 @@ def family_member(
     ``scenes``: ``paper``, the paper's rig at the camera's distances; ``random``, a rig of the camera's own
     (``scenes.random_rig``, its own stream) framed so it spans ``fill`` (low, high) of the image width from the
     camera's far distance to its near one (``scenes.framed``; held-out families draw other framings than the
-    training's: ``training/reproduce``), and on OIS_OFF_SHARE of the cameras (another stream) no OIS (stroke 0:
-    the principal point never moves, only focus breathing changes f); the rig as built departs from its points
-    (``scenes.build_errors_mm``, a third stream): sagging sheets, boards placed slightly off; its natural frames see a
-    random room, street or table of the rig's size around the rig's first board (``natural.random_natural``, a
-    fourth stream)."""
+    training's: ``training/reproduce``), with its OIS as ``ois_camera`` draws it (none, or a video camera's larger
+    stroke); the rig as built departs from its points (``scenes.build_errors_mm``, a third stream): sagging sheets,
+    boards placed slightly off; its image has a residual lens, corner bias and JPEG noise, and a share of cameras
+    photographs ChArUco boards (``image_errors.draw_image_errors``, a fourth stream); its natural frames see a random
+    room, street or table of the rig's size around the rig's first board (``natural.random_natural``, a fifth
+    stream)."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
-    rig, offsets, natural = None, None, None
+    rig, offsets, natural, errors = None, None, None, None
     if scenes == "random":
         rig = random_rig(_stream(seed, 3, index))
-        profile = framed(profile if has_ois(seed, index) else replace(profile, ois_stroke_deg=0.0), rig, fill)
+        profile = framed(ois_camera(profile, seed, index), rig, fill)
         offsets = build_errors_mm(rig, _stream(seed, 5, index))
+        errors = draw_image_errors(profile, _stream(seed, 7, index))
         if natural_frames:
             natural = random_natural(rig.boards[0], extent_mm(rig), _stream(seed, 6, index))
     ds = simulate(
@@ -264,6 +282,7 @@ def family_member(
         rig=rig,
         rig_offsets_mm=offsets,
         natural=natural,
+        image_errors=errors,
     )
     family = {"seed": int(seed), "index": index, "cameras": int(n), "scenes": scenes}
     return replace(ds, meta={**ds.meta, "family": family})

@@ -42,6 +42,7 @@ from dimenet.runtime.geometry import (
     undistort_points,
 )
 from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
+from dimenet.runtime.sim.image_errors import ImageErrors
 from dimenet.runtime.sim.platform import platform_matrices, platform_meta, platform_rng
 from dimenet.runtime.sim.profiles import DeviceProfile, get_profile
 
@@ -271,10 +272,12 @@ def visible(
     rvec: np.ndarray,
     tvec: np.ndarray,
     dist_coeffs: Optional[np.ndarray] = None,
+    min_board_corners: Optional[int] = None,
 ):
     """Pinhole pixels (N, 2) of the scene points and which are seen: in front of the camera,
     facing it, not hidden behind a surface, inside the image (through the lens's distortion,
-    ``dist_coeffs`` about the nominal K, when given); a board with any corner unseen is lost entirely."""
+    ``dist_coeffs`` about the nominal K, when given); a board with any corner unseen is lost entirely,
+    or with ``min_board_corners`` (a ChArUco board, detected in part) one with fewer seen than that."""
     camera = camera_centre(rvec, tvec)
     px = project(scene.points, K, rvec, tvec)
     if dist_coeffs is None:
@@ -290,7 +293,10 @@ def visible(
     )
     for g in np.unique(scene.group[scene.group >= 0]):
         board = scene.group == g
-        seen[board] = seen[board].all()
+        if min_board_corners is None:
+            seen[board] = seen[board].all()
+        elif np.count_nonzero(seen[board]) < min_board_corners:
+            seen[board] = False
     return px, seen
 
 
@@ -311,9 +317,11 @@ def shoot(
     usable: Callable[[Scene, np.ndarray], bool],
     pose: Callable = sample_pose,
     dist_coeffs: Optional[np.ndarray] = None,
+    min_board_corners: Optional[int] = None,
 ):
     """One hand-held photo: OIS and AF state, then poses ``pose(profile, centre, rng)`` until ``usable``
-    (seen through the lens distortion ``dist_coeffs`` about the nominal K, when given).
+    (seen through the lens distortion ``dist_coeffs`` about the nominal K, when given; boards seen whole,
+    or with at least ``min_board_corners`` corners: ``visible``).
 
     Returns K_true (px), the pose {W}->{C} (rvec, tvec mm), the scene's pinhole pixels (N, 2) and
     which are seen (N,).
@@ -324,13 +332,27 @@ def shoot(
         rvec, tvec = pose(profile, scene.centre, rng)
         focus_mm = to_camera(scene.centre[None], rvec, tvec)[0, 2] * (1.0 + af_error)
         K = intrinsics(profile, focus_mm, theta_deg)
-        px, seen = visible(scene, profile, K, rvec, tvec, dist_coeffs)
+        px, seen = visible(scene, profile, K, rvec, tvec, dist_coeffs, min_board_corners)
         if usable(scene, seen):
             return K, rvec, tvec, px, seen
     raise RigError(
         f"no hand-held pose out of {MAX_POSE_ATTEMPTS} gives a usable view of the scene "
         f"with profile {profile.name!r}: does the rig fit the camera's view?"
     )
+
+
+def _observed(px, seen, noise, scene: Scene, usable, profile: DeviceProfile, errors, rng) -> tuple:
+    """One frame's observations: (seen (N,), points (N, 2) px, NaN where unseen) from the pinhole pixels px (N, 2)
+    px of the scene's points, which are seen, and the noise (S, 2) px of the S seen ones. With ``errors``
+    (``ImageErrors``, drawn from ``rng``) through the residual lens, with the boards' detection errors, and
+    without the corners a ChArUco camera misses (unless the view would no longer be ``usable``)."""
+    out = np.full(px.shape, np.nan)
+    if errors is None:
+        out[seen] = px[seen] + noise
+        return seen, out
+    out[seen] = errors.detection(errors.lens(px, profile)[seen] + noise, scene.group[seen], rng)
+    kept = seen & ~errors.missed(seen, scene.group, rng)
+    return (kept, np.where(kept[:, None], out, np.nan)) if usable(scene, kept) else (seen, out)
 
 
 def checked_dist_coeffs(dist_coeffs: Optional[Sequence[float]]) -> Optional[np.ndarray]:
@@ -361,6 +383,7 @@ def simulate(
     platform_k: bool = False,
     rig_offsets_mm: Optional[np.ndarray] = None,
     natural: Optional[NaturalSet] = None,
+    image_errors: Optional[ImageErrors] = None,
 ) -> Dataset:
     """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
     test frames, then ``planar_frames`` planar test frames.
@@ -380,6 +403,8 @@ def simulate(
     build_errors_mm``); the camera images the built rig (seen where the rig is), the dataset's 3D points stay the rig's.
     ``natural``: the natural frames' scene, noise and 3D error (``sim.natural.random_natural``; None: the paper's
     LEGO buildings beside the rig's first board, with the profile's label and model noise).
+    ``image_errors``: the camera's residual lens, corner bias, JPEG noise and ChArUco detection (``sim.image_errors``,
+    its own generator); the border margin grows by their reach, and meta ``image_errors`` records them.
     """
     profile = get_profile(profile) if isinstance(profile, str) else profile
     for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
@@ -388,6 +413,11 @@ def simulate(
     dist = checked_dist_coeffs(dist_coeffs)
     rig = paper_rig() if rig is None else rig
     rng = np.random.default_rng(seed)
+    errors = image_errors
+    if errors is not None:
+        profile = errors.margined(profile)
+    erng = None if errors is None else np.random.default_rng(errors.seed)
+    lens_and_boards = {"dist_coeffs": dist, "min_board_corners": None if errors is None else errors.min_board_corners}
     rig_set = rig_scene(rig)
     built = None  # the built rig's corners (P, 3) mm, imaged where the rig is seen (a few mm change no visibility)
     if rig_offsets_mm is not None:
@@ -408,26 +438,29 @@ def simulate(
     valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
     K_true = np.zeros((F, 3, 3))
     for k in range(n_rig):
-        K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
+        K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, **lens_and_boards)
         px = px if built is None else project(built, K_true[k], rvec, tvec)
         n = len(px)
-        p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        noise = rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        seen, p2[k, :n] = _observed(px, seen, noise, rig_set, rig_view_ok, profile, errors, erng)
         p3[k, :n][seen] = rig_set.points[seen]
         valid[k, :n], infer[k, :n] = seen, seen
     building = nature.group < 0
     model_points = nature.points + building[:, None] * rng.normal(0.0, model_sigma_mm, nature.points.shape)
     noise_px = np.where(building, label_sigma_px, profile.corner_sigma_px)[:, None]
     for k in range(n_rig, n_shot):
-        K_true[k], _, _, px, seen = shoot(nature, profile, rng, usable, dist_coeffs=dist)
+        K_true[k], _, _, px, seen = shoot(nature, profile, rng, usable, **lens_and_boards)
         n = len(px)
-        p2[k, :n][seen] = (px + rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
+        noise = (rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
+        seen, p2[k, :n] = _observed(px, seen, noise, nature, usable, profile, errors, erng)
         p3[k, :n][seen] = model_points[seen]
         valid[k, :n], infer[k, :n] = seen, seen & building
     for k in range(n_shot, F):
-        K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, dist_coeffs=dist)
+        K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, **lens_and_boards)
         px = px if built is None else project(built, K_true[k], rvec, tvec)
         n = len(px)
-        p2[k, :n][seen] = px[seen] + rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        noise = rng.normal(0.0, profile.corner_sigma_px, (int(seen.sum()), 2))
+        seen, p2[k, :n] = _observed(px, seen, noise, rig_set, rig_view_ok, profile, errors, erng)
         p3[k, :n][seen] = rig_set.points[seen]
         board = rng.choice(np.unique(rig_set.group[seen]))
         valid[k, :n], infer[k, :n] = seen, seen & (rig_set.group == board)
@@ -450,6 +483,8 @@ def simulate(
             "label_sigma_px": label_sigma_px,
             "model_sigma_mm": model_sigma_mm,
         }
+    if errors is not None:
+        meta["image_errors"] = asdict(errors)
     if dist is not None:
         p2 = distort_points(p2, profile.nominal_K, dist)
     if platform_k:

@@ -13,7 +13,14 @@ from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import paper_rig, rig_to_dict
 from dimenet.runtime.geometry import RIG_VIEW_RATIO, project, spans_3d
 from dimenet.runtime.sim import scenes
-from dimenet.runtime.sim.family import OIS_OFF_SHARE, family_member, family_profiles, has_ois
+from dimenet.runtime.sim.family import (
+    OIS_OFF_SHARE,
+    VIDEO_SHARE,
+    VIDEO_STROKE_DEG,
+    family_member,
+    family_profiles,
+    has_ois,
+)
 from dimenet.runtime.sim.scenes import build_errors_mm, extent_mm, framed, random_rig
 from dimenet.runtime.sim.simulator import simulate
 
@@ -112,22 +119,31 @@ def test_cli_writes_random_scene_cameras_and_refuses_them_without_family(tmp_pat
     assert "--scenes random needs --family" in capsys.readouterr().err
 
 
-def test_a_share_of_random_scene_cameras_has_no_ois_and_a_still_principal_point():
+def test_a_share_of_random_scene_cameras_has_no_ois_and_a_still_principal_point_and_a_share_films_video():
     """OIS_OFF_SHARE of the cameras (front cameras, OIS disabled): the principal point never moves, f still breathes;
-    the others' does. Paper scenes keep every camera's OIS."""
+    the others' does, and VIDEO_SHARE of those are video cameras with a larger stroke. Paper scenes keep every
+    camera's OIS as drawn."""
     n = 40
-    off = 0
+    off = video = 0
     for i, profile in enumerate(family_profiles(n, 2, frames=(4, 2))):
         ds = family_member(profile, i, 2, n, scenes="random")
         c_spread_px = np.ptp(ds.K_true[:, :2, 2], axis=0)
-        assert has_ois(2, i) == (ds.meta["device"]["ois_stroke_deg"] > 0.0)
-        if ds.meta["device"]["ois_stroke_deg"] == 0.0:
+        stroke_deg = ds.meta["device"]["ois_stroke_deg"]
+        assert has_ois(2, i) == (stroke_deg > 0.0)
+        if stroke_deg == 0.0:
             off += 1
             assert np.all(c_spread_px == 0.0) and np.ptp(ds.K_true[:, 0, 0]) > 0.0
         else:
             assert np.all(c_spread_px > 0.0)
-            assert ds.meta["device"]["ois_stroke_deg"] == profile.ois_stroke_deg
+            if stroke_deg != profile.ois_stroke_deg:
+                video += 1
+                assert VIDEO_STROKE_DEG[0] <= stroke_deg <= VIDEO_STROKE_DEG[1]
+                assert ds.meta["device"]["shake_sigma_deg"] < stroke_deg
+        assert (
+            family_member(profile, i, 2, n, scenes="paper").meta["device"]["ois_stroke_deg"] == profile.ois_stroke_deg
+        )
     assert 0.5 * OIS_OFF_SHARE * n <= off <= 1.75 * OIS_OFF_SHARE * n
+    assert 1 <= video <= 2.5 * VIDEO_SHARE * (n - off)
 
 
 def test_a_sagging_sheet_bends_along_its_normal_and_stays_flat_at_its_edges(monkeypatch):
