@@ -47,6 +47,7 @@ class TrainConfig:
     cluster_share: float = 0.25  # share of frames whose inference points shrink to hand-labelled-like clusters
     cluster_points: tuple = (40, 100)  # how many points those clusters keep, drawn uniformly
     max_label_noise_px: float = 6.0  # per-frame label noise on the clustered points drawn from U(0, max), px
+    plane_share: float = 0.0  # share of frames whose inference points shrink to one plane's (units.augment)
     # Epochs without val improvement before stopping; None (default): the whole cosine schedule
     # runs (stopping at 150 cost one seed 5 points of ipad rho) and the best val epoch is kept.
     patience: Optional[int] = None

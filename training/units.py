@@ -11,7 +11,7 @@ import numpy as np
 
 from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
-from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells
+from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, one_plane
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_params, project
 from dimenet.runtime.rectify.grid import Grid
@@ -127,7 +127,8 @@ def cluster_inference_points(
 def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Generator) -> Dataset:
     """Each frame with random extra 2D noise, a random inference-point count and a random share
     of emptied cells, except a ``full_share`` of the frames that keep all their points and
-    cells; a share of the frames with clustered, noisily labelled inference points."""
+    cells; a share of the frames with clustered, noisily labelled inference points, and (``plane_share``) a share
+    with those of one plane."""
     n_infer = frames.infer_mask.sum(1)
     low = np.minimum(max(config.min_points, MIN_POINTS), n_infer)
     n = rng.integers(low, n_infer + 1)
@@ -141,9 +142,21 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     # A frame the emptying left with too few points keeps its points (the runtime would fall back).
     too_few = emptied.infer_mask.sum(1) < MIN_POINTS
     kept = replace(emptied, infer_mask=np.where(too_few[:, None], dropped.infer_mask, emptied.infer_mask))
-    return cluster_inference_points(
+    clustered = cluster_inference_points(
         kept, frames.infer_mask, config.cluster_share, config.cluster_points, config.max_label_noise_px, rng
     )
+    return one_plane_share(clustered, config.plane_share, rng) if config.plane_share > 0 else clustered
+
+
+def one_plane_share(frames: Dataset, share: float, rng: np.random.Generator) -> Dataset:
+    """A random ``share`` of the frames keeps only the inference points of one plane (``conditions.one_plane``),
+    the others all theirs: a single board or wall, where the frame's points do not fix K."""
+    picked = rng.random(frames.n_frames) < share
+    if not picked.any():
+        return frames
+    infer = frames.infer_mask.copy()
+    infer[picked] = one_plane(frames.select(picked), rng).infer_mask
+    return replace(frames, infer_mask=infer)
 
 
 @dataclass(frozen=True)

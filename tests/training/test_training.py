@@ -16,13 +16,21 @@ from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.sim.profiles import PROFILES
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 from dimenet.training.trainer import TrainConfig, focal_loss, train
-from dimenet.training.units import cluster_inference_points, frame_truth, resynthesise, split_train_val, training_unit
+from dimenet.training.units import (
+    cluster_inference_points,
+    frame_truth,
+    one_plane_share,
+    resynthesise,
+    split_train_val,
+    training_unit,
+)
 
 SMALL = dataclasses.replace(PROFILES["galaxy-s8"], name="small-s8", n_train=30, n_test=8)
 
@@ -223,6 +231,19 @@ def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_
     K = pred.predict_k(ds.select(ds.frames_in("test")))
     assert K.shape == (6, 3, 3) and np.all(np.isfinite(K))
     assert path.exists()
+
+
+def test_a_share_of_frames_keeps_the_inference_points_of_one_board_and_the_rest_all_theirs(small):
+    """The paper rig's boards: a frame whose inference points shrink keeps exactly one board's corners (a plane);
+    its valid points, which the loss reads, and its 2D points stay."""
+    out = one_plane_share(small, 0.5, np.random.default_rng(0))
+    board = paper_rig().board_of_point
+    changed = np.any(out.infer_mask != small.infer_mask, 1)
+    assert 0.25 * small.n_frames < changed.sum() < 0.75 * small.n_frames
+    for f in np.flatnonzero(changed):
+        assert len(np.unique(board[out.infer_mask[f]])) == 1 and not np.any(out.infer_mask[f] & ~small.infer_mask[f])
+    np.testing.assert_array_equal(out.valid, small.valid)
+    np.testing.assert_array_equal(out.points_2d, small.points_2d)
 
 
 def test_clustered_inference_points_are_compact_noisy_candidates_and_spare_other_frames(small):
