@@ -26,7 +26,7 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     monkeypatch.setattr(generic, "FINE_TUNE_FRAMES", 20)
     monkeypatch.setattr(generic, "FRESH_SCENES", {"rig": (101, 2, (0.2, 0.8)), "far": (202, 1, (0.2, 1 / 3))})
     monkeypatch.setattr(generic, "OIS_OFF_FAMILY", (11, 2))  # its camera 1 has no OIS
-    monkeypatch.setattr(generic, "FRESH_NATURAL", (404, 2, 8))
+    monkeypatch.setattr(generic, "FRESH_NATURAL", (404, 4, 8))  # camera 3 has a gap past noise
     data = {"galaxy-s8": simulate("galaxy-s8", seed=2, natural_frames=4, planar_frames=4)}
     device = {"galaxy-s8": load_onnx_predictor(DEVICE_MODEL)}
     config = ReproduceConfig(out_dir=tmp_path, epochs=2)
@@ -44,7 +44,7 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     assert len(results["fresh_family"]) == 2 and all(r["rho"] > 0.5 for r in results["fresh_family"])
     assert set(results["fine_tune"]["rows"]) == {"rig 64 pts", "natural"}
     scenes = results["fresh_scenes"]
-    assert [len(scenes[name]) for name in ("rig", "far", "natural")] == [2, 1, 2]
+    assert [len(scenes[name]) for name in ("rig", "far", "natural")] == [2, 1, 4]
     assert all(r["kind"] in ("room", "buildings", "objects") and r["features"] >= 15 for r in scenes["natural"])
     assert any(r["all"]["map"] is not None for r in scenes["natural"])
     # the bundled model on random rigs: better than K_c in mode map (the frame's points carry it), every case measured
@@ -59,5 +59,5 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     text = "\n".join(_generic_report(results))
     assert "## The generic default model beside the per-device ones" in text and "family-s101-001" in text
     assert "### Held-out scene families" in text and "| far | 1 |" in text and "Cameras without OIS (1 of" in text
-    assert "| natural | 2 |" in text and "moves from K_c by at most 2σ" in text and "within 2σ of K_true" in text
+    assert "| natural | 4 |" in text and "moves from K_c by at most 2σ" in text and "within 2σ of K_true" in text
     assert np.isfinite(rows["galaxy-s8 planar"]["generic"]["map"])
