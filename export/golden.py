@@ -29,7 +29,9 @@ from dimenet.runtime.sim.simulator import simulate
 FORMAT = "dimenet-golden/1"
 GOLDEN_FILE = "golden.json"
 FAMILY_SEED, FAMILY_CAMERAS = 303, 4  # a family no model trains on (train: 0; held-out families 101, 202)
-WORSE_FRAME = 87  # of the family's last camera: the bundled model's K fits it worse than K_c
+# The family's frames, per camera: test frames; camera 2's 83 the bundled model's K_c keeps by the structure rule,
+# camera 3's 87 where its K fits worse than K_c.
+FAMILY_FRAMES = ((80, 81, 82), (80, 81, 82), (80, 81, 83), (87,))
 
 
 @dataclass(frozen=True)
@@ -84,8 +86,7 @@ def golden_frames() -> list[GoldenFrame]:
     for i, profile in enumerate(family_profiles(FAMILY_CAMERAS, FAMILY_SEED)):
         ds = family_member(profile, i, FAMILY_SEED, FAMILY_CAMERAS, scenes="random")
         size = "x".join(str(int(v)) for v in ds.image_size)
-        test = np.flatnonzero(ds.frames_in("test"))
-        for k, b in enumerate(test[:3] if i < FAMILY_CAMERAS - 1 else [WORSE_FRAME]):
+        for k, b in enumerate(FAMILY_FRAMES[i]):
             frames.append(_frame(ds, b, f"family-{FAMILY_SEED}-{i}-{k}", f"held-out camera {size}, a random rig"))
     spoiled = frames[0]
     noise = np.random.default_rng(1).normal(scale=25.0, size=spoiled.points_2d.shape)
