@@ -13,7 +13,16 @@ from dimenet.runtime.cli.main import Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.rectify.spec import HEADS
 
-from .config import FEATURE_VARIANTS, ReproduceConfig, TrainConfig, epochs, focal_weight, k_c_error, train_frames
+from .config import (
+    FEATURE_VARIANTS,
+    ReproduceConfig,
+    TrainConfig,
+    epochs,
+    focal_weight,
+    k_c_error,
+    plane_share,
+    train_frames,
+)
 
 # The defaults --help states are the dataclasses' own (training/config.py imports no torch).
 TRAIN_DEFAULTS = TrainConfig()
@@ -83,6 +92,15 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         f"the width) instead of their calibrated one, so the model corrects a platform's K_c (default {d.k_c_error})",
     )
     p.add_argument(
+        "--plane-share",
+        type=plane_share,
+        default=d.plane_share,
+        metavar="SHARE",
+        help="share of the training frames whose inference points shrink, each epoch, to one plane's (a single "
+        "board or wall, where the points do not fix K; the loss still reads all the frame's points) "
+        f"(default {d.plane_share})",
+    )
+    p.add_argument(
         "--train-frames",
         type=train_frames,
         metavar="N",
@@ -114,6 +132,7 @@ def _run_train(args: argparse.Namespace) -> int:
         focal_weight=args.focal_weight,
         train_frames=args.train_frames,
         k_c_error=args.k_c_error,
+        plane_share=args.plane_share,
     )
     result = train(
         datasets,

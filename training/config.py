@@ -24,6 +24,7 @@ epochs = integer_in(1, MAX_EPOCHS)
 focal_weight = finite_float_in(0.0, MAX_FOCAL_WEIGHT)
 train_frames = integer_in(2, MAX_TRAIN_FRAMES)
 k_c_error = finite_float_in(0.0, 1.0)
+plane_share = finite_float_in(0.0, 1.0)
 
 
 @dataclass(frozen=True)

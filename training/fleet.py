@@ -5,7 +5,7 @@ The manifest (JSON, models_spec/fleet.md):
 with per job a unique ``name`` (its run dir ``DIR/<name>``), a ``dataset`` (a .npz file or a
 family folder, relative to the manifest) and any of `dimenet train`'s options: ``init``,
 ``seed``, ``epochs``, ``grid``, ``features``, ``focal_weight``, ``train_frames``, ``data_step``, ``moments``,
-``k_c_error``, ``head``.
+``k_c_error``, ``plane_share``, ``head``.
 
 Every value goes through the argparse type `dimenet train` gives its flag (training/config.py),
 so a manifest passes nothing the command line refuses; a job name may not be one of the files
@@ -38,7 +38,7 @@ from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.json_text import JsonProblem, an_object, parse_json, required, shown
 from dimenet.runtime.rectify.spec import HEADS
 
-from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, k_c_error, train_frames
+from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, k_c_error, plane_share, train_frames
 
 FLEET_FILE, SUMMARY_MD, SUMMARY_JSON = "fleet.json", "summary.md", "summary.json"
 RESERVED = (SUMMARY_MD, SUMMARY_JSON)  # what the fleet itself writes into DIR, besides the run dirs
@@ -70,6 +70,7 @@ _OPTIONS = {
     "data_step": ("data_step", bool, None),  # `dimenet train --data-step`: a switch, no argparse type
     "moments": ("moments", bool, None),  # `dimenet train --moments`
     "k_c_error": ("k_c_error", float, k_c_error),
+    "plane_share": ("plane_share", float, plane_share),
     "head": ("head", str, _head),
 }
 _KEYS = {attr: key for key, (attr, _, _) in _OPTIONS.items()}  # TrainConfig field -> manifest key

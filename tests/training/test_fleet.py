@@ -93,6 +93,7 @@ PAST_THE_CAPS = [
     ("train_frames", "1", "--train-frames"),
     ("k_c_error", "1.5", "--k-c-error"),
     ("k_c_error", "-0.1", "--k-c-error"),
+    ("plane_share", "1.5", "--plane-share"),
 ]
 
 
@@ -112,9 +113,10 @@ def test_manifest_values_within_the_caps_are_the_command_line_s(tmp_path):
     job = {"name": "a", "dataset": "x.npz", "epochs": 100000, "seed": 2**32 - 1, "focal_weight": 1000}
     path.write_text(json.dumps({"jobs": [{**job, "grid": "64x64", "features": "E", "train_frames": 2}]}))
     (config,) = [j.config for j in read_manifest(path)]
-    path.write_text(json.dumps({"jobs": [{**job, "data_step": True, "moments": True, "k_c_error": 1}]}))
+    scene_options = {"data_step": True, "moments": True, "k_c_error": 1, "plane_share": 0.05}
+    path.write_text(json.dumps({"jobs": [{**job, **scene_options}]}))
     (scenes,) = [j.config for j in read_manifest(path)]
-    assert (scenes.data_step, scenes.moments, scenes.k_c_error) == (True, True, 1.0)
+    assert (scenes.data_step, scenes.moments, scenes.k_c_error, scenes.plane_share) == (True, True, 1.0, 0.05)
     assert (config.epochs, config.seed, config.focal_weight, config.grid, config.variant, config.train_frames) == (
         100000,
         2**32 - 1,

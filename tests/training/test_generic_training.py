@@ -57,10 +57,10 @@ def test_a_family_trains_a_generic_model_that_serves_an_unseen_camera(family, ge
 
 
 def test_a_scene_encoder_trains_with_the_data_step_moments_and_factory_k_c(family, generic_run, tmp_path):
-    """--data-step, --moments and --k-c-error 1 (every camera, every epoch, under a factory-like K_c): the
-    spec says so, the plausible Delta K widens by the factory span either way, and the model serves an
+    """--data-step, --moments, --plane-share and --k-c-error 1 (every camera, every epoch, under a factory-like
+    K_c): the spec says so, the plausible Delta K widens by the factory span either way, and the model serves an
     unseen camera."""
-    config = TrainConfig(epochs=2, seed=1, data_step=True, moments=True, k_c_error=1.0)
+    config = TrainConfig(epochs=2, seed=1, data_step=True, moments=True, k_c_error=1.0, plane_share=0.2)
     run = train(family[:2], config, tmp_path / "run")
     _, spec = load_run(run.run_dir)
     assert spec.features.data_step and spec.features.moments
