@@ -29,6 +29,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
+from dimenet.runtime.geometry.normal_equations import JACOBIAN_BASIS
 from dimenet.runtime.rectify.features import (
     CHANNELS,
     MOMENT_INDEX,
@@ -165,61 +166,45 @@ def _inverse(g: _Builder, m: str, n: int) -> str:
     return g.op("Slice", aug, g.const([n], "s", np.int64), g.const([2 * n], "e", np.int64), ax1)
 
 
-def _data_step(
-    g: _Builder, weight: str, n: str, ab_inv_z: tuple, residuals: tuple, focal: tuple, pmd_scale: float
-) -> str:
+def _gram(g: _Builder, weight: str, ab_inv_z: tuple, residuals: tuple) -> str:
+    """``geometry.monomial_gram`` over the inference points [11, 11]: Q^T Q of the points' monomials
+    q = [1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z] and residuals (PMD) r_u, r_v, the masked points' rows zero."""
+    a, b, inv_z = ab_inv_z
+    ax1 = g.const([1], "ax", np.int64)
+    one = g.op("Add", g.op("Mul", a, g.const(0.0)), g.const(1.0))
+    ab = (a, b)
+    columns = (one, a, b, g.op("Mul", a, b), *(g.op("Mul", c, c) for c in ab), inv_z)
+    columns += (*(g.op("Mul", c, inv_z) for c in ab), *residuals)
+    Q = g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in columns), axis=1)
+    Q = g.op("Mul", Q, g.op("Unsqueeze", weight, ax1))
+    return g.op("MatMul", g.op("Transpose", Q, perm=[1, 0]), Q)
+
+
+def _block(g: _Builder, G: str, rows: tuple, cols: tuple) -> str:
+    """G[rows[0]:rows[1], cols[0]:cols[1]]."""
+    starts, ends = g.const([rows[0], cols[0]], "s", np.int64), g.const([rows[1], cols[1]], "e", np.int64)
+    return g.op("Slice", G, starts, ends, g.const([0, 1], "ax", np.int64))
+
+
+def _data_step(g: _Builder, G: str, n: str, focal: tuple, pmd_scale: float) -> str:
     """The data step's 8 inputs (``rectify.features.gram_inputs``, ``geometry.prior_step``) [8]: the
     Gauss-Newton step over (pose, fx, fy, cx, cy) at the C0 pose and K_c with a prior of
     STEP_PRIOR_REL fx on K, its data weighted by 1 / s^2 twice (the pose's residuals, then the step's),
     the step's Delta K clipped to STEP_CLIP_REL fx times the PMD scale, then 1/2 ln(posterior / prior
-    variance). The Jacobian is ``geometry.frame_normal_equations``'s (the pose perturbed on the left),
-    written out per point."""
-    a, b, inv_z = ab_inv_z
-    r_u, r_v = residuals
+    variance). The normal equations are ``geometry.gram_normal_equations``'s, from the points' Gram G
+    [11, 11] (``_gram``): J J^T = C G C^T summed over u and v, C = fx B0 + fy B1 + B2 (JACOBIAN_BASIS)."""
     fx, fy = focal
     mul, add, sub = (lambda x, y, op=op: g.op(op, x, y) for op in ("Mul", "Add", "Sub"))
-    zero = g.op("Mul", a, g.const(0.0))
-    one = g.op("Add", zero, g.const(1.0))
-    ab = mul(a, b)
-    j_u = (
-        mul(fx, g.op("Neg", ab)),
-        mul(fx, add(one, mul(a, a))),
-        mul(fx, g.op("Neg", b)),
-        mul(fx, inv_z),
-        zero,
-        mul(fx, g.op("Neg", mul(a, inv_z))),
-        a,
-        zero,
-        one,
-        zero,
-    )
-    j_v = (
-        mul(fy, g.op("Neg", add(one, mul(b, b)))),
-        mul(fy, ab),
-        mul(fy, a),
-        zero,
-        mul(fy, inv_z),
-        mul(fy, g.op("Neg", mul(b, inv_z))),
-        zero,
-        b,
-        zero,
-        one,
-    )
     ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
-    w = g.op("Unsqueeze", weight, ax1)
-    J_u = g.op("Mul", g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in j_u), axis=1), w)  # [N, 10] masked
-    J_v = g.op("Mul", g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in j_v), axis=1), w)
-    r_u, r_v = g.op("Mul", r_u, weight), g.op("Mul", r_v, weight)
-    J_ut, J_vt = g.op("Transpose", J_u, perm=[1, 0]), g.op("Transpose", J_v, perm=[1, 0])
-    JJ = add(g.op("MatMul", J_ut, J_u), g.op("MatMul", J_vt, J_v))
-    # J r as a sum, not a MatMul of the transposed J by a vector: ONNX Runtime's MatmulTransposeFusion
-    # (extended optimizations) gets that product wrong in double (onnxruntime 1.32).
-    Jr = add(
-        g.op("ReduceSum", g.op("Mul", J_u, g.op("Unsqueeze", r_u, ax1)), ax0, keepdims=0),
-        g.op("ReduceSum", g.op("Mul", J_v, g.op("Unsqueeze", r_v, ax1)), ax0, keepdims=0),
-    )
-    r = g.op("Concat", r_u, r_v, axis=0)
-    rss = g.op("ReduceSum", mul(r, r), ax0, keepdims=0)
+    shape = lambda *dims: g.const(list(dims), "shape", np.int64)  # noqa: E731
+    f1 = g.op("Concat", g.op("Unsqueeze", fx, ax0), g.op("Unsqueeze", fy, ax0), g.const([1.0]), axis=0)
+    C = g.op("Reshape", g.op("MatMul", g.op("Unsqueeze", f1, ax0), g.const(JACOBIAN_BASIS)), shape(20, 9))
+    CG = g.op("Reshape", g.op("MatMul", C, _block(g, G, (0, 9), (0, 9))), shape(10, 18))
+    JJ = g.op("MatMul", CG, g.op("Transpose", g.op("Reshape", C, shape(10, 18)), perm=[1, 0]))
+    Cr = g.op("Reshape", g.op("MatMul", C, _block(g, G, (0, 9), (9, 11))), shape(10, 4))  # [u r_u, u r_v, v r_u, v r_v]
+    Jr = g.op("ReduceSum", mul(Cr, g.const([1.0, 0.0, 0.0, 1.0])), ax1, keepdims=0)
+    residual_diagonal = g.const(np.diag([0.0] * 9 + [1.0, 1.0]))
+    rss = g.op("ReduceSum", mul(G, residual_diagonal), g.const([0, 1], "ax", np.int64), keepdims=0)
     n_res = g.op("Mul", n, g.const(2.0))
     floor2 = g.const(STEP_NOISE_FLOOR_PX**2)
 
@@ -256,23 +241,21 @@ def _data_step(
     return g.op("Concat", g.op("Mul", clipped, g.const(pmd_scale)), log_ratio, axis=0)
 
 
-def _moments(g: _Builder, weight: str, n: str, ab_inv_z: tuple, residuals: tuple, pmd_scale: float) -> str:
-    """The moments (``rectify.features.gram_inputs``) [MOMENT_SIZE]: the mean over the points of every
-    product of two of [1, a, b, ab, a^2, b^2, z, a z, b z, s dx, s dy], z = (1/Z) n / sum(1/Z) and s the
-    PMD's scale, gathered from the raveled 11 x 11 Gram."""
-    a, b, inv_z = ab_inv_z
-    ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
-    inv_z_sum = g.op("ReduceSum", g.op("Mul", inv_z, weight), ax0, keepdims=0)
+def _moments(g: _Builder, G: str, n: str, pmd_scale: float) -> str:
+    """The moments (``rectify.features._moment_inputs``) [MOMENT_SIZE] from the points' Gram G [11, 11]
+    (``_gram``): s_i s_j G_ij / n with s each monomial's scale (1; z's n / sum(1/Z), sum(1/Z) = G[0, 6];
+    the PMD's scale), gathered from the raveled matrix."""
+    inv_z_sum = g.op("Reshape", _block(g, G, (0, 1), (6, 7)), g.const([], "shape", np.int64))
     positive = g.op("Greater", inv_z_sum, g.const(0.0))
     z_scale = g.op("Where", positive, g.op("Div", n, g.op("Where", positive, inv_z_sum, g.const(1.0))), g.const(1.0))
-    z = g.op("Mul", inv_z, z_scale)
-    one = g.op("Add", g.op("Mul", a, g.const(0.0)), g.const(1.0))
-    columns = (one, a, b, g.op("Mul", a, b), g.op("Mul", a, a), g.op("Mul", b, b), z, g.op("Mul", a, z))
-    columns += (g.op("Mul", b, z), *(g.op("Mul", r, g.const(pmd_scale)) for r in residuals))
-    Q = g.op("Concat", *(g.op("Unsqueeze", c, ax1) for c in columns), axis=1)  # [N, 11]
-    Q_w = g.op("Mul", Q, g.op("Unsqueeze", weight, ax1))
-    gram = g.op("Div", g.op("MatMul", g.op("Transpose", Q_w, perm=[1, 0]), Q_w), n)
-    flat = g.op("Reshape", gram, g.const([121], "shape", np.int64))
+    is_z = np.zeros(11)
+    is_z[6:9] = 1.0
+    fixed = np.r_[np.ones(6), np.zeros(3), pmd_scale, pmd_scale]
+    s = g.op("Add", g.const(fixed), g.op("Mul", g.const(is_z), z_scale))  # [11]
+    ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
+    outer = g.op("Mul", g.op("Unsqueeze", s, ax1), g.op("Unsqueeze", s, ax0))
+    scaled = g.op("Div", g.op("Mul", G, outer), n)
+    flat = g.op("Reshape", scaled, g.const([121], "shape", np.int64))
     return g.op("Gather", flat, g.const(MOMENT_INDEX, "moments", np.int64), axis=0)
 
 
@@ -344,12 +327,12 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
         scale = g.op("Mul", scale, g.op("Pow", factor, g.const(features.depth_exponents)))
     flat = g.op("Reshape", g.op("Mul", chosen, scale), g.const([1, features.grid_size], "shape", np.int64))
     if features.data_step or features.moments:
-        a, b = g.op("Mul", X, inv_z), g.op("Mul", Y, inv_z)
+        G = _gram(g, weight, (g.op("Mul", X, inv_z), g.op("Mul", Y, inv_z), inv_z), (dx, dy))
     if features.data_step:
-        step = _data_step(g, weight, n, (a, b, inv_z), (dx, dy), (fx, fy), features.scale["dx"])
+        step = _data_step(g, G, n, (fx, fy), features.scale["dx"])
         flat = g.op("Concat", flat, g.op("Unsqueeze", step, g.const([0], "ax", np.int64)), axis=1)
     if features.moments:
-        moments = _moments(g, weight, n, (a, b, inv_z), (dx, dy), features.scale["dx"])
+        moments = _moments(g, G, n, features.scale["dx"])
         flat = g.op("Concat", flat, g.op("Unsqueeze", moments, g.const([0], "ax", np.int64)), axis=1)
     feats32 = g.op("Cast", flat, to=TensorProto.FLOAT)
     g.nodes.append(helper.make_node("Identity", [feats32], ["features"]))

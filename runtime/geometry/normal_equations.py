@@ -27,7 +27,7 @@ def _jacobian_basis() -> np.ndarray:
     return B.reshape(3, 20 * 9)
 
 
-_JACOBIAN_BASIS = _jacobian_basis()
+JACOBIAN_BASIS = _jacobian_basis()  # also the full graph's (export.full_graph)
 
 
 def _monomials(xy_inv_z: np.ndarray) -> np.ndarray:
@@ -59,7 +59,7 @@ def gram_normal_equations(G: np.ndarray, fx: float, fy: float) -> tuple[np.ndarr
 
     Every entry of J is a linear combination of the nine monomials q (``_jacobian_basis``), so
     J J^T = C (q q^T) C^T summed over u and v, and J r likewise."""
-    C = np.dot((fx, fy, 1.0), _JACOBIAN_BASIS).reshape(20, 9)
+    C = np.dot((fx, fy, 1.0), JACOBIAN_BASIS).reshape(20, 9)
     # J J^T: sum over c in (u, v) and q of (C q q^T)[2i + c, q] C[2j + c, q]; J r likewise.
     JJ = (C @ G[:9, :9]).reshape(10, 18) @ C.reshape(10, 18).T
     Cr = C @ G[:9, 9:]
