@@ -37,7 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=SCENES,
         default="paper",
         help="with --family, what each camera sees: the paper's rig (default), or a random rig of its own, 2-6 "
-        "boards, framed from a fifth of the image to most of it (models_spec/simulator.md, 'Scene family')",
+        "plain or ChArUco boards, framed from a fifth of the image to most of it, through the camera's residual "
+        "lens, corner bias and JPEG noise (models_spec/simulator.md, 'Scene family')",
     )
     p.add_argument("--seed", type=seed, default=0, help="random seed (default 0); same seed, same file(s)")
     p.add_argument(
