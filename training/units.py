@@ -145,12 +145,15 @@ def augment(frames: Dataset, config: TrainConfig, grid: Grid, rng: np.random.Gen
     clustered = cluster_inference_points(
         kept, frames.infer_mask, config.cluster_share, config.cluster_points, config.max_label_noise_px, rng
     )
-    return one_plane_share(clustered, config.plane_share, rng) if config.plane_share > 0 else clustered
+    return one_plane_share(clustered, config.plane_share, rng)
 
 
 def one_plane_share(frames: Dataset, share: float, rng: np.random.Generator) -> Dataset:
     """A random ``share`` of the frames keeps only the inference points of one plane (``conditions.one_plane``),
-    the others all theirs: a single board or wall, where the frame's points do not fix K."""
+    the others all theirs: a single board or wall, where the frame's points do not fix K. A share of 0 draws
+    nothing from ``rng``, so the augmentation's other draws stay those of a training without it."""
+    if share <= 0:
+        return frames
     picked = rng.random(frames.n_frames) < share
     if not picked.any():
         return frames

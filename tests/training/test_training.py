@@ -244,6 +244,9 @@ def test_a_share_of_frames_keeps_the_inference_points_of_one_board_and_the_rest_
         assert len(np.unique(board[out.infer_mask[f]])) == 1 and not np.any(out.infer_mask[f] & ~small.infer_mask[f])
     np.testing.assert_array_equal(out.valid, small.valid)
     np.testing.assert_array_equal(out.points_2d, small.points_2d)
+    rng = np.random.default_rng(1)
+    assert one_plane_share(small, 0.0, rng) is small  # a share of 0 draws nothing: a training without it is as before
+    assert rng.random() == np.random.default_rng(1).random()
 
 
 def test_clustered_inference_points_are_compact_noisy_candidates_and_spare_other_frames(small):
