@@ -113,8 +113,12 @@ def test_cli_writes_random_scene_cameras_and_refuses_them_without_family(tmp_pat
     assert main(["simulate", "--family", "2", "--seed", "2", "--scenes", "random", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert printed.count("a rig of") == 2
-    rigs_seen = [read_dataset(out / f"family-s2-00{i}.npz").meta["rig"] for i in range(2)]
-    assert rigs_seen[0] != rigs_seen[1]
+    written = [read_dataset(out / f"family-s2-00{i}.npz") for i in range(2)]
+    assert written[0].meta["rig"] != written[1].meta["rig"]
+    for line, ds in zip(printed.splitlines(), written):  # the camera as simulated: camera 0 has no OIS
+        kind = "plain" if ds.meta["image_errors"]["charuco_missing"] is None else "ChArUco"
+        assert f"stroke {ds.meta['device']['ois_stroke_deg']:.2f} deg" in line and f" {kind} boards" in line
+    assert "stroke 0.00 deg" in printed
     assert main(["simulate", "--profile", "galaxy-s8", "--scenes", "random", "--out", str(tmp_path / "x.npz")]) == 2
     assert "--scenes random needs --family" in capsys.readouterr().err
 

@@ -5,7 +5,6 @@ per camera of a random camera family."""
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -129,12 +128,11 @@ def write_member(job: tuple) -> tuple[str, int]:
     path = write_dataset(ds, Path(out) / f"{profile.name}.npz")
     boards = ds.meta["rig"]["boards"]
     rig = ""
-    if scenes == "random":  # the camera as simulated: its OIS drawn with the scene
-        device = ds.meta["device"]
-        profile = replace(profile, ois_stroke_deg=device["ois_stroke_deg"], shake_sigma_deg=device["shake_sigma_deg"])
+    if scenes == "random":
         kind = "plain" if ds.meta["image_errors"]["charuco_missing"] is None else "ChArUco"
         rig = f", a rig of {len(boards)} {kind} boards of {boards[0]['square_mm']:.1f} mm squares"
-    return f"{profile.name}: {camera_summary(profile)}{rig}: {frame_counts(ds)}{extras(ds)} -> {path}", ds.n_frames
+    simulated = DeviceProfile(**ds.meta["device"])  # the camera as simulated: a random scene draws its OIS
+    return f"{profile.name}: {camera_summary(simulated)}{rig}: {frame_counts(ds)}{extras(ds)} -> {path}", ds.n_frames
 
 
 def run_family(args: argparse.Namespace) -> int:
