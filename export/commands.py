@@ -19,7 +19,7 @@ def _add_export(p: argparse.ArgumentParser) -> None:
         "source",
         metavar="SOURCE",
         help="a trained model folder from `dimenet train` (RUN_DIR); with --graph full or --golden also a "
-        "MODEL.onnx or 'default' (the bundled model)",
+        "MODEL.onnx or a bundled model ('default' or 'any-scene')",
     )
     p.add_argument("--out", type=nonempty_path, metavar="FILE.onnx", help="ONNX file to write (atomically)")
     p.add_argument(
@@ -55,10 +55,10 @@ def _add_export(p: argparse.ArgumentParser) -> None:
 
 def _model_bytes(source: str, opset: int) -> bytes:
     """The dimenet-model/1 bytes of SOURCE: the bundled model, a MODEL.onnx or a RUN_DIR exported now."""
-    from dimenet.runtime.rectify.model import DEFAULT_NAME, default_model_bytes, read_model_file
+    from dimenet.runtime.rectify.model import BUNDLED_MODELS, bundled_model_bytes, read_model_file
 
-    if source == DEFAULT_NAME:
-        return default_model_bytes()
+    if source in BUNDLED_MODELS:
+        return bundled_model_bytes(source)
     if Path(source).is_file():
         return read_model_file(Path(source))
     from .onnx_export import run_model_bytes

@@ -80,7 +80,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--init",
         metavar="MODEL",
-        help="fine-tune: start from a model's weights, 'default' (the bundled generic model), a RUN_DIR or a "
+        help="fine-tune: start from a model's weights, a bundled model ('default' or 'any-scene'), a RUN_DIR or a "
         "MODEL.onnx; its grid, features and layer sizes are kept (a generic init stays generic)",
     )
     p.add_argument(
@@ -109,11 +109,14 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from .init_weights import DEFAULT_SOURCE, initial_weights
+    from dimenet.runtime.rectify.model import BUNDLED_MODELS
+
+    from .init_weights import initial_weights
     from .run_dir import CURVE, HISTORY, SPEC, WEIGHTS
     from .trainer import read_training_data, train
 
-    init_files = [] if args.init in (None, DEFAULT_SOURCE) else [Path(args.init) / name for name in ("", WEIGHTS, SPEC)]
+    bundled = args.init is None or args.init in BUNDLED_MODELS
+    init_files = [] if bundled else [Path(args.init) / name for name in ("", WEIGHTS, SPEC)]
     refuse_overwriting_inputs(
         "dimenet train",
         [("--out", Path(args.out) / name) for name in (WEIGHTS, SPEC, HISTORY, CURVE)],

@@ -27,19 +27,18 @@ from onnx import helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.rectify.model import (
-    DEFAULT_NAME,
+    BUNDLED_MODELS,
     OnnxModel,
-    default_model_bytes,
+    bundled_model_bytes,
+    bundled_source,
     onnx_model_from_bytes,
     read_model_file,
 )
-from dimenet.runtime.rectify.model import DEFAULT_SOURCE as BUNDLED_SOURCE
 from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import OUTPUT_SCALE_PX, DimeNet, dime_net
 from .run_dir import load_run
 
-DEFAULT_SOURCE = DEFAULT_NAME  # names the bundled default model (a folder of that name: pass "./default")
 LAYERS = ("fc1", "fc2", "fc3")
 # Largest |Delta K| difference allowed between torch on the recovered weights and ONNX Runtime
 # on the graph, on PROBE_FRAMES normal probe features: as export's parity check.
@@ -224,11 +223,11 @@ def onnx_initial_weights(blob: bytes, source: str) -> tuple[dict, ModelSpec]:
 
 
 def initial_weights(source: str) -> InitialWeights:
-    """Weights to start training from. ``source``: "default" (the bundled default model), a
-    RUN_DIR (weights.safetensors + spec.json) or a MODEL.onnx file from `dimenet export`.
-    Raises ModelError naming the source."""
-    if source == DEFAULT_SOURCE:
-        state_dict, spec = onnx_initial_weights(default_model_bytes(), BUNDLED_SOURCE)
+    """Weights to start training from. ``source``: a bundled model's name (``BUNDLED_MODELS``:
+    "default", "any-scene"; a folder of that name: "./default"), a RUN_DIR (weights.safetensors +
+    spec.json) or a MODEL.onnx file from `dimenet export`. Raises ModelError naming the source."""
+    if source in BUNDLED_MODELS:
+        state_dict, spec = onnx_initial_weights(bundled_model_bytes(source), bundled_source(source))
         return InitialWeights(state_dict=state_dict, spec=spec, source=source)
     path = Path(source)
     if path.is_dir():
@@ -237,8 +236,8 @@ def initial_weights(source: str) -> InitialWeights:
         return InitialWeights(state_dict=state_dict, spec=spec, source=source)
     if not path.is_file():
         raise ModelError(
-            f"{path}: no such model file or RUN_DIR (initial weights come from {DEFAULT_SOURCE!r}, "
-            f"a RUN_DIR or a MODEL.onnx)"
+            f"{path}: no such model file or RUN_DIR (initial weights come from a bundled model, "
+            f"{' or '.join(map(repr, BUNDLED_MODELS))}, a RUN_DIR or a MODEL.onnx)"
         )
     state_dict, spec = onnx_initial_weights(read_model_file(path), str(path))
     return InitialWeights(state_dict=state_dict, spec=spec, source=source)

@@ -20,7 +20,7 @@ from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
 from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.rectify.inference import network_k, network_statistics
-from dimenet.runtime.rectify.model import DEFAULT_NAME, OnnxModel, load_model, load_onnx_model
+from dimenet.runtime.rectify.model import BUNDLED_MODELS, OnnxModel, load_model, load_onnx_model
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera
 from dimenet.runtime.rectify.uncertainty import STATISTICS
 from dimenet.runtime.rectify.user_camera import Camera
@@ -120,9 +120,9 @@ class Predictor:
 
 def load_predictor(path: str | Path) -> Predictor:
     """A predictor from a model path: a RUN_DIR (needs the train extra), an exported .onnx, or
-    ``DEFAULT_NAME`` ("default") for the bundled default model."""
-    if str(path) == DEFAULT_NAME:
-        return _predictor(load_model())
+    the name of a bundled model (``BUNDLED_MODELS``: "default", "any-scene")."""
+    if str(path) in BUNDLED_MODELS:
+        return _predictor(load_model(path))
     path = Path(path)
     if not path.exists():
         raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")

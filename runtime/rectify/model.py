@@ -41,9 +41,14 @@ from dimenet.runtime.rectify.spec import (
     ModelSpec,
 )
 
-DEFAULT_MODEL = "default_model.onnx"  # the bundled default, in dimenet.runtime.assets
+# The bundled models (files in dimenet.runtime.assets) by the name that stands for a model path wherever
+# one is taken ("./default": a file of that name): "default", the paper-scene grid model, the fastest;
+# "any-scene", the scene-robust encoder (the frame's own step and moments, the gated head), for rigs,
+# distances and scenes other than the paper's (training/METHOD.md, "The two bundled models").
+BUNDLED_MODELS = {"default": "default_model.onnx", "any-scene": "any_scene_model.onnx"}
+DEFAULT_NAME = "default"
+DEFAULT_MODEL = BUNDLED_MODELS[DEFAULT_NAME]
 DEFAULT_SOURCE = f"bundled default model ({DEFAULT_MODEL})"  # how errors and reports name it
-DEFAULT_NAME = "default"  # names the bundled default model wherever a model path is taken ("./default": a file)
 # Most ONNX Runtime intra-op threads a session may ask for: more only contend for the cores (the CLI's
 # --threads and --workers take the same cap); 10**6 threads crash the process, 10**5 spin for minutes.
 MAX_THREADS = 4 * (os.cpu_count() or 1)
@@ -268,19 +273,26 @@ def read_model_file(path: Path) -> bytes:
 
 
 def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers=None) -> OnnxModel:
-    """A ``dimenet-model/1`` .onnx file, or without a path (or with DEFAULT_NAME) the bundled default
-    model (ModelError when this installation has none)."""
-    if path is not None and str(path) != DEFAULT_NAME:
+    """A ``dimenet-model/1`` .onnx file, or a bundled model by its name in BUNDLED_MODELS (without a
+    path: the default), ModelError when this installation lacks it."""
+    name = DEFAULT_NAME if path is None else str(path)
+    if name not in BUNDLED_MODELS:
         return load_onnx_model(path, threads=threads, providers=providers)
-    return onnx_model_from_bytes(default_model_bytes(), DEFAULT_SOURCE, threads=threads, providers=providers)
+    return onnx_model_from_bytes(bundled_model_bytes(name), bundled_source(name), threads=threads, providers=providers)
 
 
-def default_model_bytes() -> bytes:
-    """The bundled default model's file, or ModelError when this installation has none."""
-    resource = asset(DEFAULT_MODEL)
+def bundled_source(name: str) -> str:
+    """How errors and reports name the bundled model ``name`` (a key of BUNDLED_MODELS)."""
+    return f"bundled {name} model ({BUNDLED_MODELS[name]})"
+
+
+def bundled_model_bytes(name: str = DEFAULT_NAME) -> bytes:
+    """The file of the bundled model ``name`` (a key of BUNDLED_MODELS), or ModelError when this
+    installation has none."""
+    resource = asset(BUNDLED_MODELS[name])
     if not resource.is_file():
         raise ModelError(
-            f"this installation has no bundled default model (dimenet/runtime/assets/{DEFAULT_MODEL}); "
+            f"this installation has no bundled {name} model (dimenet/runtime/assets/{BUNDLED_MODELS[name]}); "
             f"pass a model file from `dimenet export`"
         )
     return resource.read_bytes()

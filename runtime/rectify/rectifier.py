@@ -121,7 +121,8 @@ class Rectifier:
         providers: Optional[Sequence[str]] = None,
         mode: str = "dimenet",
     ) -> Rectifier:
-        """From a ``dimenet-model/1`` .onnx file; without a path, the bundled default model.
+        """From a ``dimenet-model/1`` .onnx file or a bundled model's name (``model.BUNDLED_MODELS``:
+        "default", "any-scene"); without a path, the bundled default model.
         ``K_c`` (3, 3) px and ``image_size`` (width, height) px: the camera (OpenCV's pixel
         convention, the centre of the top-left pixel at (0, 0)); a generic model needs both, a
         device model keeps its own camera without them and accepts a rescale or crop of it

@@ -37,17 +37,20 @@ def test_evaluate_methods_errors_exit_2(tmp_path, capsys):
         assert message in err and len(err.strip().splitlines()) == 1
 
 
-def test_default_names_the_bundled_model_wherever_a_model_is_taken(tmp_path, capsys):
-    """Issue 34: `train --init default` was accepted while `evaluate --model default` was refused."""
+@pytest.mark.parametrize("name", ["default", "any-scene"])
+def test_a_bundled_model_s_name_is_taken_wherever_a_model_is(tmp_path, capsys, name):
+    """Issue 34: `train --init default` was accepted while `evaluate --model default` was refused; the
+    any-scene model is named alike."""
     from dimenet.runtime.evaluation.predictor import load_predictor
-    from dimenet.runtime.rectify.model import DEFAULT_SOURCE, load_model
+    from dimenet.runtime.rectify.model import BUNDLED_MODELS, DEFAULT_SOURCE, bundled_source, load_model
 
     data = write_dataset(simulate("galaxy-s8", seed=1), tmp_path / "d.npz")
-    assert main(["evaluate", str(data), "--model", "default", "--json"]) == 0
+    assert main(["evaluate", str(data), "--model", name, "--json"]) == 0
     rho = json.loads(capsys.readouterr().out)["overall"]["rho"]
     assert 0.5 < rho <= 1.0
-    assert load_predictor("default").source == load_model("default").source == DEFAULT_SOURCE
-    assert main(["rectify", str(data), "--model", "default"]) == 0
-    assert "default_model.onnx" in capsys.readouterr().out
-    (tmp_path / "default").mkdir()  # a folder of that name is reached as ./default
-    assert main(["evaluate", str(data), "--model", str(tmp_path / "default")]) == 2
+    assert load_predictor(name).source == load_model(name).source == bundled_source(name)
+    assert bundled_source("default") == DEFAULT_SOURCE
+    assert main(["rectify", str(data), "--model", name]) == 0
+    assert BUNDLED_MODELS[name] in capsys.readouterr().out
+    (tmp_path / name).mkdir()  # a folder of that name is reached as ./NAME
+    assert main(["evaluate", str(data), "--model", str(tmp_path / name)]) == 2

@@ -1,6 +1,6 @@
 """`dimenet evaluate --suite real`: the real photo sets (../shared/real-photos) ingested, calibrated with
-and without a lens and rectified in both modes meet the do-no-harm targets; without the sets the suite
-says it skipped them, and --photos naming a folder without them is an error."""
+and without a lens and rectified in both modes by each bundled model meet the do-no-harm targets; without
+the sets the suite says it skipped them, and --photos naming a folder without them is an error."""
 
 from __future__ import annotations
 
@@ -16,8 +16,9 @@ ROOT = Path(__file__).resolve().parents[2].parent / "shared" / "real-photos"
 
 
 @pytest.mark.skipif(bool(missing_sets(ROOT)), reason=f"the real photos are not all there: {ROOT}")
-def test_the_real_photo_suite_meets_its_targets(capsys):
-    assert main(["evaluate", "--suite", "real", "--photos", str(ROOT), "--json"]) == 0
+@pytest.mark.parametrize("model", ["default", "any-scene"])
+def test_the_real_photo_suite_meets_its_targets(capsys, model):
+    assert main(["evaluate", "--suite", "real", "--photos", str(ROOT), "--model", model, "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     rows = report["rows"]
     assert report["missing"] == [] and len(rows) == len(SETS) * 2 * 2  # sets x lens x mode

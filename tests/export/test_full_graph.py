@@ -18,10 +18,12 @@ from dimenet.export.full_graph import INPUTS, OUTPUTS, full_graph  # noqa: E402
 from dimenet.export.golden import golden_frames  # noqa: E402
 from dimenet.runtime.errors import ModelError  # noqa: E402
 from dimenet.runtime.geometry import solve_pnp_start  # noqa: E402
-from dimenet.runtime.rectify.model import default_model_bytes  # noqa: E402
+from dimenet.runtime.rectify.model import bundled_model_bytes  # noqa: E402
 from dimenet.runtime.rectify.rectifier import Rectifier  # noqa: E402
 
-GOLDEN = Path(__file__).resolve().parents[2] / "models_spec" / "golden" / "golden.json"
+GOLDEN_DIR = Path(__file__).resolve().parents[2] / "models_spec" / "golden"
+GOLDEN = GOLDEN_DIR / "golden.json"
+NAMED_GOLDEN = {"default": GOLDEN, "any-scene": GOLDEN_DIR / "any-scene" / "golden.json"}
 # Every operator the full graph may hold: standard ONNX, no control flow, no custom domain.
 FULL_GRAPH_OPS = {
     "Add", "Cast", "Concat", "Constant", "Cos", "Div", "Equal", "Erf", "Exp", "Floor", "Gather", "Gelu", "Gemm",
@@ -32,12 +34,19 @@ FULL_GRAPH_OPS = {
 
 @pytest.fixture(scope="module")
 def blob() -> bytes:
-    return full_graph(default_model_bytes(), "bundled")
+    return full_graph(bundled_model_bytes(), "bundled")
 
 
 @pytest.fixture(scope="module")
 def session(blob):
     return ort.InferenceSession(blob, providers=["CPUExecutionProvider"])
+
+
+@pytest.fixture(scope="module", params=sorted(NAMED_GOLDEN))
+def named_session(request):
+    """(a bundled model's name, its full graph under ONNX Runtime)."""
+    name = request.param
+    return name, ort.InferenceSession(full_graph(bundled_model_bytes(name), name), providers=["CPUExecutionProvider"])
 
 
 def _run(session, x: dict, rvec, tvec, mask=None) -> dict:
@@ -63,8 +72,9 @@ def test_the_graph_is_standard_onnx_with_the_documented_signature(blob, session)
     assert any(p.key == "dimenet_model_spec" for p in proto.metadata_props)
 
 
-def test_the_graph_equals_the_runtime_on_every_golden_frame(session):
-    golden = json.loads(GOLDEN.read_text())
+def test_the_graph_equals_the_runtime_on_every_golden_frame(named_session):
+    name, session = named_session
+    golden = json.loads(NAMED_GOLDEN[name].read_text())
     worst = 0.0
     for frame in golden["frames"]:
         x, want = frame["inputs"], frame["expected"]
@@ -126,6 +136,15 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
         assert main(args) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], err
+
+
+def test_the_any_scene_model_s_committed_golden_set_is_what_export_writes_today(tmp_path, capsys):
+    from dimenet.runtime.cli.main import main
+
+    assert main(["export", "any-scene", "--golden", str(tmp_path)]) == 0
+    assert "golden vectors of any-scene" in capsys.readouterr().out
+    written = json.loads((tmp_path / "golden.json").read_text())
+    assert_json_close(written, json.loads(NAMED_GOLDEN["any-scene"].read_text()), rtol=1e-8, atol=1e-6)
 
 
 @pytest.mark.parametrize("moments", [False, True])

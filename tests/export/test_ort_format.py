@@ -12,7 +12,7 @@ onnx = pytest.importorskip("onnx")
 from dimenet.export.onnx_export import ort_format_bytes  # noqa: E402
 from dimenet.runtime.errors import ModelError  # noqa: E402
 from dimenet.runtime.rectify.integrity import content_sha256, zeroed_spec_text  # noqa: E402
-from dimenet.runtime.rectify.model import default_model_bytes, onnx_model_from_bytes  # noqa: E402
+from dimenet.runtime.rectify.model import bundled_model_bytes, onnx_model_from_bytes  # noqa: E402
 from dimenet.runtime.rectify.onnx_graph import check_model_bytes  # noqa: E402
 from dimenet.runtime.rectify.ort_format import check_ort_bytes, is_ort_format  # noqa: E402
 from dimenet.runtime.rectify.spec import METADATA_KEY  # noqa: E402
@@ -20,7 +20,7 @@ from dimenet.runtime.rectify.spec import METADATA_KEY  # noqa: E402
 
 @pytest.fixture(scope="module")
 def onnx_blob() -> bytes:
-    return default_model_bytes()
+    return bundled_model_bytes()
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,9 @@
-"""The runtime against the committed golden vectors (models_spec/golden/golden.json, written by
-`dimenet export default --golden`): the network's Delta K, K and sigma at the stored C0 pose, and
-rectify's K, fallback and errors, each within 1e-6 px. A change of the bundled model, the feature,
-a rule or the simulator that moves any of them fails here until the golden set is written again."""
+"""The runtime against the committed golden vectors of each bundled model (models_spec/golden/golden.json,
+written by `dimenet export default --golden models_spec/golden`, and models_spec/golden/any-scene/golden.json
+by `dimenet export any-scene --golden models_spec/golden/any-scene`): the network's Delta K, K and sigma at
+the stored C0 pose, and rectify's K, fallback and errors, each within 1e-6 px. A change of a bundled model,
+the feature, a rule or the simulator that moves any of them fails here until the golden set is written
+again."""
 
 from __future__ import annotations
 
@@ -11,15 +13,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dimenet.runtime.rectify.model import bundled_source, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 
-GOLDEN = Path(__file__).resolve().parents[2] / "models_spec" / "golden" / "golden.json"
+GOLDEN_DIR = Path(__file__).resolve().parents[2] / "models_spec" / "golden"
+GOLDEN = {"default": GOLDEN_DIR / "golden.json", "any-scene": GOLDEN_DIR / "any-scene" / "golden.json"}
 TOLERANCE_PX = 1e-6
 
 
 @pytest.fixture(scope="module")
 def golden() -> dict:
-    return json.loads(GOLDEN.read_text())
+    return json.loads(GOLDEN["default"].read_text())
+
+
+@pytest.fixture(scope="module", params=sorted(GOLDEN))
+def named_golden(request) -> tuple:
+    return request.param, json.loads(GOLDEN[request.param].read_text())
 
 
 def test_the_golden_set_spans_cameras_scenes_and_fallbacks(golden):
@@ -39,10 +48,18 @@ def test_the_golden_set_spans_cameras_scenes_and_fallbacks(golden):
     )
 
 
-def test_the_runtime_gives_the_golden_numbers(golden):
+def test_each_bundled_model_s_set_has_the_same_frames_and_names_its_model(golden, named_golden):
+    name, other = named_golden
+    assert [f["inputs"] for f in other["frames"]] == [f["inputs"] for f in golden["frames"]]
+    assert other["model"]["source"] == bundled_source(name)
+    assert other["model"]["sha256"] == load_model(name).sha256
+
+
+def test_the_runtime_gives_the_golden_numbers(named_golden):
+    name, golden = named_golden
     for frame in golden["frames"]:
         x, want = frame["inputs"], frame["expected"]
-        rect = Rectifier.load(K_c=np.array(x["K_c"]), image_size=tuple(int(v) for v in x["image_size"]))
+        rect = Rectifier.load(name, K_c=np.array(x["K_c"]), image_size=tuple(int(v) for v in x["image_size"]))
         p2, p3 = np.array(x["points_2d"]), np.array(x["points_3d"])
         net = rect.network(p2, p3, np.array(want["rvec"]), np.array(want["tvec"]))
         for got, key in ((net.delta_k, "delta_k"), (net.K, "K"), (net.sigma, "sigma")):

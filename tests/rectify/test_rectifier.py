@@ -229,7 +229,8 @@ def test_non_finite_or_worse_k_falls_back_to_k_c(frames, delta_k, reason):
     assert all(reason in r for r in batch.fallback) and np.all(np.isfinite(batch.reprojection_error_px))
 
 
-def test_missing_bundled_model_is_a_model_error(monkeypatch):
-    monkeypatch.setattr(model_module, "DEFAULT_MODEL", "absent_model.onnx")
-    with pytest.raises(ModelError, match="no bundled default model"):
-        Rectifier.load()
+@pytest.mark.parametrize("name", ["default", "any-scene"])
+def test_missing_bundled_model_is_a_model_error(monkeypatch, name):
+    monkeypatch.setitem(model_module.BUNDLED_MODELS, name, "absent_model.onnx")
+    with pytest.raises(ModelError, match=f"no bundled {name} model"):
+        Rectifier.load(None if name == "default" else name, K_c=np.diag([3000.0, 3000.0, 1.0]), image_size=(4000, 3000))

@@ -154,6 +154,12 @@ def test_the_train_command_reads_a_family_folder_and_fine_tunes(family, tmp_path
     assert main([*argv, "--train-frames", "6"]) == 0
     spec = load_run(tmp_path / "t")[1]
     assert spec.generic is not None and spec.provenance["config"]["train_frames"] == 6
+    # The bundled any-scene model fine-tunes with its encoder (the step, the moments, the gated head) kept.
+    argv = ["train", str(data), "--out", str(tmp_path / "a"), "--epochs", "1", "--init", "any-scene"]
+    assert main([*argv, "--train-frames", "6"]) == 0
+    tuned = load_run(tmp_path / "a")[1]
+    assert tuned.provenance["init"] == "any-scene" and tuned.head == "gated_step"
+    assert tuned.features.data_step and tuned.features.moments
     capsys.readouterr()
     assert main(["train", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]) == 2
     (tmp_path / "empty").mkdir()

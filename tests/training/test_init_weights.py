@@ -22,7 +22,7 @@ from dimenet.runtime.rectify.model import load_model, load_onnx_model
 from dimenet.runtime.rectify.spec import METADATA_KEY
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.init_weights import InitialWeights, initial_weights
-from dimenet.training.model import DimeNet
+from dimenet.training.model import DimeNet, dime_net
 from dimenet.training.run_dir import WEIGHTS, write_run
 
 KEYS = ["fc1.weight", "fc2.weight", "fc3.weight"]
@@ -50,8 +50,8 @@ def _features(spec, frames=32, seed=5):
 
 
 def _outputs(state_dict, spec, features):
-    model = DimeNet(spec.features.size, spec.hidden)
-    model.load_state_dict(state_dict)  # strict: exactly DimeNet's keys and shapes
+    model = dime_net(spec.features, spec.hidden, spec.head)
+    model.load_state_dict(state_dict)  # strict: exactly the head's DimeNet keys and shapes
     with torch.no_grad():
         return model.eval()(torch.from_numpy(features)).numpy()
 
@@ -98,10 +98,11 @@ def test_a_run_dir_gives_back_its_weights_and_spec(tmp_path, torch_model, spec):
     assert torch.equal(initial_weights(str(run_dir)).state_dict["fc1.weight"], torch_model.fc1.weight)
 
 
-def test_the_default_model_reproduces_onnx_runtime(spec):
-    weights = initial_weights("default")
-    bundled = load_model()
-    assert weights.source == "default" and weights.spec.to_dict() == bundled.spec.to_dict()
+@pytest.mark.parametrize("name", ["default", "any-scene"])
+def test_each_bundled_model_reproduces_onnx_runtime(spec, name):
+    weights = initial_weights(name)
+    bundled = load_model(name)
+    assert weights.source == name and weights.spec.to_dict() == bundled.spec.to_dict()
     features = _features(bundled.spec, frames=64)
     got = _outputs(weights.state_dict, weights.spec, features)
     np.testing.assert_allclose(got, bundled.delta_k(features), rtol=1e-6, atol=1e-4)
@@ -304,6 +305,6 @@ def test_broken_run_dirs_are_refused_by_name(tmp_path, torch_model, spec):
 
 
 def test_a_trimmed_installation_without_the_default_model_is_refused(tmp_path, monkeypatch):
-    monkeypatch.setattr(model_module, "DEFAULT_MODEL", "absent_model.onnx")
+    monkeypatch.setitem(model_module.BUNDLED_MODELS, "default", "absent_model.onnx")
     with pytest.raises(ModelError, match=r"this installation has no bundled default model"):
         initial_weights("default")

@@ -68,7 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "latency bench (the default)", "the runtime's stages and end to end against cv2.solvePnP ITERATIVE under K_c"
     )
     latency.add_argument(
-        "--model", type=nonempty_path, help="a .onnx from `dimenet export`, or default: the bundled model (the default)"
+        "--model",
+        type=nonempty_path,
+        help="a .onnx from `dimenet export`, or a bundled model: default (the default) or any-scene",
     )
     latency.add_argument(
         "--points", type=integer_in(MIN_POINTS, MAX_POINTS), help=f"correspondences per frame ({_default('points')})"

@@ -61,8 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--model",
         type=nonempty_path,
-        help="trained model: a RUN_DIR from `dimenet train`, a .onnx from `dimenet export`, or default "
-        "(the bundled model)",
+        help="trained model: a RUN_DIR from `dimenet train`, a .onnx from `dimenet export`, or a bundled model: "
+        "default (the default) or any-scene",
     )
     add_camera_argument(p)
     p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")

@@ -57,7 +57,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"rectify the bundled sample ({EXAMPLE_DATA}: 8 simulated galaxy-s8 frames)",
     )
     p.add_argument(
-        "--model", type=nonempty_path, help="a .onnx from `dimenet export`, or default: the bundled model (the default)"
+        "--model",
+        type=nonempty_path,
+        help="a .onnx from `dimenet export`, or a bundled model: default (the paper-scene model, the fastest; the "
+        "default) or any-scene (for rigs, distances and scenes other than the paper's)",
     )
     add_camera_argument(p)
     p.add_argument(
