@@ -1,7 +1,8 @@
 """The generic default model beside the per-device ones (issue 21's targets): zero-shot on the
 paper's three profiles, on every camera of a fresh camera family, fine-tuned from a few frames,
 and its invariance to the stream's resolution and the world unit; and on held-out scene families
-(issue 35's): random rigs of seeds and framings the training never drew, and cameras without OIS."""
+(issue 35's): random rigs of seeds and framings the training never drew, and cameras without OIS, for
+each bundled model (the default and the any-scene one)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.model import OnnxModel, load_model
+from dimenet.runtime.rectify.model import DEFAULT_NAME, OnnxModel, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import family_member, family_profiles, has_ois, hfov_deg, simulate_family
@@ -96,14 +97,15 @@ def _bundled_predictor() -> Predictor:
     return Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
 
 
-def fresh_scenes(generic: Optional[Predictor] = None) -> dict:
-    """The generic model (default: the bundled one) on held-out scene families: per FRESH_SCENES family
-    and camera, rho of both modes on its rig test frames at every point and at SMALL_POINTS; per camera
-    of the FRESH_NATURAL family, rho of both modes on its natural test frames (``natural``); and, on
-    the cameras without OIS of OIS_OFF_FAMILY, the share of frames whose K (as `rectify` returns it,
-    fallbacks included) is within OIS_OFF_SIGMAS of K_true on every parameter. Each camera's K_c is
-    calibrated on its train split. A job of ``runtime.jobs.engine.run_all`` too."""
-    generic = generic or _bundled_predictor()
+def fresh_scenes(model: str = DEFAULT_NAME) -> dict:
+    """A generic model (a bundled model's name, or what ``load_predictor`` takes) on held-out scene
+    families: per FRESH_SCENES family and camera, rho of both modes on its rig test frames at every
+    point and at SMALL_POINTS; per camera of the FRESH_NATURAL family, rho of both modes on its natural
+    test frames (``natural``); and, on the cameras without OIS of OIS_OFF_FAMILY, the share of frames
+    whose K (as `rectify` returns it, fallbacks included) is within OIS_OFF_SIGMAS of K_true on every
+    parameter. Each camera's K_c is calibrated on its train split. A job of
+    ``runtime.jobs.engine.run_all`` too."""
+    generic = load_predictor(model)
     out: dict = {}
     for name, (seed, n, fill) in FRESH_SCENES.items():
         rows = []
@@ -238,7 +240,7 @@ def _half_k(K: np.ndarray) -> np.ndarray:
 def run_generic(data: dict, device: dict, config: ReproduceConfig, model: OnnxModel, jobs: dict) -> dict:
     """Every row of the generic comparison of ``model`` (the bundled default; ``report`` writes
     them); ``jobs``: what ran beside the trainings, the fine-tuning's run dir and seconds
-    (``fine_tune``), the ``fresh_family`` rows and the ``fresh_scenes`` ones."""
+    (``fine_tune``), the ``fresh_family`` rows and per bundled model's name its ``fresh_scenes``."""
     generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
     return {
         "model": model.source,

@@ -18,7 +18,7 @@ from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.jobs.engine import Engine
 from dimenet.runtime.rectify.grid import Grid
-from dimenet.runtime.rectify.model import load_model
+from dimenet.runtime.rectify.model import BUNDLED_MODELS, load_model
 from dimenet.runtime.sim.simulator import simulate
 
 from ..config import ReproduceConfig, TrainConfig
@@ -158,16 +158,17 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
         trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
         trainings["fresh family"] = ("fresh_family",)
-        trainings["fresh scenes"] = ("fresh_scenes",)
+        trainings.update({f"fresh scenes {name}": ("fresh_scenes", name) for name in BUNDLED_MODELS})
     cases = _baseline_cases(data, config)
     with Engine(address) as engine:  # one Ray session for both batches
         trained = _run_jobs(engine, trainings, cpus_per_job, "reproduce: training")
-        side_jobs = ("fine-tune", "fresh family", "fresh scenes")
+        side_jobs = ("fine-tune", "fresh family", *(f"fresh scenes {name}" for name in BUNDLED_MODELS))
         run_dirs = {name: trained[name].value for name in trainings if name not in side_jobs}
         evaluations = {}  # the longest first (generic ~12 s, tables ~9 s, each baseline case ~1 s)
         if generic:
             tune = (Path(trained["fine-tune"].value), trained["fine-tune"].seconds)
-            side = (trained["fresh family"].value, trained["fresh scenes"].value)
+            scenes = {name: trained[f"fresh scenes {name}"].value for name in BUNDLED_MODELS}
+            side = (trained["fresh family"].value, scenes)
             evaluations["generic"] = ("generic", data, run_dirs, tune, *side, config)
         evaluations["tables"] = ("tables", data, run_dirs, config)
         evaluations.update({case: ("baseline", frames, run_dirs[name]) for case, (frames, name) in cases.items()})
