@@ -74,8 +74,7 @@ def _run_export(args: argparse.Namespace) -> int:
     if args.golden is not None:
         from .golden import write_golden
 
-        source = None if args.source == "default" else args.source
-        path = write_golden(args.golden, source)
+        path = write_golden(args.golden, args.source)
         print(f"golden vectors of {args.source} -> {path}")
         return 0
     inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + [("SOURCE", Path(args.source))]

@@ -124,7 +124,8 @@ def expected(rect: Rectifier, frame: GoldenFrame) -> dict:
 
 
 def golden(model_path=None) -> dict:
-    """The golden set of a generic model (None: the bundled default) as a JSON-ready dict."""
+    """The golden set of a generic model (a bundled model's name or a .onnx; None: the bundled
+    default) as a JSON-ready dict."""
     model = load_model(model_path)
     records = []
     for frame in golden_frames():

@@ -48,7 +48,6 @@ from dimenet.runtime.rectify.spec import (
 BUNDLED_MODELS = {"default": "default_model.onnx", "any-scene": "any_scene_model.onnx"}
 DEFAULT_NAME = "default"
 DEFAULT_MODEL = BUNDLED_MODELS[DEFAULT_NAME]
-DEFAULT_SOURCE = f"bundled default model ({DEFAULT_MODEL})"  # how errors and reports name it
 # Most ONNX Runtime intra-op threads a session may ask for: more only contend for the cores (the CLI's
 # --threads and --workers take the same cap); 10**6 threads crash the process, 10**5 spin for minutes.
 MAX_THREADS = 4 * (os.cpu_count() or 1)
