@@ -298,6 +298,7 @@ COMMAND = Command(
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
     example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz\n"
     "  dimenet rectify frames.npz --camera cam.json --json   # the bundled generic model, your camera\n"
+    "  dimenet rectify frames.npz --camera cam.json --model any-scene   # a rig or scene not the paper's\n"
     "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
