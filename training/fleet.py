@@ -36,6 +36,7 @@ from dimenet.runtime.errors import DimenetError, InputError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.json_text import JsonProblem, an_object, parse_json, required, shown
+from dimenet.runtime.rectify.model import BUNDLED_MODELS
 from dimenet.runtime.rectify.spec import HEADS
 
 from .config import FEATURE_VARIANTS, TrainConfig, epochs, focal_weight, k_c_error, plane_share, train_frames
@@ -126,8 +127,9 @@ def _job(d, base: Path, names: set) -> FleetJob:
         raise JsonProblem(f"dataset must be a path, got {shown(dataset)}")
     init = d.get("init")
     if init is not None and not (isinstance(init, str) and init.strip()):
-        raise JsonProblem(f"init must be 'default', a RUN_DIR or a MODEL.onnx, got {shown(init)}")
-    if init is not None and init != "default":
+        names = ", ".join(map(repr, BUNDLED_MODELS))
+        raise JsonProblem(f"init must be a bundled model ({names}), a RUN_DIR or a MODEL.onnx, got {shown(init)}")
+    if init is not None and init not in BUNDLED_MODELS:
         init = str(base / init)
     options = {_OPTIONS[key][0]: _option(key, d[key]) for key in _OPTIONS if key in d}
     try:

@@ -56,6 +56,14 @@ def test_a_fleet_trains_every_job_reports_the_broken_one_and_resumes(manifest, t
     assert rows["a"]["rho"] == pytest.approx(done["a"]["rho"])  # the same seed, the same model
 
 
+def test_a_bundled_model_s_name_is_an_init_and_anything_else_a_path_beside_the_manifest(tmp_path):
+    jobs = [{"name": n, "dataset": "x.npz", "init": init} for n, init in (("a", "default"), ("b", "any-scene"))]
+    jobs.append({"name": "c", "dataset": "x.npz", "init": "./any-scene"})
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps({"jobs": jobs}))
+    assert [job.init for job in read_manifest(path)] == ["default", "any-scene", str(tmp_path / "any-scene")]
+
+
 def test_bad_manifests_name_the_job_and_the_field(tmp_path):
     cases = {
         '{"jobs": []}': "jobs must be a list of 1 to",
