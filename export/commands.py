@@ -67,6 +67,7 @@ def _model_bytes(source: str, opset: int) -> bytes:
 
 
 def _run_export(args: argparse.Namespace) -> int:
+    from dimenet.runtime.rectify.model import BUNDLED_MODELS
     from dimenet.training.run_dir import SPEC, WEIGHTS
 
     if (args.out is None) == (args.golden is None):
@@ -90,7 +91,7 @@ def _run_export(args: argparse.Namespace) -> int:
         from .onnx_export import ort_format_bytes
 
         blob = ort_format_bytes(blob, args.source)
-    elif args.source == "default" or Path(args.source).is_file():
+    elif args.source in BUNDLED_MODELS or Path(args.source).is_file():
         raise CliError(
             "dimenet export: --graph mlp exports a RUN_DIR (a model file already is one; --format ort converts it)"
         )

@@ -130,6 +130,7 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
     assert_json_close(written, json.loads(GOLDEN.read_text()), rtol=1e-8, atol=1e-6)
     for args, words in (
         (["export", "default", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
+        (["export", "any-scene", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
         (["export", "default"], "give --out FILE.onnx (a model) or --golden DIR"),
         (["export", "default", "--out", str(out), "--golden", str(tmp_path)], "one of them"),
     ):
