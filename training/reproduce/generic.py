@@ -18,7 +18,7 @@ from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.model import DEFAULT_NAME, OnnxModel, load_model
+from dimenet.runtime.rectify.model import DEFAULT_NAME, OnnxModel
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import family_member, family_profiles, has_ois, hfov_deg, simulate_family
@@ -81,7 +81,7 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
 def fresh_family(generic: Optional[Predictor] = None) -> list:
     """rho (rig, all points) of the generic model (default: the bundled one) on each camera of a
     family it never saw. A job of ``runtime.jobs.engine.run_all`` too (it needs no other result)."""
-    generic = generic or _bundled_predictor()
+    generic = generic or load_predictor(DEFAULT_NAME)
     rows = []
     family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
     for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
@@ -90,11 +90,6 @@ def fresh_family(generic: Optional[Predictor] = None) -> list:
         w, h = camera.image_size_px
         rows.append({"camera": camera.name, "size": [w, h], "hfov_deg": hfov_deg(camera), "rho": _rho(ev)})
     return rows
-
-
-def _bundled_predictor() -> Predictor:
-    model = load_model()
-    return Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
 
 
 def fresh_scenes(model: str = DEFAULT_NAME) -> dict:
