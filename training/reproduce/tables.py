@@ -155,19 +155,20 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
         for device, grid, variant, epochs in jobs
     }
     generic = load_model().spec.generic is not None
+    scene_jobs = {model: f"fresh scenes {model}" for model in BUNDLED_MODELS}  # each bundled model's job name
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
         trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
         trainings["fresh family"] = ("fresh_family",)
-        trainings.update({f"fresh scenes {name}": ("fresh_scenes", name) for name in BUNDLED_MODELS})
+        trainings.update({job: ("fresh_scenes", model) for model, job in scene_jobs.items()})
     cases = _baseline_cases(data, config)
     with Engine(address) as engine:  # one Ray session for both batches
         trained = _run_jobs(engine, trainings, cpus_per_job, "reproduce: training")
-        side_jobs = ("fine-tune", "fresh family", *(f"fresh scenes {name}" for name in BUNDLED_MODELS))
+        side_jobs = ("fine-tune", "fresh family", *scene_jobs.values())
         run_dirs = {name: trained[name].value for name in trainings if name not in side_jobs}
         evaluations = {}  # the longest first (generic ~12 s, tables ~9 s, each baseline case ~1 s)
         if generic:
             tune = (Path(trained["fine-tune"].value), trained["fine-tune"].seconds)
-            scenes = {name: trained[f"fresh scenes {name}"].value for name in BUNDLED_MODELS}
+            scenes = {model: trained[job].value for model, job in scene_jobs.items()}
             side = (trained["fresh family"].value, scenes)
             evaluations["generic"] = ("generic", data, run_dirs, tune, *side, config)
         evaluations["tables"] = ("tables", data, run_dirs, config)
