@@ -127,8 +127,8 @@ def _job(d, base: Path, names: set) -> FleetJob:
         raise JsonProblem(f"dataset must be a path, got {shown(dataset)}")
     init = d.get("init")
     if init is not None and not (isinstance(init, str) and init.strip()):
-        names = ", ".join(map(repr, BUNDLED_MODELS))
-        raise JsonProblem(f"init must be a bundled model ({names}), a RUN_DIR or a MODEL.onnx, got {shown(init)}")
+        bundled = ", ".join(map(repr, BUNDLED_MODELS))
+        raise JsonProblem(f"init must be a bundled model ({bundled}), a RUN_DIR or a MODEL.onnx, got {shown(init)}")
     if init is not None and init not in BUNDLED_MODELS:
         init = str(base / init)
     options = {_OPTIONS[key][0]: _option(key, d[key]) for key in _OPTIONS if key in d}
