@@ -4,7 +4,7 @@ issue 33's crafted model files).
 Every case must end in a ``DimenetError`` (``typed``) or in a result that is no confident wrong
 K (``ok``): K_c's own solution with a reason, or a finite K inside the spec's bounds with every
 point in front of the camera at its pose. Anything else is a ``crash`` (another exception) or
-``silent-wrong``. The suite runs a few hundred cases (tests/evaluation/test_fuzz.py);
+``silent-wrong``. The suite runs a few hundred cases (tests/bench/test_fuzz.py), on both bundled models;
 ``dimenet bench --fuzz N`` runs as many as asked.
 """
 

@@ -78,6 +78,7 @@ def test_bench_without_torch_still_runs_its_help():
 def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
     assert main(["bench", "--fuzz", "12", "--seed", "3", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
+    assert report["model"] == "bundled default model (default_model.onnx)"
     assert set(report["counts"]) == {
         "rectify",
         "rectify_batch",
@@ -90,6 +91,14 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
     assert sum(report["counts"]["rectify"].values()) == 24  # 12 per mode
     assert report["failures"] == [] and all("crash" not in c for c in report["counts"].values())
     assert main(["bench", "--fuzz", "3", "--bpnp"]) == 2
+
+
+def test_bench_fuzz_runs_the_model_asked_for(capsys):
+    assert main(["bench", "--fuzz", "6", "--seed", "3", "--model", "any-scene"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("model bundled any-scene model (any_scene_model.onnx)\n"), out
+    assert main(["bench", "--fuzz", "3", "--model", "missing.onnx"]) == 2
+    assert "missing.onnx: no such model file" in capsys.readouterr().err
 
 
 def test_bench_ingest_never_renders_into_a_folder_of_other_files(tmp_path, capsys):

@@ -35,7 +35,7 @@ LATENCY = {
 }
 INGEST = {"n": 30, "seed": 1, "profile": "galaxy-s8", "workers": 2}
 BPNP = {"frames": 32, "points": 320, "repeats": 200, "baseline_repeats": 10}
-FUZZ = {"seed": 0}
+FUZZ = {"seed": 0, "model": None}
 STREAM: dict = {}  # --stream N alone
 # Caps: --frames x --points correspondences are held in memory (50000 x 320: 0.6 GB); the BPnP
 # baseline's Jacobian is 2N x 3N floats per frame (N = 2000: 96 MB), its layer B x N x 20.
@@ -70,7 +70,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     latency.add_argument(
         "--model",
         type=nonempty_path,
-        help="a .onnx from `dimenet export`, or a bundled model: default (the default) or any-scene",
+        help="a .onnx from `dimenet export`, or a bundled model: default (the default) or any-scene; "
+        "with --fuzz, the model the hostile frames go through",
     )
     latency.add_argument(
         "--points", type=integer_in(MIN_POINTS, MAX_POINTS), help=f"correspondences per frame ({_default('points')})"
@@ -136,7 +137,7 @@ def _add_fuzz(p: argparse.ArgumentParser) -> None:
         "fuzz (--fuzz N)",
         "N hostile frames through the rectifier (modes dimenet and map, one by one and in batches) and N "
         "mutated files of each kind (dataset, model, rig) through their readers: each must end in a typed "
-        "error or in no confident wrong K; exit 1 when one does not (--seed applies)",
+        "error or in no confident wrong K; exit 1 when one does not (--seed and --model apply)",
     )
     fuzz.add_argument("--fuzz", type=integer_in(1, MAX_FUZZ_CASES), metavar="N", help="cases per area")
 
@@ -204,13 +205,16 @@ def _run_fuzz(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(o["seed"])
     frames = simulate("galaxy-s8", seed=o["seed"])
     report = FuzzReport()
-    model = load_model()
+    model = load_model(o["model"])
     for mode in ("dimenet", "map"):
         fuzz_rectifier(bench_rectifier(model, mode, frames), frames, args.fuzz, rng, report)
     with tempfile.TemporaryDirectory() as folder:
         fuzz_files(folder, args.fuzz, rng, report)
     counts = {area: dict(c) for area, c in report.counts.items()}
-    print(json.dumps({"counts": counts, "failures": report.failures}) if args.json else report.table())
+    if args.json:
+        print(json.dumps({"model": model.source, "counts": counts, "failures": report.failures}))
+    else:
+        print(f"model {model.source}\n{report.table()}")
     return 1 if report.bad else 0
 
 
@@ -280,7 +284,7 @@ COMMAND = Command(
     example="dimenet bench --points 320 --frames 2000 --threads 1 --batch 64 --budget-ms 0.5 --json\n"
     "  dimenet bench --ingest shots --n 30 --seed 1 --profile galaxy-s8 --workers 2\n"
     "  dimenet bench --bpnp --frames 32 --points 320 --repeats 200\n"
-    "  dimenet bench --fuzz 2000 --seed 1\n"
+    "  dimenet bench --fuzz 2000 --seed 1 --model any-scene\n"
     "  dimenet bench --stream 100000",
     add_arguments=add_arguments,
     run=run,
