@@ -51,6 +51,11 @@ class Predictor:
     source: str
     camera: Optional[Camera] = None
 
+    @classmethod
+    def of_model(cls, model: OnnxModel) -> Predictor:
+        """A loaded ONNX model (``rectify.model``) as a predictor (no camera yet)."""
+        return cls(spec=model.spec, delta_k=model.delta_k, source=model.source)
+
     def for_camera(self, camera: Optional[Camera]) -> Predictor:
         """This predictor serving ``camera`` (CameraError when the model cannot)."""
         predictor = replace(self, camera=camera)
@@ -122,7 +127,7 @@ def load_predictor(path: str | Path) -> Predictor:
     """A predictor from a model path: a RUN_DIR (needs the train extra), an exported .onnx, or
     the name of a bundled model (``BUNDLED_MODELS``: "default", "any-scene")."""
     if str(path) in BUNDLED_MODELS:
-        return _predictor(load_model(path))
+        return Predictor.of_model(load_model(path))
     path = Path(path)
     if not path.exists():
         raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")
@@ -135,8 +140,4 @@ def load_predictor(path: str | Path) -> Predictor:
 
 def load_onnx_predictor(path: str | Path) -> Predictor:
     """Entry point ``onnx`` of ``dimenet.predictors``: a .onnx file as a Predictor."""
-    return _predictor(load_onnx_model(path))
-
-
-def _predictor(model: OnnxModel) -> Predictor:
-    return Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
+    return Predictor.of_model(load_onnx_model(path))

@@ -236,7 +236,7 @@ def run_generic(data: dict, device: dict, config: ReproduceConfig, model: OnnxMo
     """Every row of the generic comparison of ``model`` (the bundled default; ``report`` writes
     them); ``jobs``: what ran beside the trainings, the fine-tuning's run dir and seconds
     (``fine_tune``), the ``fresh_family`` rows and per bundled model's name its ``fresh_scenes``."""
-    generic = Predictor(spec=model.spec, delta_k=model.delta_k, source=model.source)
+    generic = Predictor.of_model(model)
     return {
         "model": model.source,
         "zero_shot": zero_shot(data, generic, device, config),
