@@ -28,7 +28,7 @@ from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import load_rig
-from dimenet.runtime.rectify.model import onnx_model_from_bytes
+from dimenet.runtime.rectify.model import bundled_model_bytes, onnx_model_from_bytes
 from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES
 from dimenet.runtime.rectify.rectifier import Rectifier
 
@@ -254,10 +254,11 @@ def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, repor
     as ok: a mutation may miss what the reader reads (e.g. zip padding). Then ``n_cases`` crafted
     model files (``_crafted_models``), which must each be refused."""
     folder = Path(folder)
+    model = bundled_model_bytes()
     camera = json_file.read(json.loads(asset("example_camera.json").read_text(encoding="utf-8")), "camera")
     sources = {
         "dataset file": (asset("example_frames.npz").read_bytes(), "data.npz", read_dataset),
-        "model file": (asset("default_model.onnx").read_bytes(), "model.onnx", None),
+        "model file": (model, "model.onnx", None),
         "rig file": (asset("paper_rig.json").read_bytes(), "rig.json", load_rig),
         "camera file": (ros.write(camera, "camera.yaml").encode("utf-8"), "camera.yaml", read_camera),
     }
@@ -273,7 +274,7 @@ def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, repor
                 call = lambda reader=reader, path=path: reader(path)  # noqa: E731
             outcome, detail = _outcome(call, lambda result: ("ok", ""))
             report.add(area, case, outcome, detail)
-    crafted = _crafted_models(asset("default_model.onnx").read_bytes())
+    crafted = _crafted_models(model)
     for _ in range(n_cases):
         case, data = next(crafted)
         outcome, detail = _outcome(lambda data=data: onnx_model_from_bytes(data, "crafted.onnx"), _refused)
