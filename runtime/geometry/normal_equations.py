@@ -10,6 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from dimenet.runtime.errors import InputError
+
 
 def _jacobian_basis() -> np.ndarray:
     """(3, 20, 9): the rows of ``frame_normal_equations``'s coefficient matrix C (20 x 9) as
@@ -117,7 +119,21 @@ def _noise_weight(rss: float, dof: int, floor_px: float) -> float:
 
 def prior_posterior(JJ: np.ndarray, k_precision: np.ndarray, weight: float) -> np.ndarray:
     """The inverse (10, 10) of the Gauss-Newton Hessian over (pose, K), weight J J^T plus the
-    prior's precision k_precision (4, 4) px^-2 on K: a step is its product with the gradient."""
+    prior's precision k_precision (4, 4) px^-2 on K: a step is its product with the gradient.
+
+    The Hessian is inverted with its diagonal scaled to 1 (D H D, D = diag(H)^-1/2; the inverse is
+    D (D H D)^-1 D): the translation's entries go as 1/Z^2 in the scene's unit, so a scene given
+    in units of 1e-6 mm or 1e11 mm would otherwise leave a Cholesky factorisation that fails.
+    InputError when the Hessian is not positive definite (the points fix no pose)."""
     H = JJ * weight
     H[6:, 6:] += k_precision
-    return cv2.invert(H, flags=cv2.DECOMP_CHOLESKY)[1]
+    diagonal = H.diagonal()
+    if not (diagonal > 0).all() or not np.isfinite(diagonal).all():
+        raise InputError("the points fix no pose: the Gauss-Newton Hessian has a zero or non-finite diagonal")
+    d = 1.0 / np.sqrt(diagonal)
+    scale = np.outer(d, d)
+    ok, inverse = cv2.invert(H * scale, flags=cv2.DECOMP_CHOLESKY)
+    if not ok:
+        raise InputError("the points fix no pose: the Gauss-Newton Hessian is not positive definite")
+    inverse *= scale
+    return inverse

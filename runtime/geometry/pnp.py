@@ -36,11 +36,16 @@ def check_not_degenerate(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
 def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fast closed-form pose {W}->{C} (SQPnP) for one frame: (N, 2) px, (N, 3) mm -> rvec, tvec (3,).
 
+    The 3D points are solved for in a unit of the power of two nearest their RMS norm (exact: the
+    scaling changes no mantissa), and tvec scaled back: SQPnP's tolerances are absolute, so a scene
+    in units of 1e-6 mm would otherwise get another pose than the same scene in mm.
     Raises InputError when OpenCV finds no pose or fails on the input.
     """
+    points_3d = np.asarray(points_3d, dtype=np.float64)
+    unit = _power_of_two_unit(points_3d)
     try:
         ok, rvec, tvec = cv2.solvePnP(
-            np.ascontiguousarray(points_3d, dtype=np.float64),
+            points_3d * (1.0 / unit),
             np.ascontiguousarray(points_2d, dtype=np.float64),
             np.asarray(K, dtype=np.float64),
             None,
@@ -53,7 +58,15 @@ def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray)
         or (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)))
     ):
         raise InputError("PnP failed: no camera pose explains these correspondences")
-    return rvec.ravel(), tvec.ravel()
+    return rvec.ravel(), tvec.ravel() * unit
+
+
+def _power_of_two_unit(points_3d: np.ndarray) -> float:
+    """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite)."""
+    rms = float(np.sqrt(np.mean(np.square(points_3d)) * 3.0)) if points_3d.size else 0.0
+    if not (0.0 < rms < np.inf):
+        return 1.0
+    return float(np.ldexp(1.0, int(np.round(np.log2(rms)))))
 
 
 def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
