@@ -31,7 +31,14 @@ from dimenet.runtime.rectify.model import (
     weights_sha256_span,
 )
 from dimenet.runtime.rectify.onnx_graph import check_model_bytes
-from dimenet.runtime.rectify.spec import CONTENT_SHA256_KEY, METADATA_KEY, WEIGHTS_SHA256_PLACEHOLDER, ModelSpec
+from dimenet.runtime.rectify.ort_format import ORT_SHA256_KEY, ort_sha256_span
+from dimenet.runtime.rectify.spec import (
+    CONTENT_SHA256_KEY,
+    METADATA_KEY,
+    WEIGHTS_SHA256_KEY,
+    WEIGHTS_SHA256_PLACEHOLDER,
+    ModelSpec,
+)
 from dimenet.training.model import DimeNet
 from dimenet.training.run_dir import load_run
 
@@ -63,18 +70,30 @@ def _trace(model: DimeNet, size: int, opset: int) -> bytes:
     return buf.getvalue()
 
 
-def stamp_weights_sha256(blob: bytes) -> bytes:
-    """Model bytes whose spec holds ``weights_sha256`` = 64 zeros -> the same bytes with those
-    zeros replaced by the sha256 of ``blob`` (same length: the protobuf lengths stay valid).
-    The runtime undoes the replacement and compares (``rectify.model.stamped_digests``)."""
-    span = weights_sha256_span(blob, WEIGHTS_SHA256_PLACEHOLDER)
+def _stamped(blob: bytes, span_of, key: str) -> bytes:
+    """Model bytes holding the placeholder of the stamp ``key`` (64 zeros, found by ``span_of(blob,
+    digits)``) -> the same bytes with those zeros replaced by the sha256 of ``blob`` (same length: the
+    protobuf or flatbuffer lengths stay valid). The runtime undoes the replacement and compares
+    (``rectify.model.stamped_digests``)."""
+    span = span_of(blob, WEIGHTS_SHA256_PLACEHOLDER)
     if span is None:
-        raise ModelError("export: the placeholder weights_sha256 does not occur exactly once in the model's bytes")
+        raise ModelError(f"export: the placeholder {key} does not occur exactly once in the model's bytes")
     digest = hashlib.sha256(blob).hexdigest()
     stamped = blob[: span[0]] + digest.encode("ascii") + blob[span[1] :]
-    if stamped_digests(stamped, digest) != (digest, hashlib.sha256(stamped).hexdigest()):
-        raise ModelError("export: the stamped weights_sha256 does not verify")
+    if stamped_digests(stamped, span_of(stamped, digest)) != (digest, hashlib.sha256(stamped).hexdigest()):
+        raise ModelError(f"export: the stamped {key} does not verify")
     return stamped
+
+
+def stamp_weights_sha256(blob: bytes) -> bytes:
+    """ONNX bytes whose spec holds ``weights_sha256`` = 64 zeros -> the same bytes stamped (``_stamped``)."""
+    return _stamped(blob, weights_sha256_span, WEIGHTS_SHA256_KEY)
+
+
+def stamp_ort_sha256(blob: bytes) -> bytes:
+    """ORT-format bytes whose metadata holds ``ORT_SHA256_KEY`` = 64 zeros -> the same bytes stamped
+    (``_stamped``): the hash that covers the graph, which content_sha256 leaves out."""
+    return _stamped(blob, ort_sha256_span, ORT_SHA256_KEY)
 
 
 def stamp_content_sha256(blob: bytes) -> bytes:
@@ -152,8 +171,9 @@ def restamp_model(blob: bytes, source: str = "model") -> bytes:
 def ort_format_bytes(blob: bytes, source: str = "model") -> bytes:
     """An ORT-format (ORT Mobile) conversion of ``dimenet-model/1`` ONNX bytes of spec >= 1.9, by ONNX
     Runtime itself with its graph optimizations off, so the converted file keeps the graph's nodes
-    and tensors (its Constant nodes become initializers of the same name and values) and its spec:
-    it loads with its content_sha256 checked (``rectify.model``) and gives the same Delta K."""
+    and tensors (its Constant nodes become initializers of the same name and values) and its spec,
+    and is stamped with its own ORT_SHA256_KEY beside the spec (``stamp_ort_sha256``): it loads with
+    both hashes checked (``rectify.model``) and gives the same Delta K."""
     import tempfile
 
     import onnxruntime as ort
@@ -164,10 +184,13 @@ def ort_format_bytes(blob: bytes, source: str = "model") -> bytes:
     options = ort.SessionOptions()
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     options.add_session_config_entry("session.save_model_format", "ORT")
+    proto = onnx.load_from_string(blob)
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = ORT_SHA256_KEY, WEIGHTS_SHA256_PLACEHOLDER
     with tempfile.TemporaryDirectory() as folder:
         options.optimized_model_filepath = str(Path(folder) / "model.ort")
-        ort.InferenceSession(blob, options, providers=["CPUExecutionProvider"])
-        converted = (Path(folder) / "model.ort").read_bytes()
+        ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"])
+        converted = stamp_ort_sha256((Path(folder) / "model.ort").read_bytes())
     loaded = onnx_model_from_bytes(converted, f"{source} (ORT format)")
     probe = np.random.default_rng(0).normal(size=(PROBE_FRAMES, model.spec.features.size)).astype(np.float32)
     worst = float(np.abs(loaded.delta_k(probe) - model.delta_k(probe)).max())

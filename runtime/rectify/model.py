@@ -8,8 +8,9 @@ exporter writes (other operators, subgraphs, external data: ``rectify.onnx_graph
 the bytes before ONNX Runtime sees them), a foreign model without the spec, a spec of another major
 version or malformed, a graph whose input or output does not match the spec (declared, or
 as a probe call on zero features really gives), and bytes that differ from the spec's
-``weights_sha256`` (spec >= 1.4). Needs onnxruntime only (never onnx, never torch). See
-models_spec/model-v1.md.
+``weights_sha256`` (spec >= 1.4); an ORT-format file also needs its spec's ``content_sha256`` and its
+own ``ORT_SHA256_KEY`` (``rectify.ort_format``), both checked. Needs onnxruntime only (never onnx,
+never torch). See models_spec/model-v1.md.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from dimenet.runtime.assets import asset
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.rectify.integrity import content_sha256
 from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES, check_model_bytes
-from dimenet.runtime.rectify.ort_format import check_ort_bytes, is_ort_format
+from dimenet.runtime.rectify.ort_format import ORT_SHA256_KEY, check_ort_bytes, is_ort_format, ort_sha256_span
 from dimenet.runtime.rectify.spec import (
     CONTENT_SHA256_KEY,
     METADATA_KEY,
@@ -159,13 +160,12 @@ def weights_sha256_span(blob: bytes, digest: str) -> Optional[tuple]:
     return entry.span(1) if entry is not None and entry.group(1) == digest.encode("ascii") else None
 
 
-def stamped_digests(blob: bytes, digest: str) -> Optional[tuple]:
-    """(the sha256 of ``blob`` with its ``weights_sha256`` entry of value ``digest`` set to the
-    placeholder, 64 zeros; the sha256 of ``blob`` itself), in one pass over the bytes before
-    the entry (the spec sits at the end of an ONNX file); None unless the entry is unambiguous
-    (``weights_sha256_span``). Export stamps a file with the first of its placeholder bytes;
-    the runtime checks it here."""
-    span = weights_sha256_span(blob, digest)
+def stamped_digests(blob: bytes, span: Optional[tuple]) -> Optional[tuple]:
+    """(the sha256 of ``blob`` with the 64 hex digits at ``span`` set to the placeholder, 64 zeros;
+    the sha256 of ``blob`` itself), in one pass over the bytes; None when ``span`` is (the stamp is
+    ambiguous: ``weights_sha256_span``, ``ort_format.ort_sha256_span``). Export stamps a file with
+    the first of its placeholder bytes (an ONNX file's ``weights_sha256``, an ORT-format file's
+    ``ORT_SHA256_KEY``); the runtime checks it here."""
     if span is None:
         return None
     start, end = span
@@ -180,11 +180,11 @@ def stamped_digests(blob: bytes, digest: str) -> Optional[tuple]:
 
 
 def _checked_sha256(blob: bytes, spec: ModelSpec, source: str) -> str:
-    """The sha256 of the file's bytes, after checking them against the spec's ``weights_sha256``
+    """The sha256 of an ONNX file's bytes, after checking them against the spec's ``weights_sha256``
     (spec >= 1.4; no check without it): ModelError when they differ."""
     if spec.weights_sha256 is None:
         return hashlib.sha256(blob).hexdigest()
-    digests = stamped_digests(blob, spec.weights_sha256)
+    digests = stamped_digests(blob, weights_sha256_span(blob, spec.weights_sha256))
     if digests is None:
         raise ModelError(
             f"{source}: its spec's {WEIGHTS_SHA256_KEY} does not occur exactly once in the file's bytes: "
@@ -198,13 +198,53 @@ def _checked_sha256(blob: bytes, spec: ModelSpec, source: str) -> str:
     return digests[1]
 
 
+def _checked_ort_sha256(blob: bytes, metadata: dict, source: str) -> str:
+    """The sha256 of an ORT-format file's bytes, after checking them against its ``ORT_SHA256_KEY``,
+    which it must have: ModelError when it has none or the bytes differ."""
+    digest = metadata.get(ORT_SHA256_KEY)
+    if digest is None:
+        raise ModelError(
+            f"{source}: an ORT-format model needs its {ORT_SHA256_KEY}, the hash that covers its graph: convert it "
+            f"with `dimenet export MODEL.onnx --format ort` of this release"
+        )
+    digests = stamped_digests(blob, ort_sha256_span(blob, digest))
+    if digests is None:
+        raise ModelError(
+            f"{source}: its {ORT_SHA256_KEY} does not occur exactly once in the file's bytes: corrupt or modified"
+        )
+    if digests[0] != digest:
+        raise ModelError(
+            f"{source}: the ORT-format file's bytes (graph, weights and spec) differ from its {ORT_SHA256_KEY}: "
+            f"corrupt or modified (sha256 {digests[0][:16]}..., {ORT_SHA256_KEY} {digest[:16]}...)"
+        )
+    return digests[1]
+
+
+def _check_content(text: str, tensors: list, spec: ModelSpec, source: str, *, required: bool) -> None:
+    """ModelError unless the spec text and the tensors match the spec's content_sha256 (spec >= 1.9;
+    no check without it, unless ``required``: an ORT-format file)."""
+    if spec.content_sha256 is not None:
+        found = content_sha256(text, tensors)
+        if found != spec.content_sha256:
+            raise ModelError(
+                f"{source}: the model's spec and weights differ from the {CONTENT_SHA256_KEY} in its spec: corrupt "
+                f"or modified (found {found[:16]}..., spec {spec.content_sha256[:16]}...)"
+            )
+    elif required:
+        raise ModelError(
+            f"{source}: an ORT-format model needs the {CONTENT_SHA256_KEY} of spec >= 1.9 to be checked: convert "
+            f"it with `dimenet export MODEL.onnx --format ort` of this release"
+        )
+
+
 def onnx_model_from_bytes(
     blob: bytes, source: str, *, threads: int = 1, providers: Optional[Sequence[str]] = None
 ) -> OnnxModel:
     """Check the bytes hold only what the exporter writes (``check_model_bytes``; an ORT-format file:
     ``check_ort_bytes``), create the ORT session from them, read and validate its spec, check the
     graph's signature and a probe call against it, the spec and tensors against its content_sha256
-    (spec >= 1.9; an ORT-format file must have one) and an ONNX file's bytes against its weights_sha256."""
+    (spec >= 1.9; an ORT-format file must have one), an ONNX file's bytes against its weights_sha256 and
+    an ORT-format file's against its ORT_SHA256_KEY (which it must have)."""
     options = session_options(threads)
     ort_format = is_ort_format(blob)
     tensors = check_ort_bytes(blob, source) if ort_format else check_model_bytes(blob, source)
@@ -219,9 +259,10 @@ def onnx_model_from_bytes(
             f"{source}: not a loadable {kind} model ({type(exc).__name__}: {str(exc).strip()[:300]})"
         ) from None
     try:
-        text = session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+        metadata = session.get_modelmeta().custom_metadata_map
     except UnicodeDecodeError as exc:  # ONNX (proto2) strings are not checked to be UTF-8
         raise ModelError(f"{source}: the ONNX metadata is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    text = metadata.get(METADATA_KEY)
     if text is None:
         raise ModelError(
             f"{source}: no {METADATA_KEY!r} in the ONNX metadata: not a DIME-Net model "
@@ -230,19 +271,12 @@ def onnx_model_from_bytes(
     spec = ModelSpec.from_json(text, source=source)
     _check_signature(session, spec, source)
     _check_probe(session, spec, source)
-    sha256 = hashlib.sha256(blob).hexdigest() if ort_format else _checked_sha256(blob, spec, source)
-    if spec.content_sha256 is not None:
-        found = content_sha256(text, tensors)
-        if found != spec.content_sha256:
-            raise ModelError(
-                f"{source}: the model's spec and weights differ from the {CONTENT_SHA256_KEY} in its spec: corrupt "
-                f"or modified (found {found[:16]}..., spec {spec.content_sha256[:16]}...)"
-            )
-    elif ort_format:
-        raise ModelError(
-            f"{source}: an ORT-format model needs the {CONTENT_SHA256_KEY} of spec >= 1.9 to be checked: convert "
-            f"it with `dimenet export MODEL.onnx --format ort` of this release"
-        )
+    if ort_format:  # the spec and tensors (what the ONNX file shares), then the whole file
+        _check_content(text, tensors, spec, source, required=True)
+        sha256 = _checked_ort_sha256(blob, metadata, source)
+    else:  # the whole file, then the spec and tensors
+        sha256 = _checked_sha256(blob, spec, source)
+        _check_content(text, tensors, spec, source, required=False)
     return OnnxModel(session=session, spec=spec, source=source, sha256=sha256)
 
 

@@ -7,9 +7,17 @@ initializer. The flatbuffer is read with the classes onnxruntime ships
 Returns the constant tensors, which the content hash covers (``rectify.integrity``): the conversion
 turns the ONNX file's Constant nodes into initializers of their output's name, so the two files hold
 the same tensors.
+
+The content hash leaves out the graph (its operators, wiring and attributes), so an ORT-format file
+also carries ``ORT_SHA256_KEY`` in its metadata: the sha256 of the file's bytes with that value set
+to 64 zeros, as ``weights_sha256`` is an ONNX file's (``rectify.model.stamped_digests``). It sits
+beside the spec, not in it, so the spec text and its ``content_sha256`` stay the ONNX file's.
 """
 
 from __future__ import annotations
+
+import struct
+from typing import Optional
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.json_text import shown
@@ -17,11 +25,25 @@ from dimenet.runtime.rectify.onnx_graph import Tensor, check_operator, check_siz
 
 ORT_IDENTIFIER = b"ORTM"  # bytes 4-8 of every ORT-format file (its flatbuffer file identifier)
 FLOAT = 1  # fbs TensorDataType.FLOAT
+# The metadata entry holding the ORT-format file's own hash: 64 lowercase hex digits (module doc).
+ORT_SHA256_KEY = "dimenet_ort_sha256"
 
 
 def is_ort_format(blob: bytes) -> bool:
     """Whether the bytes are an ORT-format model (by the flatbuffer's file identifier)."""
     return blob[4:8] == ORT_IDENTIFIER
+
+
+def ort_sha256_span(blob: bytes, digest: str) -> Optional[tuple]:
+    """(start, end) of the 64 hex digits ``digest`` as a flatbuffer string in the bytes (its length 64
+    as uint32 little-endian, the digits, a NUL: how the file holds ``ORT_SHA256_KEY``'s value), or
+    None unless that string occurs exactly once."""
+    value = digest.encode("utf-8")
+    entry = struct.pack("<I", len(value)) + value + b"\0"
+    if blob.count(entry) != 1:
+        return None
+    start = blob.find(entry) + 4
+    return start, start + len(value)
 
 
 def _tensor(t, what: str) -> Tensor:
