@@ -58,34 +58,6 @@ def one_line(message: str) -> str:
     return _CONTROL.sub(lambda m: repr(m.group())[1:-1], message)
 
 
-# The extra (pyproject.toml) that brings each package a command may import.
-EXTRA_OF = {
-    "dimenet.training": "train",
-    "torch": "train",
-    "safetensors": "train",
-    "tqdm": "train",
-    "matplotlib": "train",
-    "onnx": "export",
-    "ray": "fleet",
-}
-CPU_TORCH = "pip install torch --index-url https://download.pytorch.org/whl/cpu"
-
-
-def missing_extra(exc: ImportError) -> str:
-    """One line naming the package an import missed, its extra and the commands that install it
-    (torch first as a CPU build: a plain `pip install torch` may pull a CUDA build of several GB)."""
-    name = exc.name or str(exc)
-    name = name if name in EXTRA_OF else name.split(".")[0]
-    extra = EXTRA_OF.get(name)
-    if extra is None:
-        return f"an import failed ({one_line(str(exc))}): a package dimenet needs is missing or broken"
-    torch_first = f"{CPU_TORCH}, then " if extra in ("train", "fleet") else ""
-    return (
-        f"{name} is not installed: this command needs the {extra} extra. In the dimenet checkout: "
-        f"{torch_first}pip install '.[{extra}]'"
-    )
-
-
 def _escaping_streams() -> None:
     """Let stdout and stderr print what their encoding cannot hold as backslash escapes."""
     for stream in (sys.stdout, sys.stderr):
@@ -139,6 +111,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if not getattr(args, "_run", None):
             parser.print_help()
             return 2
+        from dimenet.runtime.cli.extras import missing_extras  # after OPENBLAS_NUM_THREADS: it loads numpy
+
+        missing = missing_extras(args.command, args)
+        if missing:
+            raise CliError(missing)
         return int(args._run(args) or 0)
     except BrokenPipeError:
         # stdout's reader is gone. As Python's docs advise (signal module, "Note on SIGPIPE"), point
@@ -148,8 +125,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (DimenetError, OSError) as exc:
         print(f"dimenet: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
-    except ImportError as exc:
-        print(f"dimenet: error: {missing_extra(exc)}", file=sys.stderr)
+    except ImportError as exc:  # not an extra the command's row names (cli/extras.py): a broken install
+        print(
+            f"dimenet: error: an import failed ({one_line(str(exc))}): a package dimenet needs is missing or broken",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         print("dimenet: interrupted", file=sys.stderr)

@@ -57,21 +57,6 @@ def test_every_help_example_is_a_line_bash_parses(capsys):
     assert bad.returncode != 0  # the check itself catches the old style
 
 
-def test_a_missing_extra_names_the_package_and_the_cpu_torch_line():
-    from dimenet.runtime.cli.main import CPU_TORCH, missing_extra
-
-    torch_line = missing_extra(ModuleNotFoundError("No module named 'torch'", name="torch"))
-    assert torch_line.startswith("torch is not installed: this command needs the train extra")
-    assert CPU_TORCH in torch_line and "pip install '.[train]'" in torch_line and "dimenet-runtime[" not in torch_line
-    onnx_line = missing_extra(ModuleNotFoundError("No module named 'onnx.helper'", name="onnx.helper"))
-    assert (
-        onnx_line.startswith("onnx is not installed: this command needs the export extra") and "torch" not in onnx_line
-    )
-    assert missing_extra(ImportError("cannot import name 'x'")) == (
-        "an import failed (cannot import name 'x'): a package dimenet needs is missing or broken"
-    )
-
-
 def test_dimenet_dash_v_shows_the_version():
     shown = dimenet("-V")
     assert shown.returncode == 0 and shown.stdout.startswith("dimenet ")

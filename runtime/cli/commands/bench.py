@@ -16,7 +16,7 @@ import json
 from dimenet.runtime.bench.latency import format_report, run_bench
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in, nonempty_path, parallelism, seed
 from dimenet.runtime.cli.commands.render import MAX_PHOTOS
-from dimenet.runtime.cli.main import CliError, Command, missing_extra
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.sim.profiles import PROFILES
@@ -267,13 +267,12 @@ def _run_bpnp(args: argparse.Namespace) -> int:
 def _bpnp_bench():
     """The BPnP bench the train extra registers as ``bpnp`` in ``dimenet.benches``: a module with
     ``run(frames, points, repeats, baseline_repeats) -> dict`` and ``format_report(dict) -> str``."""
+    from dimenet.runtime.cli.extras import install_command
+
     entry = entry_points("dimenet.benches").get("bpnp")
-    try:
-        if entry is None:
-            raise ImportError("no bpnp bench registered", name="dimenet.training")
-        return entry.load()
-    except ImportError as exc:
-        raise CliError(f"dimenet bench: --bpnp needs the train extra ({missing_extra(exc)})") from None
+    if entry is None:  # an installation without the training package's entry points
+        raise CliError(f"dimenet bench --bpnp: no bpnp bench is registered: {install_command(('train',))}")
+    return entry.load()
 
 
 COMMAND = Command(
