@@ -1,0 +1,649 @@
+/* dimenet_core: the feature stage in C99 (see dimenet_core.h for the API, units and rules).
+ *
+ * Each function names the numpy code it follows; the comments say where the operation order is the
+ * reference's and where it cannot be (numpy's matrix products go through BLAS, whose summation order
+ * and fused multiply-adds are its own: those sums are taken here in point order). */
+#include "dimenet_core.h"
+
+#include <math.h>
+#include <string.h>
+
+/* The data step's constants (rectify/features.py): the prior's 1 sigma over fx_c, the clip of its
+ * Delta K over fx_c, the noise floor of its data weight (px), the floor of a variance ratio. */
+#define STEP_PRIOR_REL 0.1
+#define STEP_CLIP_REL 0.05
+#define STEP_NOISE_FLOOR_PX 0.1
+#define STEP_VARIANCE_FLOOR 1e-30
+/* numpy's pairwise summation block (numpy/_core/src/umath/loops_utils.h.src). */
+#define PAIRWISE_BLOCK 128
+
+static const char *const MESSAGES[] = {
+    "ok",
+    "dimenet_core: a NULL pointer, a bad feature spec or a buffer of the wrong size",
+    "points lie behind the camera at the best pose under K_c",
+    "the points fix no pose: the Gauss-Newton Hessian has a zero or non-finite diagonal",
+    "the points fix no pose: the Gauss-Newton Hessian is not positive definite",
+};
+
+const char *dimenet_error_message(int code)
+{
+    if (code < 0 || code >= (int)(sizeof MESSAGES / sizeof MESSAGES[0])) {
+        return "dimenet_core: unknown error code";
+    }
+    return MESSAGES[code];
+}
+
+/* -- sizes ------------------------------------------------------------------------------------ */
+
+static int spec_cells(const dimenet_feature_spec *spec, size_t *cells)
+{
+    int c;
+    if (spec == NULL || cells == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    if (spec->grid_cols < 1 || spec->grid_rows < 1 || spec->n_channels < 1 || spec->n_channels > DIMENET_CHANNELS) {
+        return DIMENET_E_ARGUMENT;
+    }
+    if (!(spec->image_width_px > 0.0 && spec->image_width_px <= 1e300 && spec->image_height_px > 0.0
+          && spec->image_height_px <= 1e300)) {
+        return DIMENET_E_ARGUMENT;
+    }
+    if (!(spec->depth_mm == 0.0 || (spec->depth_mm > 0.0 && spec->depth_mm <= 1e300))) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (c = 0; c < spec->n_channels; c++) {
+        if (spec->channels[c] < 0 || spec->channels[c] >= DIMENET_CHANNELS) {
+            return DIMENET_E_ARGUMENT;
+        }
+    }
+    if ((size_t)spec->grid_rows > ((size_t)-1) / DIMENET_POINT_ROWS / (size_t)spec->grid_cols) {
+        return DIMENET_E_ARGUMENT;
+    }
+    *cells = (size_t)spec->grid_cols * (size_t)spec->grid_rows;
+    return DIMENET_OK;
+}
+
+int dimenet_feature_size(const dimenet_feature_spec *spec, size_t *n_features)
+{
+    size_t cells, size;
+    int code = spec_cells(spec, &cells);
+    if (code != DIMENET_OK || n_features == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    size = cells * (size_t)spec->n_channels; /* <= 6 cells: no overflow (spec_cells) */
+    if (spec->data_step) {
+        size += DIMENET_STEP_SIZE;
+    }
+    if (spec->moments) {
+        size += DIMENET_MOMENT_SIZE;
+    }
+    if (size < cells) {
+        return DIMENET_E_ARGUMENT;
+    }
+    *n_features = size;
+    return DIMENET_OK;
+}
+
+int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, size_t *n_scratch)
+{
+    size_t cells, limit = ((size_t)-1) / sizeof(double);
+    if (spec_cells(spec, &cells) != DIMENET_OK || n_scratch == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    /* rows (6 n) and depths (n), then the cell sums (6 cells) */
+    if (n_points > (limit - DIMENET_POINT_ROWS * cells) / (DIMENET_POINT_ROWS + 1)) {
+        return DIMENET_E_ARGUMENT;
+    }
+    *n_scratch = (DIMENET_POINT_ROWS + 1) * n_points + DIMENET_POINT_ROWS * cells;
+    return DIMENET_OK;
+}
+
+/* -- numpy's sums ----------------------------------------------------------------------------- */
+
+/* numpy's pairwise sum of a contiguous float64 run (pairwise_sum_DOUBLE): what a.sum() gives. */
+static double pairwise_sum(const double *a, size_t n)
+{
+    if (n < 8) {
+        double res = 0.0;
+        size_t i;
+        for (i = 0; i < n; i++) {
+            res += a[i];
+        }
+        return res;
+    }
+    if (n <= PAIRWISE_BLOCK) {
+        double r[8], res;
+        size_t i, j;
+        for (j = 0; j < 8; j++) {
+            r[j] = a[j];
+        }
+        for (i = 8; i < n - (n % 8); i += 8) {
+            for (j = 0; j < 8; j++) {
+                r[j] += a[i + j];
+            }
+        }
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) {
+            res += a[i];
+        }
+        return res;
+    } else {
+        size_t n2 = n / 2;
+        n2 -= n2 % 8;
+        return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
+    }
+}
+
+/* numpy's sum of a run under a where= mask: each run of kept values pairwise, the runs in order. */
+static double masked_sum(const double *a, const unsigned char *mask, size_t n)
+{
+    double res = 0.0;
+    size_t i = 0, j;
+    while (i < n) {
+        if (!mask[i]) {
+            i++;
+            continue;
+        }
+        for (j = i; j < n && mask[j]; j++) {
+        }
+        res += pairwise_sum(a + i, j - i);
+        i = j;
+    }
+    return res;
+}
+
+/* -- geometry --------------------------------------------------------------------------------- */
+
+/* OpenCV's Rodrigues (cv::Rodrigues, vector to matrix): R = cos(t) I + (1 - cos(t)) r r^T + sin(t) [r]x. */
+static void rodrigues(const double rvec[3], double R[9])
+{
+    double rx = rvec[0], ry = rvec[1], rz = rvec[2];
+    double theta = sqrt(rx * rx + ry * ry + rz * rz);
+    double c, s, c1, itheta;
+    double rrt[9], r_x[9];
+    int k;
+    if (theta < 2.220446049250313e-16) { /* DBL_EPSILON */
+        for (k = 0; k < 9; k++) {
+            R[k] = (k % 4 == 0) ? 1.0 : 0.0;
+        }
+        return;
+    }
+    c = cos(theta);
+    s = sin(theta);
+    c1 = 1. - c;
+    itheta = theta ? 1. / theta : 0.;
+    rx *= itheta;
+    ry *= itheta;
+    rz *= itheta;
+    rrt[0] = rx * rx, rrt[1] = rx * ry, rrt[2] = rx * rz;
+    rrt[3] = rx * ry, rrt[4] = ry * ry, rrt[5] = ry * rz;
+    rrt[6] = rx * rz, rrt[7] = ry * rz, rrt[8] = rz * rz;
+    r_x[0] = 0, r_x[1] = -rz, r_x[2] = ry;
+    r_x[3] = rz, r_x[4] = 0, r_x[5] = -rx;
+    r_x[6] = -ry, r_x[7] = rx, r_x[8] = 0;
+    for (k = 0; k < 9; k++) {
+        R[k] = c * ((k % 4 == 0) ? 1.0 : 0.0) + c1 * rrt[k] + s * r_x[k];
+    }
+}
+
+/* OpenCV's Cholesky inverse (cv::invert with DECOMP_CHOLESKY: hal::Cholesky64f on a copy, the right
+ * hand side the identity): 0 when a pivot falls below DBL_EPSILON. a (n x n) is overwritten. */
+static int cholesky_inverse(double *a, int n, double *inverse)
+{
+    double *L = a, s, t;
+    int i, j, k;
+    for (i = 0; i < n; i++) {
+        for (j = 0; j < n; j++) {
+            inverse[i * n + j] = (i == j) ? 1.0 : 0.0;
+        }
+    }
+    for (i = 0; i < n; i++) {
+        for (j = 0; j < i; j++) {
+            s = a[i * n + j];
+            for (k = 0; k < j; k++) {
+                s -= L[i * n + k] * L[j * n + k];
+            }
+            L[i * n + j] = s * L[j * n + j];
+        }
+        s = a[i * n + i];
+        for (k = 0; k < j; k++) {
+            t = L[i * n + k];
+            s -= t * t;
+        }
+        if (s < 2.220446049250313e-16) {
+            return 0;
+        }
+        L[i * n + i] = 1. / sqrt(s);
+    }
+    for (i = 0; i < n; i++) { /* L y = b */
+        for (j = 0; j < n; j++) {
+            s = inverse[i * n + j];
+            for (k = 0; k < i; k++) {
+                s -= L[i * n + k] * inverse[k * n + j];
+            }
+            inverse[i * n + j] = s * L[i * n + i];
+        }
+    }
+    for (i = n - 1; i >= 0; i--) { /* L^T x = y */
+        for (j = 0; j < n; j++) {
+            s = inverse[i * n + j];
+            for (k = n - 1; k > i; k--) {
+                s -= L[k * n + i] * inverse[k * n + j];
+            }
+            inverse[i * n + j] = s * L[i * n + i];
+        }
+    }
+    return 1;
+}
+
+int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, double weight_per_px2,
+                            double inverse[100])
+{
+    /* geometry.prior_posterior: H = JJ weight, + the precision on the K block; D = diag(H)^-1/2;
+     * the inverse is D (D H D)^-1 D. */
+    double H[100], d[10];
+    int i, j;
+    if (jj == NULL || inverse == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (i = 0; i < 100; i++) {
+        H[i] = jj[i] * weight_per_px2;
+    }
+    for (i = 6; i < 10; i++) {
+        for (j = 6; j < 10; j++) { /* np.eye(4) / prior_var: 0.0 off the diagonal, added as numpy does */
+            H[i * 10 + j] += (i == j) ? k_precision_per_px2 : 0.0;
+        }
+    }
+    for (i = 0; i < 10; i++) {
+        double h = H[i * 10 + i];
+        if (!(h > 0.0) || !(h - h == 0.0)) { /* not > 0, or inf / NaN */
+            return DIMENET_E_HESSIAN_DIAGONAL;
+        }
+    }
+    for (i = 0; i < 10; i++) {
+        d[i] = 1.0 / sqrt(H[i * 10 + i]);
+    }
+    for (i = 0; i < 10; i++) {
+        for (j = 0; j < 10; j++) {
+            H[i * 10 + j] = H[i * 10 + j] * (d[i] * d[j]);
+        }
+    }
+    if (!cholesky_inverse(H, 10, inverse)) {
+        return DIMENET_E_NOT_POSITIVE_DEFINITE;
+    }
+    for (i = 0; i < 10; i++) {
+        for (j = 0; j < 10; j++) {
+            inverse[i * 10 + j] *= d[i] * d[j];
+        }
+    }
+    return DIMENET_OK;
+}
+
+/* The monomials q of one point (geometry.normal_equations._monomials), then its residuals. */
+static void monomials(double x_mm, double y_mm, double inv_z, double du_px, double dv_px, double q[DIMENET_GRAM_SIZE])
+{
+    double a = x_mm * inv_z, b = y_mm * inv_z;
+    q[0] = 1.0;
+    q[1] = a;
+    q[2] = b;
+    q[3] = a * b;
+    q[4] = a * a;
+    q[5] = b * b;
+    q[6] = inv_z;
+    q[7] = a * inv_z;
+    q[8] = b * inv_z;
+    q[9] = du_px;
+    q[10] = dv_px;
+}
+
+static void gram_add(double G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE], const double q[DIMENET_GRAM_SIZE])
+{
+    int i, j;
+    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
+        for (j = i; j < DIMENET_GRAM_SIZE; j++) {
+            G[i * DIMENET_GRAM_SIZE + j] += q[i] * q[j];
+        }
+    }
+}
+
+static void gram_mirror(double G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE])
+{
+    int i, j;
+    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
+        for (j = 0; j < i; j++) {
+            G[i * DIMENET_GRAM_SIZE + j] = G[j * DIMENET_GRAM_SIZE + i];
+        }
+    }
+}
+
+int dimenet_monomial_gram(size_t n_points, const double *x_c0_mm, const double *y_c0_mm,
+                          const double *inv_z_c0_per_mm, const double *residual_u_px, const double *residual_v_px,
+                          double gram[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE])
+{
+    double q[DIMENET_GRAM_SIZE];
+    size_t i;
+    if (gram == NULL || (n_points > 0 && (x_c0_mm == NULL || y_c0_mm == NULL || inv_z_c0_per_mm == NULL
+                                          || residual_u_px == NULL || residual_v_px == NULL))) {
+        return DIMENET_E_ARGUMENT;
+    }
+    memset(gram, 0, sizeof(double) * DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE);
+    for (i = 0; i < n_points; i++) {
+        monomials(x_c0_mm[i], y_c0_mm[i], inv_z_c0_per_mm[i], residual_u_px[i], residual_v_px[i], q);
+        gram_add(gram, q);
+    }
+    gram_mirror(gram);
+    return DIMENET_OK;
+}
+
+/* The coefficient matrix C (20 x 9) of geometry.gram_normal_equations: fx B[0] + fy B[1] + B[2] of
+ * JACOBIAN_BASIS. Row 2p + c (c = 0: u, 1: v) holds dr_c / dp_p in the monomials. */
+static void jacobian_coefficients(double fx, double fy, double C[20 * 9])
+{
+    memset(C, 0, sizeof(double) * 20 * 9);
+    /* du/dp = fx [-ab, 1 + a^2, -b, 1/Z, 0, -a/Z], then [a, 0, 1, 0] */
+    C[0 * 9 + 3] = -fx, C[2 * 9 + 0] = fx, C[2 * 9 + 4] = fx, C[4 * 9 + 2] = -fx;
+    C[6 * 9 + 6] = fx, C[10 * 9 + 7] = -fx, C[12 * 9 + 1] = 1.0, C[16 * 9 + 0] = 1.0;
+    /* dv/dp = fy [-1 - b^2, ab, a, 0, 1/Z, -b/Z], then [0, b, 0, 1] */
+    C[1 * 9 + 0] = -fy, C[1 * 9 + 5] = -fy, C[3 * 9 + 3] = fy, C[5 * 9 + 1] = fy;
+    C[9 * 9 + 6] = fy, C[11 * 9 + 8] = -fy, C[15 * 9 + 2] = 1.0, C[19 * 9 + 0] = 1.0;
+}
+
+/* geometry.gram_normal_equations: J J^T (10 x 10), J r (10) and r.r (px^2) from the Gram. */
+static void gram_normal_equations(const double *G, double fx, double fy, double JJ[100], double Jr[10], double *rss)
+{
+    double C[20 * 9], M[20 * 9], Cr[20 * 2];
+    int r, q, k, i, j, c;
+    jacobian_coefficients(fx, fy, C);
+    for (r = 0; r < 20; r++) { /* M = C G[:9, :9]; Cr = C G[:9, 9:] */
+        for (q = 0; q < 9; q++) {
+            double s = 0.0;
+            for (k = 0; k < 9; k++) {
+                s += C[r * 9 + k] * G[k * DIMENET_GRAM_SIZE + q];
+            }
+            M[r * 9 + q] = s;
+        }
+        for (c = 0; c < 2; c++) {
+            double s = 0.0;
+            for (k = 0; k < 9; k++) {
+                s += C[r * 9 + k] * G[k * DIMENET_GRAM_SIZE + 9 + c];
+            }
+            Cr[r * 2 + c] = s;
+        }
+    }
+    for (i = 0; i < 10; i++) { /* M.reshape(10, 18) @ C.reshape(10, 18).T */
+        for (j = 0; j < 10; j++) {
+            double s = 0.0;
+            for (k = 0; k < 18; k++) {
+                s += M[(2 * i) * 9 + k] * C[(2 * j) * 9 + k];
+            }
+            JJ[i * 10 + j] = s;
+        }
+        Jr[i] = Cr[(2 * i) * 2 + 0] + Cr[(2 * i + 1) * 2 + 1];
+    }
+    *rss = G[9 * DIMENET_GRAM_SIZE + 9] + G[10 * DIMENET_GRAM_SIZE + 10];
+}
+
+/* geometry.normal_equations._noise_weight: 1 / max(rss / max(dof, 1), floor^2) (Python's max). */
+static double noise_weight(double rss, long dof, double floor_px)
+{
+    double v = rss / (double)(dof > 1 ? dof : 1);
+    double floor2 = floor_px * floor_px;
+    if (floor2 > v) {
+        v = floor2;
+    }
+    return 1.0 / v;
+}
+
+static void matvec10(const double A[100], const double x[10], double y[10])
+{
+    int i, k;
+    for (i = 0; i < 10; i++) {
+        double s = 0.0;
+        for (k = 0; k < 10; k++) {
+            s += A[i * 10 + k] * x[k];
+        }
+        y[i] = s;
+    }
+}
+
+static double dot10(const double a[10], const double b[10])
+{
+    double s = 0.0;
+    int k;
+    for (k = 0; k < 10; k++) {
+        s += a[k] * b[k];
+    }
+    return s;
+}
+
+/* rectify.features.gram_inputs' data step for one frame: geometry.prior_step, then _step_inputs. */
+static int data_step(const double *G, size_t n, double fx_c, double fy_c, double pmd_scale, double out[8])
+{
+    double prior_var = (STEP_PRIOR_REL * fx_c) * (STEP_PRIOR_REL * fx_c);
+    double clip_px = STEP_CLIP_REL * fx_c, precision = 1.0 / prior_var;
+    double JJ[100], Jr[10], rss, inv[100], step[10], JJ_step[10], weight, rss_step;
+    long n_residuals = (long)(2 * n);
+    int code, k;
+    gram_normal_equations(G, fx_c, fy_c, JJ, Jr, &rss);
+    /* prior_step: the noise weight of the pose-only fit, then of the linearised step's residuals */
+    weight = noise_weight(rss, n_residuals - 6, STEP_NOISE_FLOOR_PX);
+    code = dimenet_prior_posterior(JJ, precision, weight, inv);
+    if (code != DIMENET_OK) {
+        return code;
+    }
+    matvec10(inv, Jr, step);
+    for (k = 0; k < 10; k++) {
+        step[k] *= weight;
+    }
+    for (k = 0; k < 10; k++) { /* step @ JJ */
+        int i;
+        double s = 0.0;
+        for (i = 0; i < 10; i++) {
+            s += step[i] * JJ[i * 10 + k];
+        }
+        JJ_step[k] = s;
+    }
+    rss_step = rss - 2.0 * dot10(step, Jr) + dot10(JJ_step, step);
+    weight = noise_weight(rss_step, n_residuals - 10, STEP_NOISE_FLOOR_PX);
+    code = dimenet_prior_posterior(JJ, precision, weight, inv);
+    if (code != DIMENET_OK) {
+        return code;
+    }
+    matvec10(inv, Jr, step);
+    for (k = 0; k < 4; k++) { /* _step_inputs: the clipped Delta K times the PMD's scale (Python's min, max) */
+        double d = step[6 + k] * -weight;
+        if (-clip_px > d) {
+            d = -clip_px;
+        }
+        if (clip_px < d) {
+            d = clip_px;
+        }
+        out[k] = d * pmd_scale;
+    }
+    for (k = 0; k < 4; k++) { /* then the log sigma ratios */
+        double v = inv[(6 + k) * 10 + 6 + k] / prior_var;
+        if (STEP_VARIANCE_FLOOR > v) {
+            v = STEP_VARIANCE_FLOOR;
+        }
+        out[4 + k] = 0.5 * log(v);
+    }
+    return DIMENET_OK;
+}
+
+/* rectify.features._moment_inputs: s_i s_j G_ij / n over the upper triangle less [0, 0] and [0, 6]. */
+static void moment_inputs(const double *G, size_t n, double pmd_scale, double out[DIMENET_MOMENT_SIZE])
+{
+    double s[DIMENET_GRAM_SIZE], s_n[DIMENET_GRAM_SIZE], z_scale;
+    double count = (double)n;
+    int i, j, k = 0;
+    z_scale = G[6] > 0 ? count / G[6] : 1.0;
+    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
+        s[i] = i < 6 ? 1.0 : (i < 9 ? z_scale : pmd_scale);
+    }
+    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
+        s_n[i] = s[i] / count;
+    }
+    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
+        for (j = i; j < DIMENET_GRAM_SIZE; j++) {
+            if (i == 0 && (j == 0 || j == 6)) {
+                continue;
+            }
+            out[k++] = G[i * DIMENET_GRAM_SIZE + j] * (s[i] * s_n[j]);
+        }
+    }
+}
+
+/* -- the frame kernel ------------------------------------------------------------------------- */
+
+int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, const double *points_2d_px,
+                           const double *points_3d_w_mm, const unsigned char *mask, const double rvec_w_to_c0_rad[3],
+                           const double tvec_w_to_c0_mm[3], unsigned flags, double *features, size_t n_features,
+                           double *point_rows, double *scratch, size_t n_scratch, dimenet_frame_stats *stats)
+{
+    /* depth exponents of the channels (features.py FeatureSpec.depth_exponents): X, Y 1, 1/Z -1 */
+    static const double DEPTH_EXPONENT[DIMENET_CHANNELS] = {0.0, 0.0, 1.0, 1.0, -1.0};
+    size_t cells, size, need, i, cell;
+    const size_t N = n_points;
+    double R[9], P[5][4], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE], q[DIMENET_GRAM_SIZE];
+    double *rows, *depths, *sums, *counts, multiplier[DIMENET_CHANNELS];
+    double scale_x, scale_y, last_x, last_y, norm_sum = 0.0;
+    size_t n_used = 0, n_behind = 0;
+    int all_in_front = 1, C, k, r, code = DIMENET_OK;
+
+    if (dimenet_feature_size(spec, &size) != DIMENET_OK || dimenet_scratch_doubles(spec, N, &need) != DIMENET_OK) {
+        return DIMENET_E_ARGUMENT;
+    }
+    if (features == NULL || n_features != size || scratch == NULL || n_scratch < need || rvec_w_to_c0_rad == NULL
+        || tvec_w_to_c0_mm == NULL || (N > 0 && (points_2d_px == NULL || points_3d_w_mm == NULL))
+        || (flags & ~DIMENET_REFUSE_BEHIND_CAMERA) != 0) {
+        return DIMENET_E_ARGUMENT;
+    }
+    spec_cells(spec, &cells);
+    C = spec->n_channels;
+    rows = point_rows != NULL ? point_rows : scratch;
+    depths = scratch + DIMENET_POINT_ROWS * N;
+    sums = depths + N; /* (C + 1) x cells: the channels' sums, then the counts */
+    counts = sums + (size_t)C * cells;
+
+    /* _point_features_into: P (5 x 4) = [K_c[:2] [R | t]; [R | t]]; each point's row P [X 1] */
+    rodrigues(rvec_w_to_c0_rad, R);
+    for (r = 0; r < 3; r++) {
+        for (k = 0; k < 3; k++) {
+            P[2 + r][k] = R[r * 3 + k];
+        }
+        P[2 + r][3] = tvec_w_to_c0_mm[r];
+    }
+    for (r = 0; r < 2; r++) {
+        for (k = 0; k < 4; k++) {
+            P[r][k] = spec->K_c_px[r * 3 + 0] * P[2][k] + spec->K_c_px[r * 3 + 1] * P[3][k]
+                      + spec->K_c_px[r * 3 + 2] * P[4][k];
+        }
+    }
+    for (i = 0; i < N; i++) {
+        int used = mask == NULL || mask[i];
+        /* grid_features zeroes the unused points (np.where) before the rows */
+        double x = used ? points_2d_px[2 * i] : 0.0, y = used ? points_2d_px[2 * i + 1] : 0.0;
+        double X = used ? points_3d_w_mm[3 * i] : 0.0, Y = used ? points_3d_w_mm[3 * i + 1] : 0.0;
+        double Z = used ? points_3d_w_mm[3 * i + 2] : 0.0;
+        double v[5], inv_z;
+        for (r = 0; r < 5; r++) {
+            v[r] = ((P[r][0] * X + P[r][1] * Y) + P[r][2] * Z) + P[r][3];
+        }
+        depths[i] = used ? v[4] : 0.0;
+        inv_z = 1.0 / v[4];
+        rows[0 * N + i] = v[0] * inv_z - x;
+        rows[1 * N + i] = v[1] * inv_z - y;
+        rows[2 * N + i] = v[2];
+        rows[3 * N + i] = v[3];
+        rows[4 * N + i] = inv_z;
+        rows[5 * N + i] = 1.0;
+        if (used) {
+            double du = rows[i], dv = rows[N + i];
+            n_used++;
+            norm_sum += sqrt(du * du + dv * dv);
+            n_behind += inv_z <= 0.0;
+            all_in_front &= inv_z >= 0.0 && inv_z < HUGE_VAL;
+        }
+    }
+
+    /* the cells' sums in point order (np.bincount); one cell: numpy's sum over the axis */
+    memset(sums, 0, sizeof(double) * (size_t)(C + 1) * cells);
+    if (cells == 1) {
+        for (k = 0; k < C; k++) {
+            const double *row = rows + (size_t)spec->channels[k] * N;
+            sums[k] = mask == NULL ? pairwise_sum(row, N) : masked_sum(row, mask, N);
+        }
+        counts[0] = (double)n_used;
+    } else {
+        /* Grid.cell_index: x u / width and y v / height clamped to [0, u - 1] x [0, v - 1] (fmax: NaN
+         * to 0), floored */
+        scale_x = (double)spec->grid_cols / spec->image_width_px;
+        scale_y = (double)spec->grid_rows / spec->image_height_px;
+        last_x = (double)(spec->grid_cols - 1);
+        last_y = (double)(spec->grid_rows - 1);
+        for (i = 0; i < N; i++) {
+            double cx, cy;
+            if (mask != NULL && !mask[i]) {
+                continue;
+            }
+            cx = fmin(fmax(points_2d_px[2 * i] * scale_x, 0.0), last_x);
+            cy = fmin(fmax(points_2d_px[2 * i + 1] * scale_y, 0.0), last_y);
+            cell = (size_t)cy * (size_t)spec->grid_cols + (size_t)cx;
+            for (k = 0; k < C; k++) {
+                sums[(size_t)k * cells + cell] += rows[(size_t)spec->channels[k] * N + i];
+            }
+            counts[cell] += 1.0;
+        }
+    }
+
+    /* the cell means times the channels' scales (with depth_mm: times depth factor ^ exponent) */
+    if (spec->depth_mm > 0.0) {
+        double z_sum = pairwise_sum(depths, N); /* the unused points' depths are 0 (np.where) */
+        double factor = z_sum > 0 ? spec->depth_mm * (double)n_used / z_sum : 1.0;
+        for (k = 0; k < C; k++) {
+            multiplier[k] = spec->channel_scale[k] * pow(factor, DEPTH_EXPONENT[spec->channels[k]]);
+        }
+    } else {
+        for (k = 0; k < C; k++) {
+            multiplier[k] = spec->channel_scale[k];
+        }
+    }
+    for (cell = 0; cell < cells; cell++) {
+        double count = counts[cell] > 1.0 ? counts[cell] : 1.0;
+        for (k = 0; k < C; k++) {
+            double mean = sums[(size_t)k * cells + cell] / count;
+            features[cell * (size_t)C + (size_t)k] = mean * multiplier[k];
+        }
+    }
+
+    /* gram_inputs: the data step, then the moments, from the used points' monomial Gram */
+    if (spec->data_step || spec->moments) {
+        double *out = features + cells * (size_t)C;
+        memset(G, 0, sizeof G);
+        for (i = 0; i < N; i++) {
+            if (mask != NULL && !mask[i]) {
+                continue;
+            }
+            monomials(rows[2 * N + i], rows[3 * N + i], rows[4 * N + i], rows[i], rows[N + i], q);
+            gram_add(G, q);
+        }
+        gram_mirror(G);
+        if (spec->data_step) {
+            code = data_step(G, n_used, spec->K_c_px[0], spec->K_c_px[4], spec->pmd_scale_per_px, out);
+            out += DIMENET_STEP_SIZE;
+        }
+        if (code == DIMENET_OK && spec->moments) {
+            moment_inputs(G, n_used, spec->pmd_scale_per_px, out);
+        }
+    }
+
+    if (stats != NULL) {
+        stats->e_c_px = n_used > 0 ? norm_sum / (double)n_used : NAN;
+        stats->n_used = n_used;
+        stats->n_behind = n_behind;
+    }
+    if (code == DIMENET_OK && (flags & DIMENET_REFUSE_BEHIND_CAMERA) && !all_in_front) {
+        code = DIMENET_E_BEHIND_CAMERA;
+    }
+    return code;
+}

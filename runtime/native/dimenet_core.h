@@ -1,0 +1,135 @@
+/* dimenet_core: the compiled core of the DIME-Net runtime's per-frame feature stage.
+ *
+ * A plain C99 library (libc and libm only): a mobile app compiles dimenet_core.c beside ONNX Runtime
+ * Mobile and feeds the feature it writes to the model, as the Python runtime does through its thin
+ * CPython binding (_module.c). The numpy code is the reference (runtime/rectify/features.py,
+ * runtime/geometry/normal_equations.py); this library computes the same numbers, in the same
+ * operation order where it can (sums in point order, numpy's pairwise sums where numpy sums an axis,
+ * OpenCV's Rodrigues formula and Cholesky inverse), within 1e-12 of the scaled features
+ * (tests/native/). Compile it with floating-point contraction off (gcc/clang: -ffp-contract=off) so
+ * that a * b + c is not fused into one rounding: the reference does not fuse.
+ *
+ * Units and frames: pixels (px) in the image the prior K_c describes, OpenCV's convention (the
+ * centre of the top-left pixel at (0, 0)); points in the world frame {W} in the scene's unit (mm in
+ * the names); {C0} the camera frame of the pose {W} -> {C0} solved under K_c (the C0 pose), X_C0 =
+ * R(rvec) X_W + tvec, Z_C0 > 0 in front of the camera.
+ *
+ * Rules of every entry point: sizes and bounds come from the caller; every buffer is the caller's
+ * (outputs and a scratch buffer sized by dimenet_scratch_doubles), nothing is allocated; no state is
+ * kept between calls (any number of threads may call at once on their own buffers); a bad argument
+ * returns an error code (DIMENET_E_*), never an abort. NaN and inf in the inputs are not errors: they
+ * propagate as numpy's do (a NaN pixel falls in the first cell), until a check below refuses them. */
+#ifndef DIMENET_CORE_H
+#define DIMENET_CORE_H
+
+#include <stddef.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Error codes (dimenet_error_message gives each one's text). */
+#define DIMENET_OK 0
+#define DIMENET_E_ARGUMENT 1          /* a NULL pointer, a bad spec or a buffer of the wrong size */
+#define DIMENET_E_BEHIND_CAMERA 2     /* a used point is not in front of the camera at the C0 pose */
+#define DIMENET_E_HESSIAN_DIAGONAL 3  /* the data step's Hessian has a zero or non-finite diagonal */
+#define DIMENET_E_NOT_POSITIVE_DEFINITE 4 /* the data step's Hessian is not positive definite */
+
+/* A point's raw channels, in the reference's CHANNELS order: the projection model discrepancy (PMD)
+ * dx, dy = K_c proj(X_C0) - x (px), then X_C0, Y_C0 (mm) and 1 / Z_C0 (1/mm). */
+#define DIMENET_CHANNEL_DX 0
+#define DIMENET_CHANNEL_DY 1
+#define DIMENET_CHANNEL_X 2
+#define DIMENET_CHANNEL_Y 3
+#define DIMENET_CHANNEL_INV_Z 4
+#define DIMENET_CHANNELS 5
+/* The point rows a frame writes (dimenet_frame_features' point_rows): the five channels, then 1. */
+#define DIMENET_POINT_ROWS 6
+/* The data step's inputs: Delta K (fx, fy, cx, cy) times the PMD's scale, then the four log sigma ratios. */
+#define DIMENET_STEP_SIZE 8
+/* The moments: the upper triangle of the 11 x 11 monomial Gram, less its [1 * 1] and [1 * z]. */
+#define DIMENET_MOMENT_SIZE 64
+/* The monomials of a point: 1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z (a = X/Z, b = Y/Z), dx, dy. */
+#define DIMENET_GRAM_SIZE 11
+
+/* The feature of a model (its spec's "features" object, models_spec/model-v1.md) and the camera it
+ * serves. */
+typedef struct dimenet_feature_spec {
+    int grid_cols;                   /* u, cells along x, >= 1 */
+    int grid_rows;                   /* v, cells along y, >= 1 */
+    double image_width_px;           /* the image the grid splits: finite, > 0 */
+    double image_height_px;
+    int n_channels;                  /* 1 to DIMENET_CHANNELS (variant A: 5, B: 2, C: 3, D: 4, E: 3) */
+    int channels[DIMENET_CHANNELS];  /* the first n_channels: DIMENET_CHANNEL_* in the feature's order */
+    double channel_scale[DIMENET_CHANNELS]; /* the scale of each of them (1/px, 1/mm or mm) */
+    double depth_mm;                 /* scale-free depth: each frame's {C0} read as if its mean depth
+                                        were depth_mm (finite, > 0); 0: the frame's own unit */
+    int data_step;                   /* nonzero: the data step's DIMENET_STEP_SIZE inputs follow the grid */
+    int moments;                     /* nonzero: then the DIMENET_MOMENT_SIZE moments */
+    double pmd_scale_per_px;         /* the PMD's scale (the spec's dx scale), the step's and moments' */
+    double K_c_px[9];                /* the prior K_c (3 x 3, row major, px): fx_c K_c_px[0], fy_c [4] */
+} dimenet_feature_spec;
+
+/* What a frame's kernel measured beside its feature. */
+typedef struct dimenet_frame_stats {
+    double e_c_px;       /* mean Euclidean norm of the used points' PMD (px): e(K_c) at the C0 pose;
+                            NaN without a used point */
+    size_t n_used;       /* the points the mask keeps (all without one) */
+    size_t n_behind;     /* of them, those with 1 / Z_C0 <= 0 */
+} dimenet_frame_stats;
+
+/* Flag of dimenet_frame_features: refuse a frame whose used points are not all in front of the
+ * camera (1 / Z_C0 outside [0, inf), NaN included) with DIMENET_E_BEHIND_CAMERA, after the feature
+ * (so a Hessian error comes first, as in the reference). Without it the feature is computed anyway
+ * (the reference's grid_features). */
+#define DIMENET_REFUSE_BEHIND_CAMERA 1u
+
+/* The feature's length for a spec: n_channels x cells, + DIMENET_STEP_SIZE, + DIMENET_MOMENT_SIZE.
+ * DIMENET_E_ARGUMENT for a spec that is not valid (the checks above) or whose length overflows. */
+int dimenet_feature_size(const dimenet_feature_spec *spec, size_t *n_features);
+
+/* The doubles of scratch dimenet_frame_features needs for a frame of n_points points:
+ * 7 n_points + 6 cells. DIMENET_E_ARGUMENT for a bad spec or an overflow. */
+int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, size_t *n_scratch);
+
+/* One frame's feature (the reference's grid_features for one frame, then gram_inputs), at its C0
+ * pose.
+ *
+ * points_2d_px (n_points x 2, x then y), points_3d_w_mm (n_points x 3) the correspondences; mask
+ * (n_points, nonzero: used) the points the feature reads, NULL: all; rvec_w_to_c0_rad and
+ * tvec_w_to_c0_mm (3 each) the C0 pose; flags 0 or DIMENET_REFUSE_BEHIND_CAMERA.
+ * Writes features (n_features, which must be dimenet_feature_size's) and, when point_rows is not
+ * NULL, the raw point rows (DIMENET_POINT_ROWS x n_points, channel major: dx, dy px, X_C0, Y_C0 mm,
+ * 1/Z_C0 1/mm, 1; an unused point's rows are those of a point at the origin of {W} seen at pixel
+ * (0, 0)); stats (may be NULL). scratch: n_scratch >= dimenet_scratch_doubles's doubles.
+ * Returns DIMENET_OK, DIMENET_E_ARGUMENT, DIMENET_E_HESSIAN_DIAGONAL, DIMENET_E_NOT_POSITIVE_DEFINITE
+ * (the data step on points that fix no pose) or DIMENET_E_BEHIND_CAMERA (with the flag); on an error
+ * the outputs are unspecified. */
+int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, const double *points_2d_px,
+                           const double *points_3d_w_mm, const unsigned char *mask, const double rvec_w_to_c0_rad[3],
+                           const double tvec_w_to_c0_mm[3], unsigned flags, double *features, size_t n_features,
+                           double *point_rows, double *scratch, size_t n_scratch, dimenet_frame_stats *stats);
+
+/* The monomial Gram (DIMENET_GRAM_SIZE x DIMENET_GRAM_SIZE, row major) Q Q^T of n_points points, Q the
+ * monomials 1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z (a = X/Z, b = Y/Z) and the residuals r_u, r_v of each:
+ * x_c0_mm, y_c0_mm, inv_z_c0_per_mm the points in {C} (n_points each), residual_u_px, residual_v_px
+ * theirs (the reference's geometry.monomial_gram, summed in point order). */
+int dimenet_monomial_gram(size_t n_points, const double *x_c0_mm, const double *y_c0_mm,
+                          const double *inv_z_c0_per_mm, const double *residual_u_px, const double *residual_v_px,
+                          double gram[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE]);
+
+/* The inverse (10 x 10, row major) of the Gauss-Newton Hessian weight J J^T + the prior's precision
+ * k_precision_per_px2 on the diagonal of the K block (the reference's geometry.prior_posterior with a
+ * diagonal prior): jj (10 x 10) over (w rad, tau mm, fx, fy, cx, cy px), inverted with its diagonal
+ * scaled to 1 by OpenCV's Cholesky. DIMENET_E_HESSIAN_DIAGONAL, DIMENET_E_NOT_POSITIVE_DEFINITE. */
+int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, double weight_per_px2,
+                            double inverse[100]);
+
+/* The text of an error code (the reference's InputError message where it has one); never NULL. */
+const char *dimenet_error_message(int code);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* DIMENET_CORE_H */
