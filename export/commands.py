@@ -72,13 +72,14 @@ def _run_export(args: argparse.Namespace) -> int:
 
     if (args.out is None) == (args.golden is None):
         raise CliError("dimenet export: give --out FILE.onnx (a model) or --golden DIR (golden vectors), one of them")
+    inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + [("SOURCE", Path(args.source))]
     if args.golden is not None:
-        from .golden import write_golden
+        from .golden import GOLDEN_FILE, write_golden
 
+        refuse_overwriting_inputs("dimenet export", [("--golden", Path(args.golden) / GOLDEN_FILE)], inputs)
         path = write_golden(args.golden, args.source)
         print(f"golden vectors of {args.source} -> {path}")
         return 0
-    inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + [("SOURCE", Path(args.source))]
     refuse_overwriting_inputs("dimenet export", [("--out", args.out)], inputs)
     blob = _model_bytes(args.source, args.opset)
     if args.graph == "full":
