@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
+import numbers
 import os
 import re
 import threading
@@ -93,11 +94,12 @@ class OnnxModel:
 
 
 def session_options(threads: int) -> ort.SessionOptions:
-    """Sequential execution on ``threads`` intra-op threads, one inter-op thread, errors-only log."""
-    if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS:
+    """Sequential execution on ``threads`` intra-op threads (an int or a numpy integer; never a bool or a
+    float), one inter-op thread, errors-only log."""
+    if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or not 1 <= threads <= MAX_THREADS:
         raise InputError(f"threads must be an integer from 1 to {MAX_THREADS} (4 x the CPUs), got {threads!r}")
     options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
+    options.intra_op_num_threads = int(threads)
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.log_severity_level = 3
