@@ -175,8 +175,17 @@ def _homogeneous_pixels(points_3d: np.ndarray, K: np.ndarray, R: np.ndarray, tve
 
 def frame_mean_norm(residuals: np.ndarray) -> float:
     """Mean Euclidean norm (px) of one frame's (2, N) residuals (u row, v row). The hot path's twin
-    of ``mean_residual_norms`` through OpenCV: 3 against 7 µs at 320 points (models_spec/BENCHMARKS.md)."""
-    return cv2.sumElems(cv2.magnitude(residuals[0], residuals[1]))[0] / residuals.shape[1]
+    of ``mean_residual_norms``: its norms sqrt(u u + v v) to the bit, summed by OpenCV's float64 loop
+    (no IPP path), 3.4 against 7 µs at 320 points (models_spec/BENCHMARKS.md).
+
+    Not cv2.magnitude: through IPP it rounds u u + v v once (FMA) or twice depending on where its output
+    buffer lies (64-byte alignment), which malloc decides differently in each thread, so one frame's
+    error changed in the last bit from thread to thread. Each step here is rounded as IEEE says
+    whatever the buffers (issue 48: results bit-identical whatever the threads)."""
+    squares = np.square(residuals)
+    norms = squares[0]
+    norms += squares[1]
+    return cv2.sumElems(np.sqrt(norms, out=norms))[0] / residuals.shape[1]
 
 
 def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, float]:
