@@ -29,6 +29,15 @@ TRAIN_DEFAULTS = TrainConfig()
 REPRODUCE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(ReproduceConfig) if f.name != "out_dir"}
 
 
+class _Noted(argparse.Action):
+    """Stores a flag's value (``const`` for a switch, ``nargs=0``) and notes its dest in the namespace's
+    ``given``: the flags an --init model fixes, told apart from their defaults (``_network_settings``)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, self.const if self.nargs == 0 else values)
+        namespace.given = {*getattr(namespace, "given", ()), self.dest}
+
+
 def _add_train(p: argparse.ArgumentParser) -> None:
     d = TRAIN_DEFAULTS
     p.add_argument(
@@ -39,28 +48,38 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out", required=True, type=nonempty_path, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png"
     )
-    p.add_argument("--grid", type=grid_size, default=d.grid, help=f"grid, columns x rows (default {d.grid})")
+    p.add_argument(
+        "--grid", type=grid_size, default=d.grid, action=_Noted, help=f"grid, columns x rows (default {d.grid})"
+    )
     p.add_argument(
         "--features",
         default=d.variant,
+        action=_Noted,
         choices=FEATURE_VARIANTS,
         help=f"feature variant of paper Table 3 (default {d.variant})",
     )
     p.add_argument(
         "--data-step",
-        action="store_true",
+        action=_Noted,
+        nargs=0,
+        const=True,
+        default=False,
         help="after the grid, give the network the frame's own Gauss-Newton step on K from the C0 pose and its "
         "posterior sigmas (not the paper's: an encoder that reads how the points fix K, whatever the scene)",
     )
     p.add_argument(
         "--moments",
-        action="store_true",
+        action=_Noted,
+        nargs=0,
+        const=True,
+        default=False,
         help="after the grid (and the data step), give the network the point set's moments: how the points spread "
         "over the image and in depth and how the PMD varies over them, whatever their layout (not the paper's)",
     )
     p.add_argument(
         "--head",
         default=d.head,
+        action=_Noted,
         choices=HEADS,
         help="the network's output: mlp (the paper's) or gated_step (Delta K = the MLP's plus a learned share of the "
         f"data step; needs --data-step) (default {d.head})",
@@ -81,7 +100,8 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         "--init",
         metavar="MODEL",
         help="fine-tune: start from a model's weights, a bundled model ('default' or 'any-scene'), a RUN_DIR or a "
-        "MODEL.onnx; its grid, features and layer sizes are kept (a generic init stays generic)",
+        "MODEL.onnx; its grid, features (data step, moments), head and layer sizes are kept (a generic init stays "
+        "generic; a flag asking for others is named in a warning)",
     )
     p.add_argument(
         "--k-c-error",
@@ -108,6 +128,45 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     )
 
 
+# The flags whose settings an --init model fixes (its features and head are kept): the argparse dest, the
+# flag, the TrainConfig field.
+INIT_FIXES = (
+    ("grid", "--grid", "grid"),
+    ("features", "--features", "variant"),
+    ("data_step", "--data-step", "data_step"),
+    ("moments", "--moments", "moments"),
+    ("head", "--head", "head"),
+)
+
+
+def _network_settings(args: argparse.Namespace, init) -> dict:
+    """The TrainConfig fields of INIT_FIXES: the flags' (or their defaults) without an init; the init's
+    with one, and a warning line on stderr for each of those flags given another value."""
+    if init is None:
+        return {field: getattr(args, dest) for dest, _, field in INIT_FIXES}
+    f = init.spec.features
+    kept = {"grid": str(f.grid), "variant": f.variant, "data_step": f.data_step, "moments": f.moments}
+    kept["head"] = init.spec.head
+    # what the init keeps, where a flag asks for another (a switch given is on, so the init's is off)
+    its = {
+        "grid": f"grid, {kept['grid']}",
+        "variant": f"feature variant, {kept['variant']}",
+        "data_step": "feature, without the data step",
+        "moments": "feature, without the moments",
+        "head": f"head, {kept['head']}",
+    }
+    given = getattr(args, "given", set())
+    for dest, flag, field in INIT_FIXES:
+        value = getattr(args, dest)
+        if dest in given and value != kept[field]:
+            shown = "" if value is True else f" {value}"
+            print(
+                f"dimenet train: warning: {flag}{shown} is ignored: --init {args.init} keeps its own {its[field]}",
+                file=sys.stderr,
+            )
+    return kept
+
+
 def _run_train(args: argparse.Namespace) -> int:
     from dimenet.runtime.rectify.model import BUNDLED_MODELS
 
@@ -125,11 +184,7 @@ def _run_train(args: argparse.Namespace) -> int:
     datasets, sha256 = read_training_data(args.data)
     init = None if args.init is None else initial_weights(args.init)
     config = TrainConfig(
-        grid=args.grid,
-        variant=args.features,
-        data_step=args.data_step,
-        moments=args.moments,
-        head=args.head,
+        **_network_settings(args, init),
         epochs=args.epochs,
         seed=args.seed,
         focal_weight=args.focal_weight,
