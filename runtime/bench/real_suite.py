@@ -15,13 +15,14 @@ Targets, per (set, lens, mode):
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 
-from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.errors import DimenetError, IngestError
 from dimenet.runtime.evaluation.calibration import calibrate_dataset
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.rig import load_rig
@@ -92,6 +93,23 @@ def missing_sets(root: Path) -> list:
     return [s.name for s in SETS if not _photos(root, s) or not (root / s.folder / "rig.json").is_file()]
 
 
+def _stderr_line(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def _ingested(root: Path, s: SuiteSet, note: Callable[[str], None]) -> Dataset:
+    """The set's photos ingested, one ``note`` line for each photo ingest drops (its path and why);
+    IngestError when none gave a frame."""
+    photos = _photos(root, s)
+    ingestion = ingest(photos, load_rig(root / s.folder / "rig.json"), split="train")
+    for path, result in zip(photos, ingestion.results):
+        if result.skipped is not None:
+            note(f"real-photo suite: {s.name}: dropped {path}: {result.skipped}")
+    if ingestion.dataset is None:
+        raise IngestError(f"none of the {len(photos)} photos of {s.name} gave a frame")
+    return ingestion.dataset
+
+
 def _cameras(ds: Dataset, s: SuiteSet) -> tuple:
     """(pinhole camera, its per-frame K*), (lens camera, its K*): K_c calibrated on the set (or the
     published K) without a lens, and K_c with LENS_MODEL's lens about the K the fit states it about,
@@ -137,14 +155,15 @@ def _row(s: SuiteSet, ds: Dataset, camera: Camera, K_star, model, mode: str, len
     )
 
 
-def run_suite(root: Path, model, progress: Callable = iter) -> list:
+def run_suite(root: Path, model, progress: Callable = iter, note: Callable[[str], None] = _stderr_line) -> list:
     """Every (set, lens, mode) row of the suite on the photos under ``root`` with ``model`` (an
     ``OnnxModel``); a set whose photos are missing is left out (``missing_sets``); ``progress``
-    wraps the sets' iteration (a progress bar)."""
+    wraps the sets' iteration (a progress bar); ``note`` takes one line per photo ingest drops (by
+    default on stderr)."""
     rows = []
     for s in progress([s for s in SETS if s.name not in missing_sets(root)]):
         try:
-            ds = ingest(_photos(root, s), load_rig(root / s.folder / "rig.json"), split="train").dataset
+            ds = _ingested(root, s, note)
             cameras = _cameras(ds, s)
         except DimenetError as exc:
             rows += [SuiteRow(s.name, lens, mode, problem=str(exc)) for lens in (False, True) for mode in MODES]
