@@ -72,9 +72,13 @@ FLAGS = {
         "--plane-share --train-frames",
     },
 }
-# Pairs no case can reach, and why.
+# Pairs no command line can hold together: the argv that tries, and the line refusing it.
 UNREACHABLE = {
-    ("bench", "--ingest", "--model"): "--model applies only to the latency bench: with --ingest it is refused",
+    ("bench", "--ingest", "--model"): (
+        "bench --ingest d --model model.onnx",
+        "dimenet bench: --model applies only to the latency bench (without --ingest, --bpnp, --fuzz or --stream) "
+        "or --fuzz",
+    ),
 }
 # What a command needs besides the flags under test: files of CONTENT in the current folder.
 COMMON_FILES = ("rec.csv", "s8.npz", "cam.json", "rig.json", "photo.jpg", "model.onnx", "labels.csv", "object.csv")
@@ -171,6 +175,16 @@ def test_every_output_input_pair_has_a_case():
         if other == IN
     }
     assert pairs - set(UNREACHABLE) == {(c.command, c.out_flag, c.in_flag) for c in CASES}
+
+
+@pytest.mark.parametrize("pair", sorted(UNREACHABLE))
+def test_the_unreachable_pairs_are_refused_together(pair, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    Path("model.onnx").write_bytes(CONTENT)
+    argv, line = UNREACHABLE[pair]
+    assert main(argv.split()) == 2
+    assert capsys.readouterr().err == f"dimenet: error: {line}\n"
+    assert not Path("d").exists()
 
 
 def _same(case: Case) -> tuple:
