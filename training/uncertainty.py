@@ -12,6 +12,7 @@ from dimenet.runtime.errors import DatasetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, one_plane, two_objects
 from dimenet.runtime.evaluation.uncertainty_fit import coverage, fit_data_bias, fit_data_correlation, fit_uncertainty
 from dimenet.runtime.geometry import k_params
+from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.map_fit import map_rectify
 from dimenet.runtime.rectify.spec import ModelSpec
 from dimenet.runtime.rectify.uncertainty import Uncertainty
@@ -68,7 +69,7 @@ def fit_network_uncertainty(
         (True, lambda ds: add_noise(two_objects(ds, rng), rng.uniform(*OBJECT_LABEL_NOISE_PX, ds.n_frames), 0.0, rng))
     ] * draws
     residuals, stats, map_draws = [], [], []
-    for unit in units:
+    for unit in progress(units, desc="fit sigma"):
         predictor = torch_predictor(model, spec, "training").for_camera(unit.camera)
         for added_noise, condition in conditions:
             reimaged, K_reimaged = resynthesise(unit.val, unit.val_truth, rng, 1.0)

@@ -22,6 +22,7 @@ from typing import Callable, Optional
 
 from dimenet.runtime import __version__
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.jobs.progress import heartbeat
 from dimenet.runtime.plugins import entry_points
 
 # dimenet solves many tiny batched systems: BLAS threads only contend for the cores (a 1 s
@@ -116,7 +117,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         missing = missing_extras(args.command, args)
         if missing:
             raise CliError(missing)
-        return int(args._run(args) or 0)
+        with heartbeat(f"dimenet {args.command}"):
+            return int(args._run(args) or 0)
     except BrokenPipeError:
         # stdout's reader is gone. As Python's docs advise (signal module, "Note on SIGPIPE"), point
         # stdout at devnull so that the interpreter's flush at exit does not fail again.

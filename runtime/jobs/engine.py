@@ -10,6 +10,7 @@ outcome, not the run's: the others finish and the caller reports it by name.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 import traceback
@@ -19,9 +20,12 @@ from typing import Any, Callable, Optional
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.jobs.progress import progress
 
+# The logger of Ray's token-authentication notices (ray/_private/authentication/authentication_token_setup.py).
+RAY_TOKEN_LOGGER = "ray._private.authentication.authentication_token_setup"
+
 
 class EngineError(DimenetError):
-    """The engine cannot run the jobs: the fleet extra is missing or the address is unusable."""
+    """The engine cannot run the jobs: the address is unusable."""
 
 
 @dataclass(frozen=True)
@@ -81,14 +85,18 @@ def run_all(
         return engine.run_all(function, items, cpus_per_job=cpus_per_job, desc=desc)
 
 
+def _quiet_token_banner(record: logging.LogRecord) -> bool:
+    """False for Ray's notice that token authentication is on (its default for a cluster it starts), which
+    it logs on every `--address local` run; its other warnings pass."""
+    return not record.getMessage().startswith("Token authentication is enabled for this Ray cluster")
+
+
 def _ray(address: str):
-    """Ray, initialised for ``address`` (see the module docstring)."""
-    try:
-        import ray
-    except ImportError:
-        raise EngineError(
-            f"--address {address}: needs Ray, the fleet extra (in the dimenet checkout: pip install '.[fleet]')"
-        ) from None
+    """Ray, initialised for ``address`` (see the module docstring). Without Ray, an ImportError: the
+    command line names the fleet extra before any job runs (cli/extras.py)."""
+    import ray
+
+    logging.getLogger(RAY_TOKEN_LOGGER).addFilter(_quiet_token_banner)
     kwargs: dict = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
     if address == "local" or address.startswith("local:"):
         cpus = address.partition(":")[2]
