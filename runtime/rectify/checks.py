@@ -11,7 +11,8 @@ points fit K_c worse than any frame the model was made for (mean error e(K_c) ab
 MAX_KC_ERROR_F times K_c's focal length: wrong correspondences, another camera, resolution or
 unit); Delta K not finite or K outside the spec's ``K_bounds`` (``ModelSpec.k_within_bounds``); no
 pose under K, or one with a point behind the camera; or e(K) > e(K_c): the predicted K fits the
-frame's own points worse than K_c (no margin: a rectified K never fits worse than K_c; e and e_c
+frame's own points worse than K_c (no margin: a rectified K never fits worse than K_c; a tie, e(K) ==
+e(K_c), keeps the candidate, as Delta K = 0 does, K_c's own solution; e and e_c
 are the errors the result reports, in the lens's image when the camera has one); or the
 mismatch rule: e(K_c) above MISMATCH_KC_ERROR_F f and e(K) above MISMATCH_SHARE e(K_c), a large
 error under K_c that the predicted K hardly reduces, which an OIS state does not make (points of
@@ -180,14 +181,17 @@ def spread_frames(points: np.ndarray, valid: Optional[np.ndarray]) -> tuple[np.n
 
 
 def worse(e, e_c):
-    """e(K) above e(K_c), with no margin (a NaN counts as worse; training/METHOD.md, "Never worse than
-    K_c"): floats -> bool, (B,) arrays -> (B,) bool."""
+    """The worse rule: e(K) strictly above e(K_c), with no margin (training/METHOD.md, "Never worse than
+    K_c"). The tie-break: e > e_c is worse, and so is a NaN in either; a tie, e == e_c, is not, so the
+    candidate stands (K fits the frame's points as well as K_c). A Delta K of 0 ties: K is K_c and its
+    pose the C0 pose, and the rectifier takes its e as e_c rather than measure it again through other
+    rounding (``stages.k_c_solutions``). floats -> bool, (B,) arrays -> (B,) bool."""
     return np.logical_not(e <= e_c)
 
 
 def mismatched(e, e_c, fx_c: float):
     """The mismatch rule: e_c (px) above MISMATCH_KC_ERROR_F fx_c and e (px) above MISMATCH_SHARE
-    e_c: floats -> bool, (B,) arrays -> (B,) bool."""
+    e_c, both strictly (at either equality the rule does not hold): floats -> bool, (B,) arrays -> (B,) bool."""
     return (e_c > MISMATCH_KC_ERROR_F * fx_c) & (e > MISMATCH_SHARE * e_c)
 
 

@@ -387,21 +387,35 @@ def frame_structure(cam: ModelCamera, p2, p3, c0_pose) -> Optional[str]:
     return structure_reason(structure, cam.user_px, cam.dist_coeffs is None)
 
 
+def k_c_solutions(cam: ModelCamera, K, rvec, tvec, c0_pose):
+    """Which candidates are K_c's own solution: K (3, 3) or (B, 3, 3) equal to K_c (model px) and the
+    pose rvec, tvec (3,) or (B, 3) equal to the C0 pose ``c0_pose`` (as PnP under K_c gives it): bool
+    or (B,) bool. Such a candidate's error is e_c to the bit, the worse rule's tie (``checks.worse``),
+    which keeps it; measured again through another order of operations, e would differ from e_c in
+    the last bits and the tie would go either way (issue 48)."""
+    same = np.all(K == cam.K_c, (-2, -1)) & np.all(rvec == c0_pose[0], -1) & np.all(tvec == c0_pose[1], -1)
+    return same if np.ndim(same) else bool(same)
+
+
 def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c0_pose, p2_image) -> tuple:
     """e(K) over the frame's points, the cheirality and worse-than-K_c rules (on the errors the result
     reports: in the lens's image from ``p2_image`` when the camera has one) and, where e(K) is above
     STRUCTURE_GATE e(K_c), the structure rule at the C0 pose first (its reason says more than the
     worse rule's; the mismatch rule's says more than it); on a refusal (``reason``
-    or one of these) K_c's own solution at ``c0_pose``. -> (the candidate standing, the reason or None)."""
+    or one of these) K_c's own solution at ``c0_pose``; a candidate that is K_c's own solution
+    (``k_c_solutions``: Delta K = 0) has e = e_c, a tie. -> (the candidate standing, the reason or None)."""
     rvec_c0, tvec_c0 = c0_pose
-    if reason is None and cand.e is None:
+    own = reason is None and not cand.delta_k.any() and k_c_solutions(cam, cand.K, cand.rvec, cand.tvec, c0_pose)
+    if own:
+        cand.e = e_c
+    elif reason is None and cand.e is None:
         cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
         if depth <= 0:
             reason = BEHIND_REASON
     if reason is None:
         e, e_c_rule = cand.e, e_c
         if cam.dist_coeffs is not None:  # in model px, as fx_c
-            K_user = cand.K if cam.pixels is None else cam.pixels.K_to_user(cand.K)
+            K_user = cam.K_c_user if own else cand.K if cam.pixels is None else cam.pixels.K_to_user(cand.K)
             K = np.stack([K_user, cam.K_c_user])
             image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, tvec_c0))
             e, e_c_rule = image[:, 0] / cam.user_px
@@ -430,20 +444,25 @@ def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e
         for b in np.flatnonzero(pending)[behind]:
             cand.reasons[b] = BEHIND_REASON
         pending = pending & cand.standing
-    if pending.any():
-        e[pending] = mean_reprojection_error(
-            fr.points_2d[pending],
-            fr.points_3d[pending],
-            None if fr.mask is None else fr.mask[pending],
-            cand.K[pending],
-            cand.rvec[pending],
-            cand.tvec[pending],
+    own = pending & ~cand.delta_k.any(-1)
+    if own.any():  # K_c's own solutions: e = e_c, the worse rule's tie
+        own[own] = k_c_solutions(cam, cand.K[own], cand.rvec[own], cand.tvec[own], (c0_poses[0][own], c0_poses[1][own]))
+    if (pending & ~own).any():
+        rows = pending & ~own
+        e[rows] = mean_reprojection_error(
+            fr.points_2d[rows],
+            fr.points_3d[rows],
+            None if fr.mask is None else fr.mask[rows],
+            cand.K[rows],
+            cand.rvec[rows],
+            cand.tvec[rows],
         )
     e_rule, e_c_rule = e, e_c
     if cam.dist_coeffs is not None and pending.any():  # the errors in the lens's image, in model px as fx_c
         e_rule, e_c_rule = e.copy(), e_c.copy()
         rows = np.flatnonzero(pending)
         K_user = cand.K[rows] if cam.pixels is None else cam.pixels.K_to_user(cand.K[rows])
+        K_user[own[rows]] = cam.K_c_user
         K = np.stack([K_user, np.broadcast_to(cam.K_c_user, K_user.shape)])
         p3 = np.where(fr.valid[rows, :, None], fr.points_3d[rows], 0.0)
         mask = None if fr.mask is None else fr.mask[rows]
@@ -473,8 +492,10 @@ def frame_result(cam: ModelCamera, cand: Candidate, e_c: float, timings: dict, f
     if covariance is not None and pixels is not None:
         covariance = partial(_covariance_to_user, pixels, covariance)
     K = cand.K
-    if pixels is not None:
-        K = cam.K_c_user.copy() if fell_back else pixels.K_to_user(cand.K)
+    if fell_back or not cand.delta_k.any():  # K_c as given (the pixel map's round trip is not exact)
+        K = cam.K_c_user.copy()
+    elif pixels is not None:
+        K = pixels.K_to_user(cand.K)
     e, e_c = cand.e * to_user, e_c * to_user
     if cam.dist_coeffs is not None:
         p2_image, p3, rvec_c0, tvec_c0 = lens
@@ -496,12 +517,13 @@ def batch_result(cam: ModelCamera, cand: BatchCandidates, fr: Frames, e, e_c, c0
     when the camera has a lens."""
     rvec_c0, tvec_c0 = c0_poses
     fell_back = ~cand.standing
+    k_c = fell_back | ~cand.delta_k.any(-1)  # K is K_c: K_c as given (the pixel map's round trip is not exact)
     cand.rvec[fell_back], cand.tvec[fell_back], e[fell_back] = rvec_c0[fell_back], tvec_c0[fell_back], e_c[fell_back]
     K, delta_k, K_cov = cand.K, cand.delta_k, cand.K_cov
     if cam.pixels is not None:
         K, delta_k, e, e_c = cam.pixels.K_to_user(K), delta_k * cam.user_px, e * cam.user_px, e_c * cam.user_px
         K_cov = None if K_cov is None else cam.pixels.covariance_to_user(K_cov)
-    K[fell_back], delta_k[fell_back] = cam.K_c_user, 0.0
+    K[k_c], delta_k[fell_back] = cam.K_c_user, 0.0
     if K_cov is not None:
         K_cov[fell_back] = np.nan if cam.population_cov_user is None else cam.population_cov_user
     if cam.dist_coeffs is not None:
