@@ -183,8 +183,7 @@ def frame_mean_norm(residuals: np.ndarray) -> float:
     error changed in the last bit from thread to thread. Each step here is rounded as IEEE says
     whatever the buffers (issue 48: results bit-identical whatever the threads)."""
     squares = np.square(residuals)
-    norms = squares[0]
-    norms += squares[1]
+    norms = np.add(squares[0], squares[1])  # contiguous, as OpenCV takes it without a copy
     return cv2.sumElems(np.sqrt(norms, out=norms))[0] / residuals.shape[1]
 
 

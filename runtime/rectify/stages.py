@@ -405,7 +405,11 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
     or one of these) K_c's own solution at ``c0_pose``; a candidate that is K_c's own solution
     (``k_c_solutions``: Delta K = 0) has e = e_c, a tie. -> (the candidate standing, the reason or None)."""
     rvec_c0, tvec_c0 = c0_pose
-    own = reason is None and not cand.delta_k.any() and k_c_solutions(cam, cand.K, cand.rvec, cand.tvec, c0_pose)
+    own = (
+        reason is None
+        and not np.count_nonzero(cand.delta_k)
+        and k_c_solutions(cam, cand.K, cand.rvec, cand.tvec, c0_pose)
+    )
     if own:
         cand.e = e_c
     elif reason is None and cand.e is None:
@@ -492,7 +496,7 @@ def frame_result(cam: ModelCamera, cand: Candidate, e_c: float, timings: dict, f
     if covariance is not None and pixels is not None:
         covariance = partial(_covariance_to_user, pixels, covariance)
     K = cand.K
-    if fell_back or not cand.delta_k.any():  # K_c as given (the pixel map's round trip is not exact)
+    if fell_back or not np.count_nonzero(cand.delta_k):  # K_c as given (the pixel map's round trip is not exact)
         K = cam.K_c_user.copy()
     elif pixels is not None:
         K = pixels.K_to_user(cand.K)
