@@ -14,8 +14,19 @@
 #define STEP_CLIP_REL 0.05
 #define STEP_NOISE_FLOOR_PX 0.1
 #define STEP_VARIANCE_FLOOR 1e-30
+/* x^2 as the reference's Python computes it: libm's pow(x, 2.0), which is not always x * x's rounding
+ * (glibc's pow is within 0.52 ulp, not correctly rounded). The exponent is read through a volatile so
+ * that the compiler does not turn the call into x * x. */
+static double python_square(double x)
+{
+    volatile double two = 2.0;
+    return pow(x, two);
+}
+
 /* numpy's pairwise summation block (numpy/_core/src/umath/loops_utils.h.src). */
 #define PAIRWISE_BLOCK 128
+/* Scratch doubles per point: the point rows (6), its depth (1), its packed Gram inputs (5). */
+#define SCRATCH_PER_POINT 12
 
 static const char *const MESSAGES[] = {
     "ok",
@@ -90,11 +101,11 @@ int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, s
     if (spec_cells(spec, &cells) != DIMENET_OK || n_scratch == NULL) {
         return DIMENET_E_ARGUMENT;
     }
-    /* rows (6 n) and depths (n), then the cell sums (6 cells) */
-    if (n_points > (limit - DIMENET_POINT_ROWS * cells) / (DIMENET_POINT_ROWS + 1)) {
+    /* rows (6 n) and depths (n), the cell sums (6 cells), then the used points' rows (5 n) */
+    if (n_points > (limit - DIMENET_POINT_ROWS * cells) / SCRATCH_PER_POINT) {
         return DIMENET_E_ARGUMENT;
     }
-    *n_scratch = (DIMENET_POINT_ROWS + 1) * n_points + DIMENET_POINT_ROWS * cells;
+    *n_scratch = SCRATCH_PER_POINT * n_points + DIMENET_POINT_ROWS * cells;
     return DIMENET_OK;
 }
 
@@ -296,22 +307,86 @@ static void monomials(double x_mm, double y_mm, double inv_z, double du_px, doub
     q[10] = dv_px;
 }
 
-static void gram_add(double G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE], const double q[DIMENET_GRAM_SIZE])
+/* The upper triangle of the Gram in row order: 66 products of two monomials. */
+#define GRAM_UPPER 66
+
+/* The points a Gram reads: X, Y (mm), 1/Z (1/mm) in {C} and the residuals u, v (px), each a run. */
+typedef struct {
+    const double *x, *y, *inv_z, *du, *dv;
+} gram_points;
+
+static void gram_products(const gram_points *p, size_t i, double out[GRAM_UPPER])
 {
-    int i, j;
-    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
-        for (j = i; j < DIMENET_GRAM_SIZE; j++) {
-            G[i * DIMENET_GRAM_SIZE + j] += q[i] * q[j];
+    double q[DIMENET_GRAM_SIZE];
+    int a, b, k = 0;
+    monomials(p->x[i], p->y[i], p->inv_z[i], p->du[i], p->dv[i], q);
+    for (a = 0; a < DIMENET_GRAM_SIZE; a++) {
+        for (b = a; b < DIMENET_GRAM_SIZE; b++) {
+            out[k++] = q[a] * q[b];
         }
     }
 }
 
-static void gram_mirror(double G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE])
+/* numpy's pairwise sum (pairwise_sum above) of each of the 66 products over the points start to
+ * start + n: geometry.monomial_gram's np.multiply(Q[rows], Q[cols]).sum(1). */
+static void gram_pairwise(const gram_points *p, size_t start, size_t n, double out[GRAM_UPPER])
 {
-    int i, j;
-    for (i = 0; i < DIMENET_GRAM_SIZE; i++) {
-        for (j = 0; j < i; j++) {
-            G[i * DIMENET_GRAM_SIZE + j] = G[j * DIMENET_GRAM_SIZE + i];
+    double pp[GRAM_UPPER];
+    size_t i;
+    int j, k;
+    if (n < 8) {
+        for (k = 0; k < GRAM_UPPER; k++) {
+            out[k] = 0.0;
+        }
+        for (i = 0; i < n; i++) {
+            gram_products(p, start + i, pp);
+            for (k = 0; k < GRAM_UPPER; k++) {
+                out[k] += pp[k];
+            }
+        }
+    } else if (n <= PAIRWISE_BLOCK) {
+        double r[8][GRAM_UPPER];
+        for (j = 0; j < 8; j++) {
+            gram_products(p, start + (size_t)j, r[j]);
+        }
+        for (i = 8; i < n - (n % 8); i += 8) {
+            for (j = 0; j < 8; j++) {
+                gram_products(p, start + i + (size_t)j, pp);
+                for (k = 0; k < GRAM_UPPER; k++) {
+                    r[j][k] += pp[k];
+                }
+            }
+        }
+        for (k = 0; k < GRAM_UPPER; k++) {
+            out[k] = ((r[0][k] + r[1][k]) + (r[2][k] + r[3][k])) + ((r[4][k] + r[5][k]) + (r[6][k] + r[7][k]));
+        }
+        for (; i < n; i++) {
+            gram_products(p, start + i, pp);
+            for (k = 0; k < GRAM_UPPER; k++) {
+                out[k] += pp[k];
+            }
+        }
+    } else {
+        double second[GRAM_UPPER];
+        size_t n2 = n / 2;
+        n2 -= n2 % 8;
+        gram_pairwise(p, start, n2, out);
+        gram_pairwise(p, start + n2, n - n2, second);
+        for (k = 0; k < GRAM_UPPER; k++) {
+            out[k] += second[k];
+        }
+    }
+}
+
+static void gram_of(const gram_points *p, size_t n, double G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE])
+{
+    double upper[GRAM_UPPER];
+    int a, b, k = 0;
+    gram_pairwise(p, 0, n, upper);
+    for (a = 0; a < DIMENET_GRAM_SIZE; a++) {
+        for (b = a; b < DIMENET_GRAM_SIZE; b++, k++) {
+            G[a * DIMENET_GRAM_SIZE + b] = upper[k];
+            G[b * DIMENET_GRAM_SIZE + a] = upper[k];
         }
     }
 }
@@ -320,18 +395,13 @@ int dimenet_monomial_gram(size_t n_points, const double *x_c0_mm, const double *
                           const double *inv_z_c0_per_mm, const double *residual_u_px, const double *residual_v_px,
                           double gram[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE])
 {
-    double q[DIMENET_GRAM_SIZE];
-    size_t i;
+    gram_points p;
     if (gram == NULL || (n_points > 0 && (x_c0_mm == NULL || y_c0_mm == NULL || inv_z_c0_per_mm == NULL
                                           || residual_u_px == NULL || residual_v_px == NULL))) {
         return DIMENET_E_ARGUMENT;
     }
-    memset(gram, 0, sizeof(double) * DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE);
-    for (i = 0; i < n_points; i++) {
-        monomials(x_c0_mm[i], y_c0_mm[i], inv_z_c0_per_mm[i], residual_u_px[i], residual_v_px[i], q);
-        gram_add(gram, q);
-    }
-    gram_mirror(gram);
+    p.x = x_c0_mm, p.y = y_c0_mm, p.inv_z = inv_z_c0_per_mm, p.du = residual_u_px, p.dv = residual_v_px;
+    gram_of(&p, n_points, gram);
     return DIMENET_OK;
 }
 
@@ -387,39 +457,37 @@ static void gram_normal_equations(const double *G, double fx, double fy, double 
 static double noise_weight(double rss, long dof, double floor_px)
 {
     double v = rss / (double)(dof > 1 ? dof : 1);
-    double floor2 = floor_px * floor_px;
+    double floor2 = python_square(floor_px);
     if (floor2 > v) {
         v = floor2;
     }
     return 1.0 / v;
 }
 
-static void matvec10(const double A[100], const double x[10], double y[10])
-{
-    int i, k;
-    for (i = 0; i < 10; i++) {
-        double s = 0.0;
-        for (k = 0; k < 10; k++) {
-            s += A[i * 10 + k] * x[k];
-        }
-        y[i] = s;
-    }
-}
-
+/* a . b of two 10-vectors: numpy's pairwise sum of the products (np.multiply(a, b).sum()). */
 static double dot10(const double a[10], const double b[10])
 {
-    double s = 0.0;
+    double products[10];
     int k;
     for (k = 0; k < 10; k++) {
-        s += a[k] * b[k];
+        products[k] = a[k] * b[k];
     }
-    return s;
+    return pairwise_sum(products, 10);
+}
+
+/* A x, each row as dot10 (geometry.normal_equations._matvec). */
+static void matvec10(const double A[100], const double x[10], double y[10])
+{
+    int i;
+    for (i = 0; i < 10; i++) {
+        y[i] = dot10(A + 10 * i, x);
+    }
 }
 
 /* rectify.features.gram_inputs' data step for one frame: geometry.prior_step, then _step_inputs. */
 static int data_step(const double *G, size_t n, double fx_c, double fy_c, double pmd_scale, double out[8])
 {
-    double prior_var = (STEP_PRIOR_REL * fx_c) * (STEP_PRIOR_REL * fx_c);
+    double prior_var = python_square(STEP_PRIOR_REL * fx_c);
     double clip_px = STEP_CLIP_REL * fx_c, precision = 1.0 / prior_var;
     double JJ[100], Jr[10], rss, inv[100], step[10], JJ_step[10], weight, rss_step;
     long n_residuals = (long)(2 * n);
@@ -435,7 +503,7 @@ static int data_step(const double *G, size_t n, double fx_c, double fy_c, double
     for (k = 0; k < 10; k++) {
         step[k] *= weight;
     }
-    for (k = 0; k < 10; k++) { /* step @ JJ */
+    for (k = 0; k < 10; k++) { /* step @ JJ: np.multiply(step[:, None], JJ).sum(0), first to last */
         int i;
         double s = 0.0;
         for (i = 0; i < 10; i++) {
@@ -504,7 +572,7 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
     static const double DEPTH_EXPONENT[DIMENET_CHANNELS] = {0.0, 0.0, 1.0, 1.0, -1.0};
     size_t cells, size, need, i, cell;
     const size_t N = n_points;
-    double R[9], P[5][4], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE], q[DIMENET_GRAM_SIZE];
+    double R[9], P[5][4], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE];
     double *rows, *depths, *sums, *counts, multiplier[DIMENET_CHANNELS];
     double scale_x, scale_y, last_x, last_y, norm_sum = 0.0;
     size_t n_used = 0, n_behind = 0;
@@ -619,15 +687,22 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
     /* gram_inputs: the data step, then the moments, from the used points' monomial Gram */
     if (spec->data_step || spec->moments) {
         double *out = features + cells * (size_t)C;
-        memset(G, 0, sizeof G);
-        for (i = 0; i < N; i++) {
-            if (mask != NULL && !mask[i]) {
-                continue;
+        gram_points p;
+        if (mask == NULL) {
+            p.x = rows + 2 * N, p.y = rows + 3 * N, p.inv_z = rows + 4 * N, p.du = rows, p.dv = rows + N;
+        } else { /* the used points' rows, in order (points[b][:, mask[b]]) */
+            double *packed = sums + (size_t)(C + 1) * cells;
+            size_t m = 0;
+            for (i = 0; i < N; i++) {
+                if (mask[i]) {
+                    packed[m] = rows[2 * N + i], packed[N + m] = rows[3 * N + i], packed[2 * N + m] = rows[4 * N + i];
+                    packed[3 * N + m] = rows[i], packed[4 * N + m] = rows[N + i];
+                    m++;
+                }
             }
-            monomials(rows[2 * N + i], rows[3 * N + i], rows[4 * N + i], rows[i], rows[N + i], q);
-            gram_add(G, q);
+            p.x = packed, p.y = packed + N, p.inv_z = packed + 2 * N, p.du = packed + 3 * N, p.dv = packed + 4 * N;
         }
-        gram_mirror(G);
+        gram_of(&p, n_used, G);
         if (spec->data_step) {
             code = data_step(G, n_used, spec->K_c_px[0], spec->K_c_px[4], spec->pmd_scale_per_px, out);
             out += DIMENET_STEP_SIZE;

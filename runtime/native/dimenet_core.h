@@ -6,7 +6,8 @@
  * runtime/geometry/normal_equations.py); this library computes the same numbers, in the same
  * operation order where it can (sums in point order, numpy's pairwise sums where numpy sums an axis,
  * OpenCV's Rodrigues formula and Cholesky inverse), within 1e-12 of the scaled features
- * (tests/native/). Compile it with floating-point contraction off (gcc/clang: -ffp-contract=off) so
+ * (tests/native/): bit for bit where the reference fixes its order (its data step, whose Hessian
+ * can have a condition number near 1e9, must be). Compile it with floating-point contraction off (gcc/clang: -ffp-contract=off) so
  * that a * b + c is not fused into one rounding: the reference does not fuse.
  *
  * Units and frames: pixels (px) in the image the prior K_c describes, OpenCV's convention (the
@@ -89,7 +90,7 @@ typedef struct dimenet_frame_stats {
 int dimenet_feature_size(const dimenet_feature_spec *spec, size_t *n_features);
 
 /* The doubles of scratch dimenet_frame_features needs for a frame of n_points points:
- * 7 n_points + 6 cells. DIMENET_E_ARGUMENT for a bad spec or an overflow. */
+ * 12 n_points + 6 cells. DIMENET_E_ARGUMENT for a bad spec or an overflow. */
 int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, size_t *n_scratch);
 
 /* One frame's feature (the reference's grid_features for one frame, then gram_inputs), at its C0
@@ -113,7 +114,7 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
 /* The monomial Gram (DIMENET_GRAM_SIZE x DIMENET_GRAM_SIZE, row major) Q Q^T of n_points points, Q the
  * monomials 1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z (a = X/Z, b = Y/Z) and the residuals r_u, r_v of each:
  * x_c0_mm, y_c0_mm, inv_z_c0_per_mm the points in {C} (n_points each), residual_u_px, residual_v_px
- * theirs (the reference's geometry.monomial_gram, summed in point order). */
+ * theirs (the reference's geometry.monomial_gram: each entry numpy's pairwise sum over the points). */
 int dimenet_monomial_gram(size_t n_points, const double *x_c0_mm, const double *y_c0_mm,
                           const double *inv_z_c0_per_mm, const double *residual_u_px, const double *residual_v_px,
                           double gram[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE]);

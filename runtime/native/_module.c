@@ -1,0 +1,275 @@
+/* dimenet.runtime.native._core: the thin CPython binding of dimenet_core (dimenet_core.h).
+ *
+ * No numpy headers: arrays come in through the buffer protocol, each checked for its type (float64
+ * 'd' or bool '?'), shape and C contiguity; the caller (rectify/features.py) allocates the outputs.
+ * The kernel runs with the GIL released; its error codes become the InputError messages of the numpy
+ * reference (dimenet.runtime.errors). No static mutable state: the InputError class is held in the
+ * module's state, every call has its own scratch, so threads may call at once. */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <string.h>
+
+#include "dimenet_core.h"
+
+/* The packed FeatureSpec (features.py FeatureSpec._native): grid cols, rows, channel count, the five
+ * channel indices, the five scales, depth_mm (0: none), data_step, moments, the PMD's scale. */
+#define LAYOUT_SIZE 17
+
+typedef struct {
+    PyObject *input_error;
+} module_state;
+
+static module_state *state_of(PyObject *module)
+{
+    return (module_state *)PyModule_GetState(module);
+}
+
+/* A buffer of ``kind`` ('d' float64, '?' bool) with ndim dimensions, C contiguous; shape[i] < 0: any. */
+static int get_view(PyObject *obj, Py_buffer *view, const char *name, char kind, int ndim, const Py_ssize_t *shape,
+                    int writable)
+{
+    const char *fmt;
+    int i;
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) != 0) {
+        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s array", name, writable ? " writable" : "");
+        return -1;
+    }
+    fmt = view->format == NULL ? "B" : view->format;
+    if (fmt[0] == '@' || fmt[0] == '=' || (fmt[0] == '<' && kind == '?')) {
+        fmt++;
+    }
+#if PY_BIG_ENDIAN
+    if (fmt[0] == '>') {
+        fmt++;
+    }
+#else
+    if (fmt[0] == '<') {
+        fmt++;
+    }
+#endif
+    if (fmt[0] != kind || fmt[1] != '\0' || view->ndim != ndim) {
+        PyErr_Format(PyExc_TypeError, "%s must be a %d-d %s array, got format '%s' with %d dimension(s)", name, ndim,
+                     kind == 'd' ? "float64" : "bool", view->format == NULL ? "B" : view->format, view->ndim);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    for (i = 0; i < ndim; i++) {
+        if (shape[i] >= 0 && view->shape[i] != shape[i]) {
+            PyErr_Format(PyExc_ValueError, "%s: dimension %d is %zd, expected %zd", name, i, view->shape[i], shape[i]);
+            PyBuffer_Release(view);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static int spec_from_layout(const double *layout, const double *K_c, double width_px, double height_px,
+                            dimenet_feature_spec *spec)
+{
+    int c;
+    for (c = 0; c < LAYOUT_SIZE; c++) {
+        if (!(layout[c] - layout[c] == 0.0)) {
+            return -1;
+        }
+    }
+    if (layout[0] < 1 || layout[0] > 2147483647.0 || layout[1] < 1 || layout[1] > 2147483647.0 || layout[2] < 1
+        || layout[2] > DIMENET_CHANNELS) {
+        return -1;
+    }
+    memset(spec, 0, sizeof *spec);
+    spec->grid_cols = (int)layout[0];
+    spec->grid_rows = (int)layout[1];
+    spec->n_channels = (int)layout[2];
+    for (c = 0; c < DIMENET_CHANNELS; c++) {
+        if (layout[3 + c] < 0 || layout[3 + c] >= DIMENET_CHANNELS) {
+            return -1;
+        }
+        spec->channels[c] = (int)layout[3 + c];
+        spec->channel_scale[c] = layout[8 + c];
+    }
+    spec->depth_mm = layout[13];
+    spec->data_step = layout[14] != 0.0;
+    spec->moments = layout[15] != 0.0;
+    spec->pmd_scale_per_px = layout[16];
+    spec->image_width_px = width_px;
+    spec->image_height_px = height_px;
+    memcpy(spec->K_c_px, K_c, sizeof spec->K_c_px);
+    return 0;
+}
+
+PyDoc_STRVAR(grid_features_doc,
+             "grid_features(points_2d, points_3d, mask, rvecs, tvecs, K_c, width_px, height_px, layout, features, "
+             "point_rows, stats, refuse_behind)\n--\n\n"
+             "The feature of F frames of N points into ``features`` (F, D) float64 (dimenet_frame_features frame by "
+             "frame, the GIL released): points_2d (F, N, 2) px, points_3d (F, N, 3) mm in {W}, mask (F, N) bool or "
+             "None, rvecs and tvecs (F, 3) the C0 poses, K_c (3, 3) px, the image's width and height px, layout "
+             "(17,) the packed FeatureSpec; point_rows (F, 6, N) float64 or None the raw point rows; stats (F, 3) "
+             "float64 or None: e_c px, used points, points behind the camera. With refuse_behind, a frame whose "
+             "points are not all in front of the camera is an InputError. InputError as the numpy reference's "
+             "(the data step on points that fix no pose, the first such frame); TypeError or ValueError for "
+             "arrays of the wrong type or shape.");
+
+static PyObject *grid_features(PyObject *module, PyObject *args)
+{
+    PyObject *o_p2, *o_p3, *o_mask, *o_rvecs, *o_tvecs, *o_K, *o_layout, *o_feats, *o_rows, *o_stats;
+    double width_px, height_px;
+    int refuse_behind;
+    Py_buffer p2, p3, mask, rvecs, tvecs, K, layout, feats, rows, stats;
+    Py_buffer *views[10] = {NULL};
+    int n_views = 0, code = DIMENET_OK, failed = 0;
+    Py_ssize_t F, N, f, failed_frame = 0;
+    Py_ssize_t shape[3];
+    dimenet_feature_spec spec;
+    dimenet_frame_stats st;
+    size_t D = 0, n_scratch = 0;
+    double *scratch = NULL;
+    PyObject *result = NULL;
+
+    if (!PyArg_ParseTuple(args, "OOOOOOddOOOOp:grid_features", &o_p2, &o_p3, &o_mask, &o_rvecs, &o_tvecs, &o_K,
+                          &width_px, &height_px, &o_layout, &o_feats, &o_rows, &o_stats, &refuse_behind)) {
+        return NULL;
+    }
+#define VIEW(obj, view, name, kind, nd, writable)                                                                      \
+    do {                                                                                                               \
+        if (get_view(obj, &view, name, kind, nd, shape, writable) != 0) {                                              \
+            goto done;                                                                                                 \
+        }                                                                                                              \
+        views[n_views++] = &view;                                                                                      \
+    } while (0)
+    shape[0] = -1, shape[1] = -1, shape[2] = 2;
+    VIEW(o_p2, p2, "points_2d", 'd', 3, 0);
+    F = p2.shape[0], N = p2.shape[1];
+    shape[0] = F, shape[1] = N, shape[2] = 3;
+    VIEW(o_p3, p3, "points_3d", 'd', 3, 0);
+    if (o_mask != Py_None) {
+        VIEW(o_mask, mask, "mask", '?', 2, 0);
+    }
+    shape[1] = 3;
+    VIEW(o_rvecs, rvecs, "rvecs", 'd', 2, 0);
+    VIEW(o_tvecs, tvecs, "tvecs", 'd', 2, 0);
+    shape[0] = 3;
+    VIEW(o_K, K, "K_c", 'd', 2, 0);
+    shape[0] = LAYOUT_SIZE;
+    VIEW(o_layout, layout, "layout", 'd', 1, 0);
+    if (spec_from_layout((const double *)layout.buf, (const double *)K.buf, width_px, height_px, &spec) != 0
+        || dimenet_feature_size(&spec, &D) != DIMENET_OK
+        || dimenet_scratch_doubles(&spec, (size_t)N, &n_scratch) != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, "grid_features: the layout, image size or grid is not a valid feature spec");
+        goto done;
+    }
+    shape[0] = F, shape[1] = (Py_ssize_t)D;
+    VIEW(o_feats, feats, "features", 'd', 2, 1);
+    if (o_rows != Py_None) {
+        shape[1] = DIMENET_POINT_ROWS, shape[2] = N;
+        VIEW(o_rows, rows, "point_rows", 'd', 3, 1);
+    }
+    if (o_stats != Py_None) {
+        shape[1] = 3;
+        VIEW(o_stats, stats, "stats", 'd', 2, 1);
+    }
+    scratch = (double *)PyMem_RawMalloc(n_scratch * sizeof(double) + 1);
+    if (scratch == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (f = 0; f < F; f++) {
+        memset(&st, 0, sizeof st);
+        code = dimenet_frame_features(
+            &spec, (size_t)N, (const double *)p2.buf + f * N * 2, (const double *)p3.buf + f * N * 3,
+            o_mask == Py_None ? NULL : (const unsigned char *)mask.buf + f * N, (const double *)rvecs.buf + f * 3,
+            (const double *)tvecs.buf + f * 3, refuse_behind ? DIMENET_REFUSE_BEHIND_CAMERA : 0u,
+            (double *)feats.buf + f * (Py_ssize_t)D, D,
+            o_rows == Py_None ? NULL : (double *)rows.buf + f * DIMENET_POINT_ROWS * N, scratch, n_scratch, &st);
+        if (o_stats != Py_None) {
+            double *s = (double *)stats.buf + f * 3;
+            s[0] = st.e_c_px, s[1] = (double)st.n_used, s[2] = (double)st.n_behind;
+        }
+        if (code != DIMENET_OK) {
+            failed = 1;
+            failed_frame = f;
+            break;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (failed) {
+        if (code == DIMENET_E_BEHIND_CAMERA) { /* rectify.checks.behind_camera_error's message */
+            PyErr_Format(state_of(module)->input_error,
+                         "%zu of %zd points lie behind the camera at the best pose under K_c: "
+                         "the correspondences do not fit one pinhole camera",
+                         st.n_behind, N);
+        } else if (code == DIMENET_E_ARGUMENT) {
+            PyErr_Format(PyExc_ValueError, "grid_features: frame %zd: %s", failed_frame, dimenet_error_message(code));
+        } else {
+            PyErr_SetString(state_of(module)->input_error, dimenet_error_message(code));
+        }
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    PyMem_RawFree(scratch);
+    while (n_views > 0) {
+        PyBuffer_Release(views[--n_views]);
+    }
+    return result;
+#undef VIEW
+}
+
+static PyMethodDef methods[] = {
+    {"grid_features", grid_features, METH_VARARGS, grid_features_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static int module_traverse(PyObject *module, visitproc visit, void *arg)
+{
+    Py_VISIT(state_of(module)->input_error);
+    return 0;
+}
+
+static int module_clear(PyObject *module)
+{
+    Py_CLEAR(state_of(module)->input_error);
+    return 0;
+}
+
+static void module_free(void *module)
+{
+    module_clear((PyObject *)module);
+}
+
+static struct PyModuleDef module_def = {
+    PyModuleDef_HEAD_INIT,
+    "_core",
+    "The compiled core of the DIME-Net runtime (dimenet_core.h): the feature stage of every encoder.",
+    sizeof(module_state),
+    methods,
+    NULL,
+    module_traverse,
+    module_clear,
+    module_free,
+};
+
+PyMODINIT_FUNC PyInit__core(void)
+{
+    PyObject *module, *errors;
+    module = PyModule_Create(&module_def);
+    if (module == NULL) {
+        return NULL;
+    }
+    errors = PyImport_ImportModule("dimenet.runtime.errors");
+    if (errors == NULL) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    state_of(module)->input_error = PyObject_GetAttrString(errors, "InputError");
+    Py_DECREF(errors);
+    if (state_of(module)->input_error == NULL || PyModule_AddIntConstant(module, "LAYOUT_SIZE", LAYOUT_SIZE) != 0
+        || PyModule_AddIntConstant(module, "POINT_ROWS", DIMENET_POINT_ROWS) != 0) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    return module;
+}
