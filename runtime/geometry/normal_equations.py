@@ -3,7 +3,14 @@
 They are the LM core's (``least_squares``) Jacobian products J^T J and J^T r for the pose
 perturbed on the left of X_C, formed from nine per-point monomials instead of J itself
 (tests/geometry/test_least_squares.py holds them equal to the core's; the speed against the core's
-Jacobian: models_spec/BENCHMARKS.md)."""
+Jacobian: models_spec/BENCHMARKS.md).
+
+The products the feature's data step reads (``monomial_gram``, ``gram_normal_equations``,
+``prior_step``) are elementwise products summed by numpy in an order it fixes (a pairwise sum along
+a contiguous row, or a sum over an outer axis, first to last), not BLAS products, whose summation
+order and fused multiply-adds depend on the machine's kernel: the data step's Hessian can have a
+condition number near 1e9 (a single plane), so one last-bit change anywhere moves its inputs by 1e-7.
+In this order the compiled core (runtime/native/dimenet_core.c) computes the same numbers to the bit."""
 
 from __future__ import annotations
 
@@ -30,6 +37,8 @@ def _jacobian_basis() -> np.ndarray:
 
 
 JACOBIAN_BASIS = _jacobian_basis()  # also the full graph's (export.full_graph)
+# The upper triangle of the 11 x 11 Gram in row order: the pairs of monomials ``monomial_gram`` sums.
+_GRAM_ROWS, _GRAM_COLS = np.triu_indices(11)
 
 
 def _monomials(xy_inv_z: np.ndarray) -> np.ndarray:
@@ -49,10 +58,17 @@ def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
     """(11, 11) Q Q^T of one frame's N points, Q (11, N) their monomials q = [1, a, b, ab, a^2, b^2,
     1/Z, a/Z, b/Z] (a = X/Z, b = Y/Z) then their residuals r_u, r_v: xy_inv_z (3, N) the points
     in {C} as X, Y (mm) and 1/Z (1/mm), residuals (2, N) px. Everything the normal equations
-    (``gram_normal_equations``) and the moment feature (``rectify.features``) read of the points."""
+    (``gram_normal_equations``) and the moment feature (``rectify.features``) read of the points.
+
+    Each entry of the upper triangle is numpy's pairwise sum of its N products (the module docstring:
+    3 times Q Q^T's time, ~20 µs at 320 points, for a fixed order)."""
     Q = _monomials(xy_inv_z)
     Q[9:] = residuals
-    return Q @ Q.T
+    upper = _products(Q[_GRAM_ROWS], Q[_GRAM_COLS]).sum(1)
+    G = np.empty((11, 11))
+    G[_GRAM_ROWS, _GRAM_COLS] = upper
+    G[_GRAM_COLS, _GRAM_ROWS] = upper
+    return G
 
 
 def gram_normal_equations(G: np.ndarray, fx: float, fy: float) -> tuple[np.ndarray, np.ndarray, float]:
@@ -60,11 +76,13 @@ def gram_normal_equations(G: np.ndarray, fx: float, fy: float) -> tuple[np.ndarr
     ``monomial_gram`` G (11, 11) and the focal lengths (px) its residuals were taken under.
 
     Every entry of J is a linear combination of the nine monomials q (``_jacobian_basis``), so
-    J J^T = C (q q^T) C^T summed over u and v, and J r likewise."""
-    C = np.dot((fx, fy, 1.0), JACOBIAN_BASIS).reshape(20, 9)
+    J J^T = C (q q^T) C^T summed over u and v, and J r likewise. Each product's terms are summed first
+    to last (a sum over an outer axis; the module docstring)."""
+    C = np.dot((fx, fy, 1.0), JACOBIAN_BASIS).reshape(20, 9)  # exact: one term of each entry is not 0
     # J J^T: sum over c in (u, v) and q of (C q q^T)[2i + c, q] C[2j + c, q]; J r likewise.
-    JJ = (C @ G[:9, :9]).reshape(10, 18) @ C.reshape(10, 18).T
-    Cr = C @ G[:9, 9:]
+    CG = _products(C[:, :, None], G[None, :9, :9]).sum(1).reshape(10, 18)
+    JJ = _products(CG.T[:, :, None], C.reshape(10, 18).T[:, None, :]).sum(0)
+    Cr = _products(C[:, :, None], G[None, :9, 9:]).sum(1)
     return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10])
 
 
@@ -102,14 +120,28 @@ def prior_step(
     fx, fy, cx, cy px), cov (10, 10) the inverse Hessian of the weighted cost, its K block the
     posterior covariance px^2, weight 1 / s^2 px^-2)."""
     weight = _noise_weight(rss, n_residuals - 6, noise_floor_px)
-    # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations.
-    step = prior_posterior(JJ, k_precision, weight) @ Jr * weight
-    rss_step = rss - 2.0 * float(step @ Jr) + float(step @ JJ @ step)
+    # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations (the products in a fixed
+    # order: the module docstring).
+    step = _matvec(prior_posterior(JJ, k_precision, weight), Jr) * weight
+    step_JJ = _products(step[:, None], JJ).sum(0)
+    rss_step = rss - 2.0 * float(_products(step, Jr).sum()) + float(_products(step_JJ, step).sum())
     weight = _noise_weight(rss_step, n_residuals - 10, noise_floor_px)
     cov = prior_posterior(JJ, k_precision, weight)
-    step = cov @ Jr
+    step = _matvec(cov, Jr)
     step *= -weight
     return step, cov, weight
+
+
+def _matvec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A (n, n) times x (n,): each row's products summed by numpy's pairwise sum (not BLAS)."""
+    return _products(A, x).sum(1)
+
+
+def _products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a * b (broadcast) into a new C-ordered array, so that a sum over its last axis is numpy's pairwise
+    sum of each row and a sum over another axis adds its slices first to last (numpy lays out a
+    product of strided views in its own order, where an axis's sum may be pairwise instead)."""
+    return np.multiply(a, b, out=np.empty(np.broadcast_shapes(a.shape, b.shape)))
 
 
 def _noise_weight(rss: float, dof: int, floor_px: float) -> float:

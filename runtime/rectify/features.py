@@ -43,10 +43,13 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Optional
 
+import cv2
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
+    FEW_POSES,
     MIN_POSE_POINTS,
     gram_normal_equations,
     monomial_gram,
@@ -125,6 +128,17 @@ class FeatureSpec:
         """(C,) the power of a frame's depth factor each channel takes with ``depth_mm``: X, Y 1,
         1/Z -1, the PMD 0."""
         return np.array([{"X": 1.0, "Y": 1.0, "inv_z": -1.0}.get(c, 0.0) for c in self.channels])
+
+    @cached_property
+    def native_layout(self) -> np.ndarray:
+        """(17,) the spec packed for the compiled core (runtime/native/_module.c): grid columns and rows,
+        the channel count, the channels' indices into CHANNELS and their scales (each padded to 5),
+        depth_mm (0: None), data_step, moments, the PMD's scale."""
+        index = [CHANNELS.index(c) for c in self.channels]
+        pad = [0] * (len(CHANNELS) - len(index))
+        head = [self.grid.cols, self.grid.rows, len(index), *index, *pad, *self.channel_scale.tolist(), *pad]
+        tail = [self.depth_mm or 0.0, float(self.data_step), float(self.moments), self.scale["dx"]]
+        return np.array(head + tail, dtype=np.float64)
 
     @property
     def grid_size(self) -> int:
@@ -232,16 +246,24 @@ def point_features(points_2d, points_3d, K_c, rvec, tvec) -> np.ndarray:
 def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec, mask=None, depth_sums: bool = False):
     """The raw point features of ``point_features`` channel-major into out[:, :5] of an (F, >= 5, N) array.
 
-    One matrix product maps each {W} point X to [u, v, X_C0, Y_C0, Z_C0] with (u, v, Z_C0) =
+    One map P (5 x 4) takes each {W} point X to [u, v, X_C0, Y_C0, Z_C0] with (u, v, Z_C0) =
     K_c (R X + t); then 1/Z, and dx, dy = u / Z - x, v / Z - y. With ``depth_sums``, returns
     (F,) the sum of Z_C0 over each frame's ``mask`` (F, N) points (None: all), else None.
+
+    R is OpenCV's Rodrigues of each pose, and P's products are summed term by term in a fixed order
+    ((p0 X + p1 Y) + p2 Z) + p3, not by BLAS (geometry.normal_equations' docstring: the compiled core
+    gives the same rows to the bit, so the data step's inputs too).
     """
     F = len(points_2d)
     P = np.empty((F, 5, 4))  # rows: K_c[:2] [R | t], then [R | t]
-    P[:, 2:, :3] = rotation_matrices(rvec)
+    rvec = np.ascontiguousarray(rvec, dtype=np.float64)
+    P[:, 2:, :3] = rotation_matrices(rvec) if F <= FEW_POSES else [cv2.Rodrigues(r)[0] for r in rvec]
     P[:, 2:, 3] = tvec
-    np.matmul(np.asarray(K_c, dtype=np.float64)[:2], P[:, 2:], out=P[:, :2])
-    rows = np.matmul(P[:, :, :3], np.swapaxes(points_3d, 1, 2), out=out[:, :5])
+    K_rows = np.asarray(K_c, dtype=np.float64)[:2, :, None]
+    P[:, :2] = np.multiply(K_rows, P[:, None, 2:], out=np.empty((F, 2, 3, 4))).sum(2)  # C order: k first to last
+    rows = np.multiply(P[:, :, :1], points_3d[:, None, :, 0], out=out[:, :5])
+    rows += P[:, :, 1:2] * points_3d[:, None, :, 1]
+    rows += P[:, :, 2:3] * points_3d[:, None, :, 2]
     rows += P[:, :, 3:]
     sums = None
     if depth_sums:
@@ -275,6 +297,8 @@ def grid_features(
     own unit also when ``spec.depth_mm`` is set), arbitrary on unmasked points; rows 0-1 (the
     PMD) are each point's reprojection residual under K_c at the C0 pose.
     """
+    if native.core is not None:  # the compiled core (runtime/native); the numpy below is its reference
+        return _native_grid_features(points_2d, points_3d, mask, K_c, image_size, spec, poses, return_points)
     points_2d = np.asarray(points_2d, dtype=np.float64)
     points_3d = np.asarray(points_3d, dtype=np.float64)
     F, N = points_2d.shape[:2]
@@ -377,3 +401,34 @@ def _moment_inputs(G: np.ndarray, n: int, pmd_scale: float) -> np.ndarray:
     z_scale = n / G[0, 6] if G[0, 6] > 0 else 1.0
     s = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, z_scale, z_scale, z_scale, pmd_scale, pmd_scale])
     return (G * np.outer(s, s / n)).ravel()[MOMENT_INDEX]
+
+
+def _native_grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, poses, return_points: bool):
+    """``grid_features`` through the compiled core (``native.core``): the same inputs, outputs and
+    InputErrors, one kernel call for the F frames (tests/native/ hold the two equal)."""
+    points_2d = np.ascontiguousarray(points_2d, dtype=np.float64)
+    points_3d = np.ascontiguousarray(points_3d, dtype=np.float64)
+    F, N = points_2d.shape[:2]
+    if mask is not None:
+        mask = np.ascontiguousarray(mask, dtype=bool)
+        if mask.all():
+            mask = None
+    rvec, tvec = poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
+    feats = np.empty((F, spec.size))
+    points = np.empty((F, len(CHANNELS) + 1, N)) if return_points else None
+    native.core.grid_features(
+        points_2d,
+        points_3d,
+        mask,
+        np.ascontiguousarray(rvec, dtype=np.float64),
+        np.ascontiguousarray(tvec, dtype=np.float64),
+        np.ascontiguousarray(K_c, dtype=np.float64),
+        float(image_size[0]),
+        float(image_size[1]),
+        spec.native_layout,
+        feats,
+        points,
+        None,
+        False,
+    )
+    return (feats, points) if return_points else feats
