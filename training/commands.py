@@ -9,12 +9,14 @@ import sys
 from pathlib import Path
 
 from dimenet.runtime.cli.arguments import grid_size, nonempty_path, seed
-from dimenet.runtime.cli.main import Command
+from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.rectify.spec import HEADS
 
 from .config import (
     FEATURE_VARIANTS,
+    QUICK_CAMERAS,
+    QUICK_EPOCHS,
     ReproduceConfig,
     TrainConfig,
     epochs,
@@ -42,11 +44,28 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     d = TRAIN_DEFAULTS
     p.add_argument(
         "data",
+        nargs="?",
         help="dataset file (dimenet-dataset/1 .npz) with a train split: a device model of its camera; or a folder "
         "of them (a camera family, `dimenet simulate --family`): a generic model for any camera",
     )
     p.add_argument(
-        "--out", required=True, type=nonempty_path, metavar="RUN_DIR", help="folder for weights, spec.json, curve.png"
+        "--out",
+        type=nonempty_path,
+        metavar="RUN_DIR",
+        help="folder for weights, spec.json, curve.png (and, while it trains, checkpoint.safetensors)",
+    )
+    p.add_argument(
+        "--resume",
+        type=nonempty_path,
+        metavar="RUN_DIR",
+        help="instead of DATA --out: continue the training stopped in RUN_DIR from its last finished epoch (its "
+        "checkpoint holds the data, init and settings): the same weights, bit for bit, as a training never stopped",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"a smoke run: {QUICK_EPOCHS} epoch, whatever --epochs says (checks that the command runs end to end; "
+        "the model learns nothing)",
     )
     p.add_argument(
         "--grid", type=grid_size, default=d.grid, action=_Noted, help=f"grid, columns x rows (default {d.grid})"
@@ -171,9 +190,19 @@ def _run_train(args: argparse.Namespace) -> int:
     from dimenet.runtime.rectify.model import BUNDLED_MODELS
 
     from .init_weights import initial_weights
-    from .run_dir import CURVE, HISTORY, SPEC, WEIGHTS
+    from .run_dir import CHECKPOINT, CURVE, HISTORY, SPEC, WEIGHTS
     from .trainer import read_training_data, train
 
+    if args.resume is not None:
+        return _resume(args)
+    if args.data is None or args.out is None:
+        raise CliError("dimenet train: give DATA --out RUN_DIR (a training), or --resume RUN_DIR (one that stopped)")
+    checkpoint = Path(args.out) / CHECKPOINT
+    if checkpoint.is_file():
+        raise CliError(
+            f"dimenet train: {checkpoint} is a training that stopped before its end: `dimenet train --resume "
+            f"{args.out}` continues it; remove that file to start again"
+        )
     bundled = args.init is None or args.init in BUNDLED_MODELS
     init_files = [] if bundled else [Path(args.init) / name for name in ("", WEIGHTS, SPEC)]
     refuse_overwriting_inputs(
@@ -185,7 +214,7 @@ def _run_train(args: argparse.Namespace) -> int:
     init = None if args.init is None else initial_weights(args.init)
     config = TrainConfig(
         **_network_settings(args, init),
-        epochs=args.epochs,
+        epochs=QUICK_EPOCHS if args.quick else args.epochs,
         seed=args.seed,
         focal_weight=args.focal_weight,
         train_frames=args.train_frames,
@@ -199,7 +228,15 @@ def _run_train(args: argparse.Namespace) -> int:
         dataset_sha256=sha256,
         command="dimenet " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         init=init,
+        origin={
+            "data": str(Path(args.data).resolve()),
+            "init": args.init if bundled else str(Path(args.init).resolve()),
+        },
     )
+    return _trained(result)
+
+
+def _trained(result) -> int:
     print(
         f"trained {len(result.history)} epochs, kept epoch {result.best_epoch} "
         f"(best val Avg(e) {result.best_val_e:.3f} px), {result.seconds:.0f} s -> {result.run_dir}"
@@ -207,12 +244,53 @@ def _run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _resume(args: argparse.Namespace) -> int:
+    """`dimenet train --resume RUN_DIR`: the training of RUN_DIR's checkpoint, on from its last epoch."""
+    from .init_weights import initial_weights
+    from .run_dir import CHECKPOINT, HISTORY, WEIGHTS, read_checkpoint
+    from .trainer import read_training_data, train
+
+    parser = argparse.ArgumentParser()
+    _add_train(parser)
+    flags = {a.dest: a.option_strings[0] if a.option_strings else a.dest.upper() for a in parser._actions}
+    alone = vars(parser.parse_args(["--resume", args.resume]))
+    others = [flags[dest] for dest, value in alone.items() if getattr(args, dest) != value]
+    if others:
+        raise CliError(
+            f"dimenet train --resume: {', '.join(others)} given, but a resumed training keeps the data, init and "
+            "settings its checkpoint holds: give --resume RUN_DIR alone"
+        )
+    run = Path(args.resume)
+    if not (run / CHECKPOINT).exists() and (run / WEIGHTS).is_file() and (run / HISTORY).is_file():
+        print(f"{args.resume}: its training finished ({HISTORY} holds every epoch): nothing to resume")
+        return 0
+    _, state = read_checkpoint(args.resume)
+    tuples = {f.name for f in dataclasses.fields(TrainConfig) if isinstance(f.default, tuple)}
+    config = TrainConfig(**{k: tuple(v) if k in tuples else v for k, v in state["config"].items()})
+    origin = state["origin"]
+    print(f"resuming {args.resume} after epoch {state['epoch']} of {config.epochs} ({state['command']})")
+    datasets, sha256 = read_training_data(origin["data"])
+    init = None if origin["init"] is None else initial_weights(origin["init"])
+    result = train(
+        datasets,
+        config,
+        args.resume,
+        dataset_sha256=sha256,
+        command=state["command"],
+        init=init,
+        origin=origin,
+        resume=True,
+    )
+    return _trained(result)
+
+
 TRAIN = Command(
     name="train",
     summary="Train DIME-Net on a dataset's train split (reprojection loss through the BPnP layer, plus a focal term).",
     example="dimenet train s8.npz --out runs/s8 --grid 8x6 --features A --seed 0\n"
     "  dimenet train family --out runs/generic --epochs 200   # a folder from `dimenet simulate --family`\n"
-    "  dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30   # fine-tune the default",
+    "  dimenet train s8.npz --init default --train-frames 30 --out runs/s8-30   # fine-tune the default\n"
+    "  dimenet train --resume runs/s8   # a training stopped (killed, a time limit): on from its last epoch",
     add_arguments=_add_train,
     run=_run_train,
 )
@@ -248,6 +326,13 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
         default=d["seed"],
         help=f"seed of simulation, training and conditions (default {d['seed']})",
     )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"a smoke run: {QUICK_EPOCHS} epoch per model, {QUICK_CAMERAS} cameras per held-out family (checks "
+        "that the command runs end to end, in about 1 min on 2 cores; its numbers mean nothing, and the report "
+        "says so)",
+    )
     from dimenet.runtime.cli.arguments import add_address_argument
 
     add_address_argument(p, "trainings and evaluations")
@@ -256,10 +341,10 @@ def _add_reproduce(p: argparse.ArgumentParser) -> None:
 def _run_reproduce(args: argparse.Namespace) -> int:
     from .reproduce import run
 
+    quick = {"epochs": QUICK_EPOCHS, "ablation_epochs": QUICK_EPOCHS, "held_out_cameras": QUICK_CAMERAS}
+    epochs = {"epochs": args.epochs, "ablation_epochs": args.ablation_epochs}
     results = run(
-        ReproduceConfig(
-            out_dir=Path(args.out), epochs=args.epochs, ablation_epochs=args.ablation_epochs, seed=args.seed
-        ),
+        ReproduceConfig(out_dir=Path(args.out), seed=args.seed, **(quick if args.quick else epochs)),
         address=args.address,
         cpus_per_job=args.cpus_per_job,
     )
@@ -292,6 +377,12 @@ def _add_fleet(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out", required=True, type=nonempty_path, metavar="DIR", help="folder of the run dirs and the summary"
     )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"a smoke run: {QUICK_EPOCHS} epoch per job, whatever the manifest says (checks that the jobs run end "
+        "to end; the models learn nothing)",
+    )
     add_address_argument(p, "jobs")
 
 
@@ -300,7 +391,13 @@ def _run_fleet(args: argparse.Namespace) -> int:
 
     outputs = [("--out", Path(args.out) / name) for name in (SUMMARY_JSON, SUMMARY_MD)]
     refuse_overwriting_inputs("dimenet fleet train", outputs, [("MANIFEST", args.manifest)])
-    summary = fleet_train(args.manifest, args.out, address=args.address, cpus_per_job=args.cpus_per_job)
+    summary = fleet_train(
+        args.manifest,
+        args.out,
+        address=args.address,
+        cpus_per_job=args.cpus_per_job,
+        epochs=QUICK_EPOCHS if args.quick else None,
+    )
     print((Path(args.out) / SUMMARY_MD).read_text(encoding="utf-8"), end="")
     for name in summary["failed"]:
         print(f"failed: {name}", file=sys.stderr)

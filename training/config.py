@@ -25,6 +25,10 @@ focal_weight = finite_float_in(0.0, MAX_FOCAL_WEIGHT)
 train_frames = integer_in(2, MAX_TRAIN_FRAMES)
 k_c_error = finite_float_in(0.0, 1.0)
 plane_share = finite_float_in(0.0, 1.0)
+# The epochs of each training of a --quick run (train, fleet train, reproduce): a smoke run that checks a command
+# end to end, as the README's and the help's examples are checked (tests/readme_examples.py).
+QUICK_EPOCHS = 1
+QUICK_CAMERAS = 2  # and the cameras of each of reproduce's held-out families
 
 
 @dataclass(frozen=True)
@@ -74,3 +78,4 @@ class ReproduceConfig:
     epochs: int = 600
     ablation_epochs: int = 150
     seed: int = 0
+    held_out_cameras: Optional[int] = None  # cameras of each held-out family (None: all; --quick: QUICK_CAMERAS)

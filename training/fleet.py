@@ -252,12 +252,22 @@ def _test_errors(run_dir: Path, datasets: list) -> dict:
     return {"avg_e_c": avg[0], "avg_e": avg[1], "rho": reduction_ratio(*avg)}
 
 
-def fleet_train(manifest: str | Path, out: str | Path, *, address: Optional[str] = None, cpus_per_job: int = 1) -> dict:
+def fleet_train(
+    manifest: str | Path,
+    out: str | Path,
+    *,
+    address: Optional[str] = None,
+    cpus_per_job: int = 1,
+    epochs: Optional[int] = None,
+) -> dict:
     """Every job of the manifest (``run_job``), then DIR/summary.md and DIR/summary.json: per job
-    its rho, errors and seconds, or the error it failed with."""
+    its rho, errors and seconds, or the error it failed with. ``epochs``: every job's, in place of the
+    manifest's (`dimenet fleet train --quick`)."""
     from dimenet.runtime.jobs.engine import run_all
 
     jobs = read_manifest(manifest)
+    if epochs is not None:
+        jobs = [replace(job, config=replace(job.config, epochs=epochs)) for job in jobs]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     outcomes = run_all(

@@ -1,5 +1,7 @@
 """RUN_DIR layout written by `dimenet train`: weights.safetensors, spec.json (dimenet-model/1),
-history.json and curve.png. Loading never unpickles (safetensors only)."""
+history.json and curve.png; while it trains, checkpoint.safetensors (the state after the last finished
+epoch, for `dimenet train --resume`; removed once the run is written). Loading never unpickles
+(safetensors only)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import io
 import json
 from pathlib import Path
 
+from safetensors import safe_open
 from safetensors.torch import load as load_safetensors
 from safetensors.torch import save as save_safetensors
 
@@ -17,6 +20,8 @@ from dimenet.runtime.rectify.spec import ModelSpec
 from .model import DimeNet, dime_net
 
 WEIGHTS, SPEC, HISTORY, CURVE = "weights.safetensors", "spec.json", "history.json", "curve.png"
+CHECKPOINT = "checkpoint.safetensors"
+CHECKPOINT_FORMAT = "dimenet-checkpoint/1"  # safetensors metadata: "format" and "state" (JSON)
 
 
 def write_run(run_dir: str | Path, model: DimeNet, spec: ModelSpec, history: list) -> Path:
@@ -67,3 +72,32 @@ def load_run(run_dir: str | Path) -> tuple[DimeNet, ModelSpec]:
     except Exception as exc:  # safetensors raises its own error types for corrupt files
         raise ModelError(f"{path}: unreadable or mismatched weights ({type(exc).__name__}: {exc})") from None
     return model.eval(), spec
+
+
+def write_checkpoint(run_dir: str | Path, tensors: dict, state: dict) -> Path:
+    """RUN_DIR/checkpoint.safetensors, atomically: ``tensors`` (name -> tensor) and ``state``, a
+    JSON-able dict, in the file's metadata."""
+    meta = {"format": CHECKPOINT_FORMAT, "state": json.dumps(state)}
+    blob = save_safetensors({k: v.detach().contiguous() for k, v in tensors.items()}, metadata=meta)
+    return atomic_write(Path(run_dir) / CHECKPOINT, lambda f: f.write(blob))
+
+
+def read_checkpoint(run_dir: str | Path) -> tuple[dict, dict]:
+    """(tensors, state) of RUN_DIR/checkpoint.safetensors (``write_checkpoint``'s). ModelError naming
+    the file when it is absent (no training to resume: it is removed once the run is written) or unreadable."""
+    path = Path(run_dir) / CHECKPOINT
+    if not path.is_file():
+        raise ModelError(
+            f"{path}: no checkpoint, so no training to resume (`dimenet train` writes one each epoch and "
+            "removes it once the run is written)"
+        )
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+        if meta.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"format {meta.get('format')!r}, not {CHECKPOINT_FORMAT}")
+        state = json.loads(meta["state"])
+    except Exception as exc:  # safetensors raises its own error types for corrupt files
+        raise ModelError(f"{path}: unreadable checkpoint ({type(exc).__name__}: {exc})") from None
+    return tensors, state

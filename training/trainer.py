@@ -22,6 +22,7 @@ those of two objects under label noise.
 from __future__ import annotations
 
 import hashlib
+import json
 import time
 from collections.abc import Sequence
 from contextlib import contextmanager
@@ -47,7 +48,7 @@ from . import bpnp
 from .config import TrainConfig
 from .init_weights import InitialWeights
 from .model import dime_net
-from .run_dir import write_run
+from .run_dir import CHECKPOINT, read_checkpoint, write_checkpoint, write_run
 from .uncertainty import uncertainty_fields
 from .units import Unit, augment, first_train_frames, k_bounds, parameter_bounds, resynthesise, training_unit
 
@@ -123,6 +124,8 @@ def train(
     dataset_sha256: str = "",
     command: str = "",
     init: Optional[InitialWeights] = None,
+    origin: Optional[dict] = None,
+    resume: bool = False,
 ) -> TrainResult:
     """Train on the dataset's train split and write RUN_DIR (weights, spec.json, curve.png).
 
@@ -130,9 +133,16 @@ def train(
     family), or ``init`` from a generic model: a generic model (canonical fx
     ``GENERIC_FOCAL_PX``, scale-free depth ``GENERIC_DEPTH_MM``; the init's, when given), each
     dataset calibrated on its own train split. ``init`` starts from a model's weights (its
-    grid, variant and hidden sizes replace the config's)."""
+    grid, variant and hidden sizes replace the config's).
+
+    After each epoch RUN_DIR/checkpoint.safetensors holds the training's whole state (weights, the best
+    epoch's, the optimizer's and the scheduler's state, both random generators, the history), written
+    atomically and removed once the run is written; ``origin`` (the data and init paths, JSON) rides in
+    it for `dimenet train --resume`. ``resume`` continues from it: the same config, data and init give
+    the same weights, bit for bit, as a training never stopped (InputError when the checkpoint is of
+    another training)."""
     with torch_threads(1):
-        return _train(dataset, config, run_dir, dataset_sha256, command, init)
+        return _train(dataset, config, run_dir, dataset_sha256, command, init, origin or {}, resume)
 
 
 def _feature_spec(config: TrainConfig, generic: bool, init: Optional[InitialWeights]) -> FeatureSpec:
@@ -179,7 +189,67 @@ def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec, K_c: Option
     return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c), kept
 
 
-def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command: str, init) -> TrainResult:
+def _identity(config: TrainConfig, dataset_sha256: str, init: Optional[InitialWeights]) -> dict:
+    """What a checkpoint must share with the training that resumes it (JSON's own values: tuples as lists)."""
+    return json.loads(
+        json.dumps({"config": asdict(config), "dataset_sha256": dataset_sha256, "init": init and init.source})
+    )
+
+
+def _checkpoint(run_dir, epoch: int, model, opt, sched, rng, best: tuple, history: list, record: dict) -> None:
+    """Write the state after ``epoch`` (``run_dir.write_checkpoint``), with ``record``: the training's
+    identity (``_identity``), its origin and command."""
+    opt_state = opt.state_dict()
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    if best[2] is not None:
+        tensors.update({f"best.{k}": v for k, v in best[2].items()})
+    tensors.update({f"optimizer.{i}.{name}": v for i, state in opt_state["state"].items() for name, v in state.items()})
+    tensors["torch_rng"] = torch.get_rng_state()
+    state = {
+        **record,
+        "epoch": epoch,
+        "best_val_e": best[0],
+        "best_epoch": best[1],
+        "history": history,
+        "param_groups": opt_state["param_groups"],
+        "scheduler": sched.state_dict(),
+        "numpy_rng": rng.bit_generator.state,
+    }
+    write_checkpoint(run_dir, tensors, state)
+
+
+def _resumed(run_dir, model, opt, sched, rng, identity: dict) -> tuple[int, tuple, list]:
+    """Load RUN_DIR's checkpoint into the model, optimizer, scheduler and random generators; (the epoch
+    it was written after, best, history). InputError when it is of another training."""
+    tensors, state = read_checkpoint(run_dir)
+    differs = [k for k in identity if state.get(k) != identity[k]]
+    if differs:
+        raise InputError(
+            f"{Path(run_dir) / CHECKPOINT}: the checkpoint of another training ({', '.join(differs)} differ): resume "
+            "with the settings, data and init it was written with (`dimenet train --resume RUN_DIR` reads them)"
+        )
+    part = lambda prefix: {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}  # noqa: E731
+    model.load_state_dict(part("model."))
+    fresh = opt.state_dict()["param_groups"]
+    groups = [
+        {k: tuple(v) if isinstance(g0.get(k), tuple) else v for k, v in g.items()}
+        for g, g0 in zip(state["param_groups"], fresh)
+    ]
+    opt_tensors = {}
+    for key, v in part("optimizer.").items():
+        index, name = key.split(".", 1)
+        opt_tensors.setdefault(int(index), {})[name] = v
+    opt.load_state_dict({"state": opt_tensors, "param_groups": groups})
+    sched.load_state_dict(state["scheduler"])
+    rng.bit_generator.state = state["numpy_rng"]
+    torch.set_rng_state(tensors["torch_rng"])
+    best = (state["best_val_e"], state["best_epoch"], part("best.") or None)
+    return state["epoch"], best, state["history"]
+
+
+def _train(
+    datasets, config: TrainConfig, run_dir, dataset_sha256: str, command: str, init, origin: dict, resume: bool
+) -> TrainResult:
     start = time.monotonic()
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
@@ -215,9 +285,12 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     lr = config.lr if init is None else config.fine_tune_lr
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=config.epochs)
-    best = (np.inf, 0, None)
-    history = []
-    for epoch in progress(range(1, config.epochs + 1), desc="train"):
+    identity = _identity(config, dataset_sha256, init)
+    record = {**identity, "origin": origin, "command": command}
+    done, best, history = 0, (np.inf, 0, None), []
+    if resume:
+        done, best, history = _resumed(run_dir, model, opt, sched, rng, identity)
+    for epoch in progress(range(done + 1, config.epochs + 1), desc="train"):
         parts, delta_f_star, unposed = [], [], 0
         for u, f in zip(units, f_star):
             frames = augment(resynthesise(u.fit, u.truth, rng, config.resynthesis)[0], config, spec_features.grid, rng)
@@ -262,6 +335,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
             best = (val_e, epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
         elif config.patience is not None and epoch - best[1] >= config.patience:
             break
+        _checkpoint(run_dir, epoch, model, opt, sched, rng, best, history, record)
     model.load_state_dict(best[2])
     provenance = {
         "dataset_sha256": dataset_sha256,
@@ -287,6 +361,7 @@ def _train(datasets, config: TrainConfig, run_dir, dataset_sha256: str, command:
     spec = ModelSpec(features=spec_features, hidden=hidden, provenance=provenance, head=head, **camera)
     spec = replace(spec, **uncertainty_fields(model, spec, units, config, init))
     run_dir = write_run(run_dir, model, spec, history)
+    (run_dir / CHECKPOINT).unlink(missing_ok=True)  # the run is written: nothing left to resume
     return TrainResult(
         run_dir=Path(run_dir), best_epoch=best[1], best_val_e=best[0], seconds=time.monotonic() - start, history=history
     )

@@ -78,13 +78,21 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
     return rows
 
 
-def fresh_family(generic: Optional[Predictor] = None) -> list:
-    """rho (rig, all points) of the generic model (default: the bundled one) on each camera of a
-    family it never saw. A job of ``runtime.jobs.engine.run_all`` too (it needs no other result)."""
+def _first(n: int, cameras: Optional[int]) -> int:
+    """The cameras of a held-out family of ``n`` that a run measures: all, or the first ``cameras``
+    (``ReproduceConfig.held_out_cameras``; a family's first m cameras are the family of m)."""
+    return n if cameras is None else min(n, cameras)
+
+
+def fresh_family(generic: Optional[Predictor] = None, cameras: Optional[int] = None) -> list:
+    """rho (rig, all points) of the generic model (default: the bundled one) on each camera (or the first
+    ``cameras``) of a family it never saw. A job of ``runtime.jobs.engine.run_all`` too (it needs no other
+    result)."""
     generic = generic or load_predictor(DEFAULT_NAME)
     rows = []
-    family = simulate_family(FRESH_FAMILY_CAMERAS, FRESH_FAMILY_SEED)
-    for camera, ds in progress(family, total=FRESH_FAMILY_CAMERAS, desc="reproduce: fresh family"):
+    n = _first(FRESH_FAMILY_CAMERAS, cameras)
+    family = simulate_family(n, FRESH_FAMILY_SEED)
+    for camera, ds in progress(family, total=n, desc="reproduce: fresh family"):
         p = generic.for_camera(dataset_camera(ds))
         ev = evaluate(_test(ds, "rig"), p.K_c, p, methods=("dimenet",))
         w, h = camera.image_size_px
@@ -92,18 +100,19 @@ def fresh_family(generic: Optional[Predictor] = None) -> list:
     return rows
 
 
-def fresh_scenes(model: str = DEFAULT_NAME) -> dict:
+def fresh_scenes(model: str = DEFAULT_NAME, cameras: Optional[int] = None) -> dict:
     """A generic model (a bundled model's name, or what ``load_predictor`` takes) on held-out scene
     families: per FRESH_SCENES family and camera, rho of both modes on its rig test frames at every
     point and at SMALL_POINTS; per camera of the FRESH_NATURAL family, rho of both modes on its natural
     test frames (``natural``); and, on the cameras without OIS of OIS_OFF_FAMILY, the share of frames
     whose K (as `rectify` returns it, fallbacks included) is within OIS_OFF_SIGMAS of K_true on every
-    parameter. Each camera's K_c is calibrated on its train split. A job of
-    ``runtime.jobs.engine.run_all`` too."""
+    parameter. Each camera's K_c is calibrated on its train split; ``cameras``: only each family's first
+    (``_first``). A job of ``runtime.jobs.engine.run_all`` too."""
     generic = load_predictor(model)
     out: dict = {}
     for name, (seed, n, fill) in FRESH_SCENES.items():
         rows = []
+        n = _first(n, cameras)
         family = simulate_family(n, seed, scenes="random", fill=fill)
         for i, (camera, ds) in enumerate(progress(family, total=n, desc=f"reproduce: held-out {name} scenes")):
             p = generic.for_camera(dataset_camera(ds))
@@ -115,15 +124,17 @@ def fresh_scenes(model: str = DEFAULT_NAME) -> dict:
                 row[case] = {m: _rho(ev, m) for m in ("dimenet", "map")}
             rows.append(row)
         out[name] = rows
-    out["natural"] = natural_scenes(generic)
-    out["ois_off"] = ois_off_coverage(generic)
+    out["natural"] = natural_scenes(generic, cameras)
+    out["ois_off"] = ois_off_coverage(generic, cameras)
     return out
 
 
-def natural_scenes(generic: Predictor) -> list:
-    """Per camera of the FRESH_NATURAL family: its scene's kind and features, and rho of both modes on its
-    natural test frames (``all``; None where the frames' e_c is within noise of e*: cameras without OIS)."""
+def natural_scenes(generic: Predictor, cameras: Optional[int] = None) -> list:
+    """Per camera of the FRESH_NATURAL family (or its first ``cameras``): its scene's kind and features, and rho
+    of both modes on its natural test frames (``all``; None where the frames' e_c is within noise of e*: cameras
+    without OIS)."""
     seed, n, frames = FRESH_NATURAL
+    n = _first(n, cameras)
     rows = []
     family = simulate_family(n, seed, scenes="random", natural_frames=frames)
     for i, (camera, ds) in enumerate(progress(family, total=n, desc="reproduce: held-out natural scenes")):
@@ -143,14 +154,15 @@ def natural_scenes(generic: Predictor) -> list:
     return rows
 
 
-def ois_off_coverage(generic: Predictor) -> dict:
-    """On the cameras without OIS of OIS_OFF_FAMILY, K_c calibrated on each camera's train split: per mode, the
-    frames and the share of them whose move |K - K_c| is within OIS_OFF_SIGMAS on every parameter (``within``:
-    with no OIS the right move is none), the share whose K is within OIS_OFF_SIGMAS of K_true (``within_true``:
-    K_c's own calibration error counts there too), and how many kept K_c."""
+def ois_off_coverage(generic: Predictor, cameras: Optional[int] = None) -> dict:
+    """On the cameras without OIS of OIS_OFF_FAMILY (or the first ``cameras`` of them), K_c calibrated on each
+    camera's train split: per mode, the frames and the share of them whose move |K - K_c| is within OIS_OFF_SIGMAS
+    on every parameter (``within``: with no OIS the right move is none), the share whose K is within
+    OIS_OFF_SIGMAS of K_true (``within_true``: K_c's own calibration error counts there too), and how many kept
+    K_c."""
     seed, n = OIS_OFF_FAMILY
     profiles = family_profiles(n, seed)
-    off = [i for i in range(n) if not has_ois(seed, i)]
+    off = [i for i in range(n) if not has_ois(seed, i)][: _first(n, cameras)]
     within = {"dimenet": [], "map": []}
     within_true = {"dimenet": [], "map": []}
     kept = {"dimenet": 0, "map": 0}

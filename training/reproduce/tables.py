@@ -158,8 +158,8 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     scene_jobs = {model: f"fresh scenes {model}" for model in BUNDLED_MODELS}  # each bundled model's job name
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
         trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
-        trainings["fresh family"] = ("fresh_family",)
-        trainings.update({job: ("fresh_scenes", model) for model, job in scene_jobs.items()})
+        trainings["fresh family"] = ("fresh_family", None, config.held_out_cameras)
+        trainings.update({job: ("fresh_scenes", model, config.held_out_cameras) for model, job in scene_jobs.items()})
     cases = _baseline_cases(data, config)
     with Engine(address) as engine:  # one Ray session for both batches
         trained = _run_jobs(engine, trainings, cpus_per_job, "reproduce: training")
