@@ -68,11 +68,14 @@ def _model_bytes(source: str, opset: int) -> bytes:
 
 def _run_export(args: argparse.Namespace) -> int:
     from dimenet.runtime.rectify.model import BUNDLED_MODELS
-    from dimenet.training.run_dir import SPEC, WEIGHTS
 
     if (args.out is None) == (args.golden is None):
         raise CliError("dimenet export: give --out FILE.onnx (a model) or --golden DIR (golden vectors), one of them")
-    inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + [("SOURCE", Path(args.source))]
+    inputs = [("SOURCE", Path(args.source))]
+    if args.source not in BUNDLED_MODELS and Path(args.source).is_dir():  # a RUN_DIR (torch reads it): its files too
+        from dimenet.training.run_dir import SPEC, WEIGHTS
+
+        inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + inputs
     if args.golden is not None:
         from .golden import GOLDEN_FILE, write_golden
 

@@ -39,7 +39,7 @@ FLAGS = {
         "other": "--suite --split --drop --noise-2d --noise-3d --eta --grid --seed --methods --json",
     },
     "export": {"--out": OUT, "--golden": OUT, "source": IN, "other": "--graph --format --opset"},
-    "fleet": {"--out": OUT, "manifest": IN, "other": "action --address --cpus-per-job"},
+    "fleet": {"--out": OUT, "manifest": IN, "other": "action --quick --address --cpus-per-job"},
     "ingest": {
         "--out": OUT,
         "photos": IN,
@@ -58,7 +58,10 @@ FLAGS = {
         "other": "--example --mode --refine --json",
     },
     "render": {"--out": OUT, "--rig": IN, "other": "--profile --n --seed --format --scale --dist-coeffs"},
-    "reproduce": {"--out": OUT, "other": "--data-step --epochs --ablation-epochs --seed --address --cpus-per-job"},
+    "reproduce": {
+        "--out": OUT,
+        "other": "--data-step --epochs --ablation-epochs --seed --quick --address --cpus-per-job",
+    },
     "simulate": {
         "--out": OUT,
         "other": "--profile --family --scenes --seed --natural-frames --planar-frames --dist-coeffs --platform-k "
@@ -66,14 +69,23 @@ FLAGS = {
     },
     "train": {
         "--out": OUT,
+        "--resume": OUT,  # the run it continues (its checkpoint names the data and init)
         "data": IN,
         "--init": IN,
-        "other": "--grid --features --data-step --moments --head --epochs --seed --focal-weight --k-c-error "
+        "other": "--quick --grid --features --data-step --moments --head --epochs --seed --focal-weight --k-c-error "
         "--plane-share --train-frames",
     },
 }
 # Pairs no command line can hold together: the argv that tries, and the line refusing it.
+RESUME_ALONE = (
+    "but a resumed training keeps the data, init and settings its checkpoint holds: give --resume RUN_DIR alone"
+)
 UNREACHABLE = {
+    ("train", "--resume", "data"): ("train --resume d s8.npz", f"dimenet train --resume: DATA given, {RESUME_ALONE}"),
+    ("train", "--resume", "--init"): (
+        "train --resume d --init model.onnx",
+        f"dimenet train --resume: --init given, {RESUME_ALONE}",
+    ),
     ("bench", "--ingest", "--model"): (
         "bench --ingest d --model model.onnx",
         "dimenet bench: --model applies only to the latency bench (without --ingest, --bpnp, --fuzz or --stream) "
