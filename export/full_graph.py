@@ -6,13 +6,17 @@ runs it with ONNX Runtime and keeps only the two PnP solves and the fallback rul
 Inputs (one frame of N points; double unless said):
 - ``points_2d`` [N, 2] px, the user's image (OpenCV: the centre of the top-left pixel at (0, 0));
 - ``points_3d`` [N, 3] in {W}, any unit;
-- ``mask`` bool [N], the inference points;
+- ``mask`` bool [N], the inference points; the others may hold anything (NaN, inf, the camera centre) and
+  change nothing;
 - ``K_c`` [3, 3] px and ``image_size`` [2] (width, height) px, the user's camera;
 - ``rvec``, ``tvec`` [3], the pose {W}->{C0} from the app's own SQPnP under K_c.
 Outputs: ``delta_k`` [4] (fx, fy, cx, cy) px and ``K`` [3, 3] px in the user's pixels (K = K_c +
 Delta K, before the fallback rules), ``features`` float [1, D], what the network read, and (for a
 model with an uncertainty model) ``sigma`` [4] px, the standard deviations of Delta K
-(``Uncertainty.frame_covariance``; K_cov = sigma sigma^T * the spec's correlation).
+(``Uncertainty.frame_covariance``; K_cov = sigma sigma^T * the spec's correlation). Without an inference
+point (N = 0, or no mask set): Delta K = 0, K = K_c and sigma the population's (``population_sigma_px``),
+as for a frame that keeps K_c. Parity with the runtime: ``export.golden.parity_px`` (models_spec/model-v1.md,
+"The full graph's contract").
 
 The graph computes what ``rectify.features.grid_features`` and the pixel map compute, in double:
 the canonical camera (scale s = focal_px / fx_c, ``rectify.user_camera.generic_pixel_map``), the
@@ -102,13 +106,13 @@ def _rotation(g: _Builder, rvec: str) -> str:
     return g.op("Add", g.op("Add", g.const(np.eye(3)), g.op("Mul", a, rx)), g.op("Mul", b, rx2))
 
 
-def _thickness(g: _Builder, weight: str, n: str) -> str:
+def _thickness(g: _Builder, points_3d: str, weight: str, n: str) -> str:
     """``rectify.uncertainty.thickness`` of the masked 3D points (``n`` of them): det(C) tr(C) / e2(C)^2
     of their covariance C, clipped to [0, 1/3], 0 when e2 = 0."""
     ax0 = g.const([0], "ax", np.int64)
     w = g.op("Unsqueeze", weight, g.const([1], "ax", np.int64))
-    mean = g.op("Div", g.op("ReduceSum", g.op("Mul", "points_3d", w), ax0, keepdims=1), n)
-    centred = g.op("Sub", "points_3d", mean)
+    mean = g.op("Div", g.op("ReduceSum", g.op("Mul", points_3d, w), ax0, keepdims=1), n)
+    centred = g.op("Sub", points_3d, mean)
     cov = g.op("Div", g.op("MatMul", g.op("Transpose", g.op("Mul", centred, w), perm=[1, 0]), centred), n)
     a, b, c, d, e, f = (
         g.op("Gather", g.op("Reshape", cov, g.const([9], "shape", np.int64)), g.const(k, "i", np.int64))
@@ -126,7 +130,7 @@ def _thickness(g: _Builder, weight: str, n: str) -> str:
     return g.op("Where", positive, g.op("Min", ratio, g.const(1 / 3)), g.const(0.0))
 
 
-def _sigma(g: _Builder, spec, weight: str, n: str, dx: str, dy: str, counts: str) -> str:
+def _sigma(g: _Builder, spec, points_3d: str, weight: str, n: str, dx: str, dy: str, counts: str) -> str:
     """sigma [4] model px of ``Uncertainty.frame_covariance``: exp(coef . z), z = [1, then the spec's
     statistics among log n, log occupied cells, log max(mean PMD, D_FLOOR_PX), log max(thickness, T_FLOOR)]."""
     ax0 = g.const([0], "ax", np.int64)
@@ -142,7 +146,7 @@ def _sigma(g: _Builder, spec, weight: str, n: str, dx: str, dy: str, counts: str
         "log_points": g.op("Log", n),
         "log_cells": g.op("Log", occupied),
         "log_pmd": g.op("Log", g.op("Max", pmd, g.const(D_FLOOR_PX))),
-        "log_thickness": g.op("Log", g.op("Max", _thickness(g, weight, n), g.const(T_FLOOR))),
+        "log_thickness": g.op("Log", g.op("Max", _thickness(g, points_3d, weight, n), g.const(T_FLOOR))),
     }
     z = g.op(
         "Concat", g.const([1.0]), *(g.op("Unsqueeze", logs[name], ax0) for name in spec.uncertainty.statistics), axis=0
@@ -150,11 +154,15 @@ def _sigma(g: _Builder, spec, weight: str, n: str, dx: str, dy: str, counts: str
     return g.op("Exp", g.op("MatMul", g.const(spec.uncertainty.coef), z))
 
 
-def _inverse(g: _Builder, m: str, n: int) -> str:
-    """The inverse of a symmetric positive definite [n, n] matrix: Gauss-Jordan elimination without
-    pivoting on [m | I], unrolled (the data step's 10 x 10 Hessians; OpenCV's Cholesky in Python)."""
-    aug = g.op("Concat", m, g.const(np.eye(n)), axis=1)
+def _inverse(g: _Builder, h: str, n: int) -> str:
+    """The inverse of a symmetric positive definite [n, n] matrix h as ``geometry.prior_posterior``
+    takes it: its diagonal scaled to 1 (D h D, D = diag(h)^-1/2), inverted by Gauss-Jordan elimination
+    without pivoting on [D h D | I], unrolled (OpenCV's Cholesky in Python), then D (D h D)^-1 D."""
     ax0, ax1 = g.const([0], "ax", np.int64), g.const([1], "ax", np.int64)
+    diagonal = g.op("ReduceSum", g.op("Mul", h, g.const(np.eye(n))), ax1, keepdims=0)
+    d = g.op("Div", g.const(1.0), g.op("Sqrt", diagonal))
+    scale = g.op("Mul", g.op("Unsqueeze", d, ax1), g.op("Unsqueeze", d, ax0))  # D_ii D_jj
+    aug = g.op("Concat", g.op("Mul", h, scale), g.const(np.eye(n)), axis=1)
     for k in range(n):
         k_index = g.const(k, "i", np.int64)
         row = g.op("Gather", aug, k_index, axis=0)
@@ -163,7 +171,7 @@ def _inverse(g: _Builder, m: str, n: int) -> str:
         unit = np.zeros((n, 1))
         unit[k] = 1.0
         aug = g.op("Sub", aug, g.op("Mul", g.op("Sub", column, g.const(unit)), g.op("Unsqueeze", row, ax0)))
-    return g.op("Slice", aug, g.const([n], "s", np.int64), g.const([2 * n], "e", np.int64), ax1)
+    return g.op("Mul", g.op("Slice", aug, g.const([n], "s", np.int64), g.const([2 * n], "e", np.int64), ax1), scale)
 
 
 def _gram(g: _Builder, weight: str, ab_inv_z: tuple, residuals: tuple) -> str:
@@ -273,15 +281,21 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
     # The canonical camera: s = focal_px / fx_c; x_model = s (x + 0.5) - 0.5; K_c likewise.
     fx_c = g.op("Gather", g.op("Reshape", "K_c", g.const([9], "shape", np.int64)), g.const([0, 4, 2, 5], "k", np.int64))
     s = g.op("Div", g.const(spec.generic.focal_px), g.op("Gather", fx_c, g.const(0, "i", np.int64)))
+    # Masked points may hold anything (NaN, inf, the camera centre) and change nothing: their values are
+    # replaced (Where, no arithmetic) before any arithmetic, and their {C0} points by (0, 0, 1).
+    keep = g.op("Unsqueeze", "mask", g.const([1], "ax", np.int64))
+    points_2d = g.op("Where", keep, "points_2d", g.const(0.0))
+    points_3d = g.op("Where", keep, "points_3d", g.const(0.0))
     half = g.const(0.5)
-    p2 = g.op("Sub", g.op("Mul", s, g.op("Add", "points_2d", half)), half)
+    p2 = g.op("Sub", g.op("Mul", s, g.op("Add", points_2d, half)), half)
     k_model = g.op(
         "Sub", g.op("Mul", s, g.op("Add", fx_c, g.const([0.0, 0.0, 0.5, 0.5]))), g.const([0.0, 0.0, 0.5, 0.5])
     )
     size = g.op("Mul", s, "image_size")
     # Points in {C0} and their projection under K_c (model px).
     R = _rotation(g, "rvec")
-    xc = g.op("Add", g.op("MatMul", "points_3d", g.op("Transpose", R, perm=[1, 0])), "tvec")
+    xc = g.op("Add", g.op("MatMul", points_3d, g.op("Transpose", R, perm=[1, 0])), "tvec")
+    xc = g.op("Where", keep, xc, g.const([0.0, 0.0, 1.0]))
     X, Y, Z = (g.column(xc, k) for k in range(3))
     inv_z = g.op("Div", g.const(1.0), Z)
     fx, fy, cx, cy = (g.op("Gather", k_model, g.const(k, "i", np.int64)) for k in range(4))
@@ -299,6 +313,8 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
     n_cells = cols * rows
     weight = g.op("Cast", "mask", to=TensorProto.DOUBLE)
     n = g.op("ReduceSum", weight, g.const([0], "ax", np.int64), keepdims=0)  # the inference points
+    # No inference point (N = 0 or an all-false mask): Delta K = 0, sigma the population's, features 0.
+    some = g.op("Greater", n, g.const(0.0))
     one_hot = g.op(
         "Mul",
         g.op(
@@ -334,7 +350,7 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
     if features.moments:
         moments = _moments(g, G, n, features.scale["dx"])
         flat = g.op("Concat", flat, g.op("Unsqueeze", moments, g.const([0], "ax", np.int64)), axis=1)
-    feats32 = g.op("Cast", flat, to=TensorProto.FLOAT)
+    feats32 = g.op("Cast", g.op("Where", some, flat, g.const(0.0)), to=TensorProto.FLOAT)
     g.nodes.append(helper.make_node("Identity", [feats32], ["features"]))
     # The model's MLP, its names prefixed, reading the feature.
     rename = {INPUT_NAME: "features", OUTPUT_NAME: "mlp/delta_k"}
@@ -350,11 +366,14 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
         copy.input[:] = [rename.setdefault(i, f"mlp/{i}") for i in node.input]
         copy.output[:] = [rename.setdefault(o, f"mlp/{o}") for o in node.output]
         g.nodes.append(copy)
-    sigma = _sigma(g, spec, weight, n, dx, dy, counts) if spec.uncertainty is not None else None
+    sigma = None
+    if spec.uncertainty is not None:
+        population = spec.uncertainty.population_sigma_px  # None (spec < 1.6): NaN, as the runtime's K_cov
+        population = np.full(4, np.nan) if population is None else population
+        sigma = g.op("Where", some, _sigma(g, spec, points_3d, weight, n, dx, dy, counts), g.const(population))
     # Back to the user's pixels: Delta K / s, K = K_c + Delta K.
-    delta = g.op(
-        "Div", g.op("Reshape", g.op("Cast", "mlp/delta_k", to=TensorProto.DOUBLE), g.const([4], "shape", np.int64)), s
-    )
+    delta = g.op("Reshape", g.op("Cast", "mlp/delta_k", to=TensorProto.DOUBLE), g.const([4], "shape", np.int64))
+    delta = g.op("Div", g.op("Where", some, delta, g.const(0.0)), s)
     g.nodes.append(helper.make_node("Identity", [delta], ["delta_k"]))
     place = np.zeros((4, 9))
     place[0, 0] = place[1, 4] = place[2, 2] = place[3, 5] = 1.0

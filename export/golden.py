@@ -27,6 +27,10 @@ from dimenet.runtime.sim.family import family_member, family_profiles
 from dimenet.runtime.sim.simulator import simulate
 
 FORMAT = "dimenet-golden/1"
+# The parity bound (px) the runtime, the full graph and a port are held to (models_spec/model-v1.md, "Parity"):
+# two float32 steps (2^-22 of it) of a Delta K of 128 px. export/node_runner/run.mjs's TOLERANCE_PX is this number.
+PARITY_PX = 2.0**-15
+PARITY_DELTA_PX = 128.0
 GOLDEN_FILE = "golden.json"
 FAMILY_SEED, FAMILY_CAMERAS = 303, 4  # a family no model trains on (train: 0; held-out families 101, 202)
 # The family's frames, per camera: test frames; camera 2's 83 the bundled model's K_c keeps by the structure rule,
@@ -102,6 +106,12 @@ def golden_frames() -> list[GoldenFrame]:
         )
     )
     return frames
+
+
+def parity_px(delta_k) -> float:
+    """The parity bound (px) of a frame whose Delta K (px) is ``delta_k``: PARITY_PX, or where its largest
+    |Delta K| is above PARITY_DELTA_PX two float32 steps of it (the network's Delta K is a float32)."""
+    return PARITY_PX * max(1.0, float(np.abs(delta_k).max()) / PARITY_DELTA_PX)
 
 
 def expected(rect: Rectifier, frame: GoldenFrame) -> dict:

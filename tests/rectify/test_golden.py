@@ -1,9 +1,9 @@
 """The runtime against the committed golden vectors of each bundled model (models_spec/golden/golden.json,
 written by `dimenet export default --golden models_spec/golden`, and models_spec/golden/any-scene/golden.json
 by `dimenet export any-scene --golden models_spec/golden/any-scene`): the network's Delta K, K and sigma at
-the stored C0 pose, and rectify's K, fallback and errors, each within 1e-6 px. A change of a bundled model,
-the feature, a rule or the simulator that moves any of them fails here until the golden set is written
-again."""
+the stored C0 pose, and rectify's K, fallback and errors, each within the parity bound (PARITY_PX,
+models_spec/model-v1.md, "Parity"). A change of a bundled model, the feature, a rule or the simulator that
+moves any of them fails here until the golden set is written again."""
 
 from __future__ import annotations
 
@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dimenet.export.golden import PARITY_PX as TOLERANCE_PX
 from dimenet.runtime.rectify.model import bundled_source, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 
 GOLDEN_DIR = Path(__file__).resolve().parents[2] / "models_spec" / "golden"
 GOLDEN = {"default": GOLDEN_DIR / "golden.json", "any-scene": GOLDEN_DIR / "any-scene" / "golden.json"}
-TOLERANCE_PX = 1e-6
 
 
 @pytest.fixture(scope="module")
