@@ -28,9 +28,11 @@ from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import load_rig
+from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, solve_pnp_start
 from dimenet.runtime.rectify.model import bundled_model_bytes, onnx_model_from_bytes
 from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES
 from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.user_camera import checked_camera
 
 OUTCOMES = ("typed", "ok", "crash", "silent-wrong")
 
@@ -168,6 +170,124 @@ def fuzz_rectifier(rect: Rectifier, frames, n_cases: int, rng: np.random.Generat
             report.add("rectify_batch", name, outcome, detail)
 
 
+def _masked_garbage(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, rvec, tvec, k: int) -> tuple:
+    """The frame's points with ``k`` masked points put among them, holding NaN, inf or a huge value, or in
+    3D the camera centre at the pose: (points_2d, points_3d, mask)."""
+    centre = -cv2.Rodrigues(rvec)[0].T @ tvec
+    junk_2d = rng.choice([np.nan, np.inf, -np.inf, 1e300], (k, 2))
+    junk_3d = np.where(rng.random((k, 1)) < 0.5, centre, rng.choice([np.nan, np.inf, -np.inf, 1e300], (k, 3)))
+    order = rng.permutation(len(x) + k)
+    return np.r_[x, junk_2d][order], np.r_[X, junk_3d][order], np.r_[np.ones(len(x), bool), np.zeros(k, bool)][order]
+
+
+def _graph_frames(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: np.ndarray) -> Iterator:
+    """(name, points_2d, points_3d) for the full graph from one frame's inference points: as they are,
+    a random subset, in another unit, and ``_frame_variants``'s hostile frames that are (N, 2) and (N, 3)
+    numbers (the others are the rectifier's input rules, which come before the graph)."""
+    n = len(x)
+    subset = np.sort(rng.choice(n, int(rng.integers(min(MIN_POINTS, n), n + 1)), replace=False))
+    unit = float(rng.uniform(-6, 8))
+    yield "as simulated", x, X
+    yield "a subset", x[subset], X[subset]
+    yield f"3D unit 1e{unit:.1f}", x, X * 10.0**unit
+    for name, p2, p3 in _frame_variants(rng, x, X, K):
+        try:
+            p2, p3 = np.asarray(p2, np.float64), np.asarray(p3, np.float64)
+        except (TypeError, ValueError):
+            continue
+        if p2.shape == (len(p2), 2) and p3.shape == (len(p2), 3):
+            yield name, p2, p3
+
+
+class _Graph:
+    """A generic model's full graph under ONNX Runtime beside the model's ``Rectifier`` for one camera."""
+
+    def __init__(self, session, rect: Rectifier) -> None:
+        self.session, self.rect = session, rect
+        self.names = [o.name for o in session.get_outputs()]
+
+    def run(self, points_2d, points_3d, mask, rvec, tvec) -> dict:
+        feeds = {"points_2d": points_2d, "points_3d": points_3d, "mask": mask, "K_c": self.rect.K_c}
+        feeds |= {"image_size": np.array(self.rect.image_size, np.float64), "rvec": rvec, "tvec": tvec}
+        return dict(zip(self.names, self.session.run(None, feeds)))
+
+    def against_runtime(self, rng: np.random.Generator, p2, p3, garbage: bool) -> tuple:
+        """(the runtime's ``network`` result, the graph's outputs) at the C0 pose, the graph's points with
+        as many masked garbage points as real ones when ``garbage``."""
+        with np.errstate(over="ignore"):  # SQPnP's unit of a 1e300 coordinate (the network refuses the frame)
+            rvec, tvec = solve_pnp_start(p2, p3, self.rect.K_c)
+        net = self.rect.network(p2, p3, rvec, tvec)
+        k = len(p2) if garbage else 0
+        return net, self.run(*_masked_garbage(rng, p2, p3, rvec, tvec, k), rvec, tvec)
+
+    def without_points(self, rng: np.random.Generator, n: int) -> dict:
+        """The graph's outputs for n points all masked, holding garbage, at a random pose."""
+        rvec, tvec = rng.normal(size=3), rng.normal(size=3)
+        return self.run(*_masked_garbage(rng, np.zeros((0, 2)), np.zeros((0, 3)), rvec, tvec, n), rvec, tvec)
+
+
+def fuzz_full_graph(
+    blob: bytes, source: str, frames, n_cases: int, rng: np.random.Generator, report: FuzzReport
+) -> None:
+    """``n_cases`` frames made from ``frames`` (a dataset: each frame's inference points, every scene)
+    through the full graph of the generic model ``blob`` (``export.full_graph``; needs onnx) at the C0
+    pose SQPnP gives under K_c, one in two with masked garbage among the points (``_masked_garbage``),
+    against ``Rectifier.network`` on the same points: ok when ΔK, K and sigma are finite and within the
+    parity bound (``export.golden.parity_px``), typed where the runtime refuses the frame. With each
+    frame, the graph on no point (N = 0, and its points all masked over garbage): ok when ΔK = 0, K = K_c
+    and sigma is the population's (``Rectifier.population_K_cov``), as for a frame that keeps K_c."""
+    import onnxruntime as ort
+
+    from dimenet.export.full_graph import full_graph
+    from dimenet.export.golden import parity_px
+
+    session = ort.InferenceSession(full_graph(blob, source), providers=["CPUExecutionProvider"])
+    model = onnx_model_from_bytes(blob, source)
+    kinds = {str(kind): np.flatnonzero(frames.scene == kind) for kind in np.unique(frames.scene)}
+    done = 0
+    while done < n_cases:
+        kind = str(rng.choice(sorted(kinds)))
+        b = int(rng.choice(kinds[kind]))
+        m = frames.valid[b] & frames.infer_mask[b]
+        x, X, K = frames.points_2d[b][m], frames.points_3d[b][m], frames.K_true[b]
+        K_c = k_matrix(np.round(k_params(K) + rng.normal(0.0, [30.0, 30.0, 15.0, 15.0]), 2))
+        graph = _Graph(session, Rectifier(model, "dimenet", checked_camera(K_c, frames.image_size, "fuzz camera")))
+        for name, p2, p3 in _graph_frames(rng, x, X, K):
+            if done >= n_cases:
+                break
+            done += 1
+            garbage = bool(rng.random() < 0.5)
+            outcome, detail = _outcome(
+                lambda graph=graph, p2=p2, p3=p3, garbage=garbage: graph.against_runtime(rng, p2, p3, garbage),
+                lambda result: _judge_graph(result[1], vars(result[0]), parity_px(result[0].delta_k)),
+            )
+            report.add("full graph", f"{kind}: {name}{', masked garbage' if garbage else ''}", outcome, detail)
+        population = graph.rect.population_K_cov
+        kept = {
+            "delta_k": np.zeros(4),
+            "K": K_c,
+            "sigma": None if population is None else np.sqrt(population.diagonal()),
+        }
+        for name, n in (("N = 0", 0), ("every point masked", len(x))):
+            report.add("full graph", name, *_judge_graph(graph.without_points(rng, n), kept, parity_px(0.0)))
+
+
+def _judge_graph(out: dict, want: dict, bound: float) -> tuple[str, str]:
+    """ok when the graph's outputs (``out``) ΔK, K and sigma are finite and within ``bound`` px of
+    ``want``'s (a sigma of None: nothing to compare)."""
+    worst = 0.0
+    for key in ("delta_k", "K", "sigma"):
+        value, got = want[key], out.get(key)
+        if value is None:
+            continue
+        if not np.isfinite(got).all():
+            return "silent-wrong", f"{key} {got.tolist()}, not finite"
+        worst = max(worst, float(np.abs(got - value).max()))
+    if worst <= bound:
+        return "ok", ""
+    return "silent-wrong", f"{worst:.3g} px from the runtime's (bound {bound:g} px)"
+
+
 def _mutations(rng: np.random.Generator, blob: bytes) -> Iterator[tuple[str, bytes]]:
     """Byte-level mutations of a file: bit flips, truncation, a zeroed or random run, appended junk."""
     n = len(blob)
@@ -279,3 +399,29 @@ def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, repor
         case, data = next(crafted)
         outcome, detail = _outcome(lambda data=data: onnx_model_from_bytes(data, "crafted.onnx"), _refused)
         report.add("crafted model", case, outcome, detail)
+
+
+def fuzz_ort_file(blob: bytes, source: str, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
+    """``n_cases`` byte mutations (``_mutations``) of the model's ORT-format file (`dimenet export --format
+    ort`, ``export.onnx_export.ort_format_bytes``: needs torch and onnx) through the runtime's loader: each
+    must end in a typed error or load as a model whose Delta K on probe features is the original's, bit
+    for bit; a model that loads and gives another is silent-wrong."""
+    from dimenet.export.onnx_export import ort_format_bytes
+
+    original = ort_format_bytes(blob, source)
+    model = onnx_model_from_bytes(original, "model.ort")
+    probe = rng.normal(size=(8, model.spec.features.size)).astype(np.float32)
+    want = model.delta_k(probe)
+
+    def same_delta_k(got: np.ndarray) -> tuple[str, str]:
+        if np.array_equal(got, want):
+            return "ok", ""
+        return "silent-wrong", f"loaded; Delta K up to {np.nanmax(np.abs(got - want)):.3g} px off the original's"
+
+    mutations = _mutations(rng, original)
+    for _ in range(n_cases):
+        case, data = next(mutations)
+        outcome, detail = _outcome(
+            lambda data=data: onnx_model_from_bytes(data, "mutated.ort").delta_k(probe), same_delta_k
+        )
+        report.add(".ort file", case, outcome, detail)

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+from helpers import importable
 
 from dimenet.runtime.cli.commands import bench as bench_command
 from dimenet.runtime.cli.main import main
@@ -87,7 +88,10 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
         "rig file",
         "camera file",
         "crafted model",
+    } | {
+        area for area, modules in (("full graph", ("onnx",)), (".ort file", ("onnx", "torch"))) if importable(*modules)
     }
+    assert len(report["skipped"]) == 2 - importable("onnx") - importable("onnx", "torch")  # a line per area skipped
     assert sum(report["counts"]["rectify"].values()) == 24  # 12 per mode
     assert report["failures"] == [] and all("crash" not in c for c in report["counts"].values())
     assert main(["bench", "--fuzz", "3", "--bpnp"]) == 2

@@ -3,10 +3,10 @@
 photos against the renderer's truth (runtime/bench/ingest.py); with ``--bpnp``, forward +
 backward of the BPnP layer against a BPnP_fast-style baseline (the ``bpnp`` entry point of the
 ``dimenet.benches`` group, training/bench_bpnp.py: needs the train extra, loaded only then, so the
-runtime never imports torch or the training package); with ``--fuzz N``,
-hostile input through the rectifier and the readers (runtime/bench/fuzz.py); with
-``--stream N``, `dimenet rectify --points` on an N-frame points CSV of the bundled example's
-frames: frames/s and peak memory (runtime/bench/streaming.py)."""
+runtime never imports torch or the training package); with ``--fuzz N``, hostile input through the
+rectifier, the readers and, where onnx is installed, the full graph and the .ort loader
+(runtime/bench/fuzz.py); with ``--stream N``, `dimenet rectify --points` on an N-frame points CSV of the
+bundled example's frames: frames/s and peak memory (runtime/bench/streaming.py)."""
 
 from __future__ import annotations
 
@@ -137,7 +137,9 @@ def _add_fuzz(p: argparse.ArgumentParser) -> None:
         "fuzz (--fuzz N)",
         "N hostile frames through the rectifier (modes dimenet and map, one by one and in batches) and N "
         "mutated files of each kind (dataset, model, rig) through their readers: each must end in a typed "
-        "error or in no confident wrong K; exit 1 when one does not (--seed and --model apply)",
+        "error or in no confident wrong K; with onnx, N frames through the model's full graph (within the "
+        "parity bound of the runtime, masked garbage and no point included), and with torch too N mutated "
+        ".ort files (a typed error or the original's Delta K); exit 1 when one does not (--seed and --model apply)",
     )
     fuzz.add_argument("--fuzz", type=integer_in(1, MAX_FUZZ_CASES), metavar="N", help="cases per area")
 
@@ -193,29 +195,64 @@ def _run_stream(args: argparse.Namespace) -> int:
 
 def _run_fuzz(args: argparse.Namespace) -> int:
     import tempfile
+    from pathlib import Path
 
     import numpy as np
 
-    from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_rectifier
+    from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_full_graph, fuzz_ort_file, fuzz_rectifier
     from dimenet.runtime.bench.latency import bench_rectifier
-    from dimenet.runtime.rectify.model import load_model
+    from dimenet.runtime.errors import DimenetError
+    from dimenet.runtime.rectify.model import (
+        BUNDLED_MODELS,
+        DEFAULT_NAME,
+        bundled_model_bytes,
+        load_model,
+        read_model_file,
+    )
     from dimenet.runtime.sim.simulator import simulate
 
     o = _options(args, FUZZ)
     rng = np.random.default_rng(o["seed"])
-    frames = simulate("galaxy-s8", seed=o["seed"])
+    # Rig frames for the rectifier (the other scenes change none of them), every scene for the full graph.
+    frames = simulate("galaxy-s8", seed=o["seed"], natural_frames=6, planar_frames=6)
     report = FuzzReport()
     model = load_model(o["model"])
     for mode in ("dimenet", "map"):
         fuzz_rectifier(bench_rectifier(model, mode, frames), frames, args.fuzz, rng, report)
     with tempfile.TemporaryDirectory() as folder:
         fuzz_files(folder, args.fuzz, rng, report)
+    name = DEFAULT_NAME if o["model"] is None else o["model"]
+    blob = bundled_model_bytes(name) if name in BUNDLED_MODELS else read_model_file(Path(name))
+    graph = _skipped("full graph", ("onnx",), "export")
+    if not graph and model.spec.generic is None:
+        graph = f"full graph: skipped, {model.source} is a device model (the full graph holds generic models)"
+    if not graph:
+        fuzz_full_graph(blob, model.source, frames, args.fuzz, rng, report)
+    ort_file = _skipped(".ort file", ("torch", "onnx"), "train")  # the .ort conversion sits beside the torch export
+    if not ort_file:  # last: the .ort format's checks
+        try:
+            fuzz_ort_file(blob, model.source, args.fuzz, rng, report)
+        except DimenetError as exc:  # a model the conversion refuses (a spec before 1.9)
+            ort_file = f".ort file: skipped, {exc}"
+    skipped = [line for line in (graph, ort_file) if line]
     counts = {area: dict(c) for area, c in report.counts.items()}
     if args.json:
-        print(json.dumps({"model": model.source, "counts": counts, "failures": report.failures}))
+        print(json.dumps({"model": model.source, "counts": counts, "failures": report.failures, "skipped": skipped}))
     else:
-        print(f"model {model.source}\n{report.table()}")
+        print("\n".join([f"model {model.source}", report.table(), *skipped]))
     return 1 if report.bad else 0
+
+
+def _skipped(area: str, modules: tuple, extra: str) -> str:
+    """'' when ``modules`` are installed, else the line saying the fuzz skips ``area`` and the install it needs."""
+    from importlib.util import find_spec
+
+    from dimenet.runtime.cli.extras import install_command
+
+    missing = [m for m in modules if find_spec(m) is None]
+    if not missing:
+        return ""
+    return f"{area}: skipped, it needs {' and '.join(missing)} (the {extra} extra): {install_command((extra,))}"
 
 
 def _run_latency(args: argparse.Namespace) -> int:
