@@ -49,12 +49,17 @@ class SuiteSet:
     published_k: Optional[tuple] = None
 
 
-# The sets of ../shared/real-photos (its README gives sources, licences and calibrations).
+# The sets of ../shared/real-photos (sources, licences and layout: README.md, "Real photos"; their calibrations:
+# that folder's README).
 SETS = (
     SuiteSet("ortho-left", "ortho", ("left.jpg", "left_calib.jpg"), "K_star", (1649.4, 1654.1, 793.3, 614.4)),
     SuiteSet("ortho-right", "ortho", ("right.jpg", "right_calib.jpg"), "K_star", (1631.7, 1625.7, 789.1, 634.8)),
     SuiteSet("huawei-y5", "huawei-y5", ("*.jpg",), "K_c"),
 )
+# Beside each folder's photos, its rig (dimenet-rig/1): the bundled asset of that folder, which
+# `dimenet samples` writes there (the photos are the sets' own, never the project's).
+RIG_FILE = "rig.json"
+RIG_ASSETS = {"ortho": "real_photos_ortho_rig.json", "huawei-y5": "real_photos_huawei_y5_rig.json"}
 
 
 @dataclass(frozen=True)
@@ -90,7 +95,7 @@ def _photos(root: Path, s: SuiteSet) -> list:
 
 def missing_sets(root: Path) -> list:
     """The names of the suite's sets whose photos or rig file are not under ``root``."""
-    return [s.name for s in SETS if not _photos(root, s) or not (root / s.folder / "rig.json").is_file()]
+    return [s.name for s in SETS if not _photos(root, s) or not (root / s.folder / RIG_FILE).is_file()]
 
 
 def _stderr_line(line: str) -> None:
@@ -101,7 +106,7 @@ def _ingested(root: Path, s: SuiteSet, note: Callable[[str], None]) -> Dataset:
     """The set's photos ingested, one ``note`` line for each photo ingest drops (its path and why);
     IngestError when none gave a frame."""
     photos = _photos(root, s)
-    ingestion = ingest(photos, load_rig(root / s.folder / "rig.json"), split="train")
+    ingestion = ingest(photos, load_rig(root / s.folder / RIG_FILE), split="train")
     for path, result in zip(photos, ingestion.results):
         if result.skipped is not None:
             note(f"real-photo suite: {s.name}: dropped {path}: {result.skipped}")

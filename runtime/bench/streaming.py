@@ -34,19 +34,24 @@ FRAME_NS = 33_333_333  # t_ns step: 30 frames/s
 CSV_HEADER = "frame_id,t_ns,x_px,y_px,X_mm,Y_mm,Z_mm\n"
 
 
-def write_points_csv(path: str | Path, frames: Dataset, n_frames: int) -> int:
-    """Write ``n_frames`` frames tiled from ``frames`` (their valid points) as a points CSV;
-    returns the file's size in bytes."""
+def points_csv(frames: Dataset, n_frames: int) -> Iterator[str]:
+    """The text of a points CSV of ``n_frames`` frames tiled from ``frames`` (their valid points), a
+    frame at a time after the header."""
     bodies = []
     for b in range(frames.n_frames):
         v = frames.valid[b]
         rows = np.concatenate([frames.points_2d[b][v], frames.points_3d[b][v]], axis=1)
         bodies.append([",".join(f"{c:.4f}" for c in row) + "\n" for row in rows.tolist()])
+    yield CSV_HEADER
+    for k in range(n_frames):
+        prefix = f"f{k},{k * FRAME_NS},"
+        yield "".join(prefix + row for row in bodies[k % len(bodies)])
+
+
+def write_points_csv(path: str | Path, frames: Dataset, n_frames: int) -> int:
+    """Write ``points_csv(frames, n_frames)`` to ``path``; returns the file's size in bytes."""
     with open(path, "w", encoding="utf-8", newline="") as f:
-        f.write(CSV_HEADER)
-        for k in range(n_frames):
-            prefix = f"f{k},{k * FRAME_NS},"
-            f.write("".join(prefix + row for row in bodies[k % len(bodies)]))
+        f.writelines(points_csv(frames, n_frames))
     return os.path.getsize(path)
 
 

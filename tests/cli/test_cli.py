@@ -13,7 +13,19 @@ from dimenet.runtime.cli.main import build_parser, main
 from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.formats.dataset import read_dataset, write_dataset
 
-COMMANDS = ["simulate", "calibrate", "evaluate", "train", "reproduce", "export", "rectify", "bench", "render", "ingest"]
+COMMANDS = [
+    "simulate",
+    "calibrate",
+    "evaluate",
+    "train",
+    "reproduce",
+    "export",
+    "rectify",
+    "bench",
+    "render",
+    "ingest",
+    "samples",
+]
 
 
 def dimenet(*args: str) -> subprocess.CompletedProcess:

@@ -62,6 +62,7 @@ FLAGS = {
         "--out": OUT,
         "other": "--data-step --epochs --ablation-epochs --seed --quick --address --cpus-per-job",
     },
+    "samples": {"--out": OUT, "other": ""},
     "simulate": {
         "--out": OUT,
         "other": "--profile --family --scenes --seed --natural-frames --planar-frames --dist-coeffs --platform-k "
