@@ -27,10 +27,13 @@ from dimenet.runtime.sim.family import family_member, family_profiles
 from dimenet.runtime.sim.simulator import simulate
 
 FORMAT = "dimenet-golden/1"
-# The parity bound (px) the runtime, the full graph and a port are held to (models_spec/model-v1.md, "Parity"):
-# two float32 steps (2^-22 of it) of a Delta K of 128 px. export/node_runner/run.mjs's TOLERANCE_PX is this number.
-PARITY_PX = 2.0**-15
+# The parity bound the runtime, the full graph and a port are held to (models_spec/model-v1.md, "The full graph's
+# contract"): two float32 steps of the network's Delta K (a float32: a step is at most 2^-23 of it) at a |Delta K|
+# of PARITY_DELTA_PX, PARITY_PX = 2^-15 px, and above that of |Delta K| (``parity_px``). The golden frames' |Delta K|
+# are below PARITY_DELTA_PX; export/node_runner/run.mjs's TOLERANCE_PX is PARITY_PX.
+PARITY_STEPS = 2 * 2.0**-23
 PARITY_DELTA_PX = 128.0
+PARITY_PX = PARITY_STEPS * PARITY_DELTA_PX
 GOLDEN_FILE = "golden.json"
 FAMILY_SEED, FAMILY_CAMERAS = 303, 4  # a family no model trains on (train: 0; held-out families 101, 202)
 # The family's frames, per camera: test frames; camera 2's 83 the bundled model's K_c keeps by the structure rule,
@@ -110,8 +113,8 @@ def golden_frames() -> list[GoldenFrame]:
 
 def parity_px(delta_k) -> float:
     """The parity bound (px) of a frame whose Delta K (px) is ``delta_k``: PARITY_PX, or where its largest
-    |Delta K| is above PARITY_DELTA_PX two float32 steps of it (the network's Delta K is a float32)."""
-    return PARITY_PX * max(1.0, float(np.abs(delta_k).max()) / PARITY_DELTA_PX)
+    |Delta K| is above PARITY_DELTA_PX two float32 steps of it."""
+    return PARITY_STEPS * max(PARITY_DELTA_PX, float(np.abs(delta_k).max()))
 
 
 def expected(rect: Rectifier, frame: GoldenFrame) -> dict:

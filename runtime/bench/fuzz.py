@@ -4,8 +4,10 @@ issue 33's crafted model files).
 Every case must end in a ``DimenetError`` (``typed``) or in a result that is no confident wrong
 K (``ok``): K_c's own solution with a reason, or a finite K inside the spec's bounds with every
 point in front of the camera at its pose. Anything else is a ``crash`` (another exception) or
-``silent-wrong``. The suite runs a few hundred cases (tests/bench/test_fuzz.py), on both bundled models;
-``dimenet bench --fuzz N`` runs as many as asked.
+``silent-wrong``. Where onnx is installed, the full graph too (issue 48: within the parity bound of the
+runtime, masked garbage changing nothing, a frame without a point giving K_c), and with torch the .ort
+loader on mutated files. The suite runs a few hundred cases (tests/bench/test_fuzz.py), on both bundled
+models; ``dimenet bench --fuzz N`` runs as many as asked.
 """
 
 from __future__ import annotations

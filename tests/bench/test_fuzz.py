@@ -44,7 +44,7 @@ def scenes():
 def test_the_full_graph_equals_the_runtime_on_the_fuzz_s_frames_within_the_parity_bound(scenes, model):
     """The full graph against ``Rectifier.network`` on frames of every scene, in other units, subsets and
     hostile variants, half of them with masked NaN, inf and camera-centre points among theirs, and on no
-    point (N = 0, all masked): issue 48 #2 and #3 and the contract (models_spec/model-v1.md, "Parity")."""
+    point (N = 0, all masked): issue 48 #2 and #3 (models_spec/model-v1.md, "The full graph's contract")."""
     pytest.importorskip("onnx")
     report = FuzzReport()
     fuzz_full_graph(bundled_model_bytes(model), model, scenes, 150, np.random.default_rng(5), report)

@@ -2,8 +2,8 @@
 written by `dimenet export default --golden models_spec/golden`, and models_spec/golden/any-scene/golden.json
 by `dimenet export any-scene --golden models_spec/golden/any-scene`): the network's Delta K, K and sigma at
 the stored C0 pose, and rectify's K, fallback and errors, each within the parity bound (PARITY_PX,
-models_spec/model-v1.md, "Parity"). A change of a bundled model, the feature, a rule or the simulator that
-moves any of them fails here until the golden set is written again."""
+models_spec/model-v1.md, "The full graph's contract"). A change of a bundled model, the feature, a rule or
+the simulator that moves any of them fails here until the golden set is written again."""
 
 from __future__ import annotations
 
