@@ -205,7 +205,7 @@ COMMAND = Command(
     name="ingest",
     summary="Turn photos of the rig (and of a natural object with labelled points) into a dataset: find, refine "
     "and identify every board, fit each photo's K, report per photo.",
-    example="dimenet ingest photos/*.jpg --rig paper --out s8-photos.npz --workers 2",
+    example="dimenet ingest shots/*.jpg --rig paper --out s8-photos.npz --workers 2   # shots: `dimenet render`",
     add_arguments=add_arguments,
     run=run,
 )
