@@ -62,10 +62,12 @@ def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray)
 
 
 def _power_of_two_unit(points_3d: np.ndarray) -> float:
-    """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite)."""
-    rms = float(np.sqrt(np.mean(np.square(points_3d)) * 3.0)) if points_3d.size else 0.0
-    if not (0.0 < rms < np.inf):
+    """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite); the
+    points are taken over their largest coordinate first, so 1e300 mm does not overflow."""
+    largest = float(np.max(np.abs(points_3d))) if points_3d.size else 0.0
+    if not (0.0 < largest < np.inf):
         return 1.0
+    rms = largest * float(np.sqrt(np.mean(np.square(points_3d / largest)) * 3.0))
     return float(np.ldexp(1.0, int(np.round(np.log2(rms)))))
 
 

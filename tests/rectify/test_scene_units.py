@@ -47,6 +47,19 @@ def test_pnp_start_is_unit_equivariant():
             np.testing.assert_allclose(tvec_s / s, tvec, rtol=1e-12)
 
 
+def test_the_pnp_unit_of_extreme_coordinates_warns_of_nothing():
+    import warnings
+
+    from dimenet.runtime.geometry.pnp import _power_of_two_unit
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _power_of_two_unit(np.full((4, 3), 1e300)) == 2.0 ** round(np.log2(np.sqrt(3) * 1e300))
+        assert _power_of_two_unit(np.full((4, 3), 1e-300)) == 2.0 ** round(np.log2(np.sqrt(3) * 1e-300))
+        assert _power_of_two_unit(np.zeros((4, 3))) == 1.0
+        assert _power_of_two_unit(np.full((4, 3), np.inf)) == 1.0
+
+
 def test_a_singular_hessian_is_an_error_not_a_zero_step():
     JJ = np.zeros((10, 10))  # no point fixes the pose
     with pytest.raises(InputError, match="fix no pose"):
