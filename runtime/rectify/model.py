@@ -95,7 +95,9 @@ class OnnxModel:
 
 def session_options(threads: int) -> ort.SessionOptions:
     """Sequential execution on ``threads`` intra-op threads (an int or a numpy integer; never a bool or a
-    float), one inter-op thread, errors-only log."""
+    float), one inter-op thread, errors-only log; with more than one thread, the pool's threads sleep
+    between calls instead of spinning (ONNX Runtime's advice where the caller does other work between
+    calls, as the rectifier's PnP and features do: spinning threads take the cores they need)."""
     if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or not 1 <= threads <= MAX_THREADS:
         raise InputError(f"threads must be an integer from 1 to {MAX_THREADS} (4 x the CPUs), got {threads!r}")
     options = ort.SessionOptions()
@@ -103,6 +105,8 @@ def session_options(threads: int) -> ort.SessionOptions:
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.log_severity_level = 3
+    if threads > 1:
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return options
 
 
@@ -279,7 +283,9 @@ def onnx_model_from_bytes(
     else:  # the whole file, then the spec and tensors
         sha256 = _checked_sha256(blob, spec, source)
         _check_content(text, tensors, spec, source, required=False)
-    return OnnxModel(session=session, spec=spec, source=source, sha256=sha256)
+    model = OnnxModel(session=session, spec=spec, source=source, sha256=sha256)
+    model.frame_delta_k(np.zeros((1, spec.features.size)))  # warm-up: the first frame's call pays no set-up
+    return model
 
 
 def load_onnx_model(path: str | Path, *, threads: int = 1, providers: Optional[Sequence[str]] = None) -> OnnxModel:

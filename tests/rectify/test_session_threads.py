@@ -24,3 +24,14 @@ def test_a_model_loads_on_numpy_integer_threads():
 def test_a_bool_a_float_or_a_count_out_of_range_is_refused(threads):
     with pytest.raises(InputError, match=rf"threads must be an integer from 1 to {MAX_THREADS} .*, got "):
         session_options(threads)
+
+
+def test_a_pool_of_threads_sleeps_between_calls_and_one_thread_needs_no_setting():
+    assert session_options(2).get_session_config_entry("session.intra_op.allow_spinning") == "0"
+    with pytest.raises(RuntimeError, match="allow_spinning"):  # ONNX Runtime: the entry is not set for one thread
+        session_options(1).get_session_config_entry("session.intra_op.allow_spinning")
+
+
+def test_loading_warms_the_frame_path_up():
+    model = load_model("default")
+    assert hasattr(model._frame_io, "binding")  # the loading thread's IO binding is made at load
