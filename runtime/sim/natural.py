@@ -1,7 +1,7 @@
 """Random natural scenes: labelled features of a room, a street of buildings or objects on a table, around one
 printed board, for the natural test frames of a random-scene family (models_spec/simulator.md, "Scene family").
 
-The paper's natural test is one scene (``simulator.natural_scene``: two LEGO buildings beside a board, 66 labels
+The paper's natural test is one scene (``scene_geometry.natural_scene``: two LEGO buildings beside a board, 66 labels
 with 4.9 px noise). A model that must hold on any scene is checked on many: ``random_natural`` draws one of
 NATURAL_KINDS at the size of the camera's rig (so the camera's distances frame it as they frame the rig), with
 NATURAL_POINTS labelled features (log-uniform), a hand-labelling noise of LABEL_NOISE_PX and a 3D error (a scan or
@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from dimenet.runtime.formats.rig import Board
-from dimenet.runtime.sim.simulator import NaturalSet, board_and_features, board_surface, box_surfaces, facing_board
+from dimenet.runtime.sim.scene_geometry import NaturalSet, board_and_features, board_surface, box_surfaces, facing_board
 
 NATURAL_KINDS = ("room", "buildings", "objects")
 NATURAL_POINTS = (16, 600)  # labelled features per scene, log-uniform

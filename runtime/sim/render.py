@@ -48,15 +48,8 @@ from dimenet.runtime.geometry import (
 )
 from dimenet.runtime.sim.drawing import clutter, draw_board, paper_rect_mm, sensor
 from dimenet.runtime.sim.profiles import DeviceProfile
-from dimenet.runtime.sim.simulator import (
-    MAX_POSE_ATTEMPTS,
-    Scene,
-    lens_image,
-    rig_scene,
-    rig_view_ok,
-    sample_pose,
-    shoot,
-)
+from dimenet.runtime.sim.scene_geometry import Scene, rig_scene
+from dimenet.runtime.sim.simulator import MAX_POSE_ATTEMPTS, lens_image, rig_view_ok, sample_pose, shoot
 
 GENERATOR = "dimenet.render"
 TRUTH_FILE = "truth.npz"

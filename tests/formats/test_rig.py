@@ -6,7 +6,7 @@ import pytest
 
 from dimenet.runtime.errors import RigError
 from dimenet.runtime.formats.rig import Board, load_rig, paper_rig, rig_from_dict, rig_to_dict
-from dimenet.runtime.sim.simulator import board_surface
+from dimenet.runtime.sim.scene_geometry import board_surface
 
 
 def test_paper_rig_is_four_10x8_boards_of_22mm():

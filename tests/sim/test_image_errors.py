@@ -10,8 +10,9 @@ from dimenet.runtime.geometry import project, solve_pnp_start, undistort_points
 from dimenet.runtime.sim import image_errors as ie
 from dimenet.runtime.sim.family import family_member, family_profiles
 from dimenet.runtime.sim.image_errors import ImageErrors, draw_image_errors
+from dimenet.runtime.sim.scene_geometry import rig_scene
 from dimenet.runtime.sim.scenes import random_rig
-from dimenet.runtime.sim.simulator import rig_scene, simulate, visible
+from dimenet.runtime.sim.simulator import simulate, visible
 
 NONE = ImageErrors(residual_k1=0.0, bias_px=0.0, jpeg_px=0.0, charuco_missing=None, seed=0)
 
