@@ -37,8 +37,10 @@ def _jacobian_basis() -> np.ndarray:
 
 
 JACOBIAN_BASIS = _jacobian_basis()  # also the full graph's (export.full_graph)
-# The upper triangle of the 11 x 11 Gram in row order: the pairs of monomials ``monomial_gram`` sums.
+# The upper triangle of the 11 x 11 Gram in row order: the pairs of monomials ``monomial_gram`` sums, in
+# two blocks (a (66, N) product would be a fresh mmap and its page faults at 320 points: 5 times the time).
 _GRAM_ROWS, _GRAM_COLS = np.triu_indices(11)
+_GRAM_BLOCKS = (slice(0, 33), slice(33, 66))
 
 
 def _monomials(xy_inv_z: np.ndarray) -> np.ndarray:
@@ -61,10 +63,12 @@ def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
     (``gram_normal_equations``) and the moment feature (``rectify.features``) read of the points.
 
     Each entry of the upper triangle is numpy's pairwise sum of its N products (the module docstring:
-    3 times Q Q^T's time, ~20 µs at 320 points, for a fixed order)."""
+    a fixed order for 4 to 5 times Q Q^T's time, models_spec/BENCHMARKS.md)."""
     Q = _monomials(xy_inv_z)
     Q[9:] = residuals
-    upper = _products(Q[_GRAM_ROWS], Q[_GRAM_COLS]).sum(1)
+    upper = np.empty(len(_GRAM_ROWS))
+    for block in _GRAM_BLOCKS:
+        upper[block] = np.multiply(Q[_GRAM_ROWS[block]], Q[_GRAM_COLS[block]]).sum(1)
     G = np.empty((11, 11))
     G[_GRAM_ROWS, _GRAM_COLS] = upper
     G[_GRAM_COLS, _GRAM_ROWS] = upper
@@ -80,9 +84,9 @@ def gram_normal_equations(G: np.ndarray, fx: float, fy: float) -> tuple[np.ndarr
     to last (a sum over an outer axis; the module docstring)."""
     C = np.dot((fx, fy, 1.0), JACOBIAN_BASIS).reshape(20, 9)  # exact: one term of each entry is not 0
     # J J^T: sum over c in (u, v) and q of (C q q^T)[2i + c, q] C[2j + c, q]; J r likewise.
-    CG = _products(C[:, :, None], G[None, :9, :9]).sum(1).reshape(10, 18)
-    JJ = _products(CG.T[:, :, None], C.reshape(10, 18).T[:, None, :]).sum(0)
-    Cr = _products(C[:, :, None], G[None, :9, 9:]).sum(1)
+    CG = _products(C[:, :, None], G[None, :9, :9], (20, 9, 9)).sum(1).reshape(10, 18)
+    JJ = _products(CG.T[:, :, None], C.reshape(10, 18).T[:, None, :], (18, 10, 10)).sum(0)
+    Cr = _products(C[:, :, None], G[None, :9, 9:], (20, 9, 2)).sum(1)
     return JJ, Cr[0::2, 0] + Cr[1::2, 1], float(G[9, 9] + G[10, 10])
 
 
@@ -123,8 +127,8 @@ def prior_step(
     # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations (the products in a fixed
     # order: the module docstring).
     step = _matvec(prior_posterior(JJ, k_precision, weight), Jr) * weight
-    step_JJ = _products(step[:, None], JJ).sum(0)
-    rss_step = rss - 2.0 * float(_products(step, Jr).sum()) + float(_products(step_JJ, step).sum())
+    step_JJ = _products(step[:, None], JJ, JJ.shape).sum(0)
+    rss_step = rss - 2.0 * float(np.multiply(step, Jr).sum()) + float(np.multiply(step_JJ, step).sum())
     weight = _noise_weight(rss_step, n_residuals - 10, noise_floor_px)
     cov = prior_posterior(JJ, k_precision, weight)
     step = _matvec(cov, Jr)
@@ -134,14 +138,14 @@ def prior_step(
 
 def _matvec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
     """A (n, n) times x (n,): each row's products summed by numpy's pairwise sum (not BLAS)."""
-    return _products(A, x).sum(1)
+    return _products(A, x, A.shape).sum(1)
 
 
-def _products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a * b (broadcast) into a new C-ordered array, so that a sum over its last axis is numpy's pairwise
-    sum of each row and a sum over another axis adds its slices first to last (numpy lays out a
+def _products(a: np.ndarray, b: np.ndarray, shape: tuple) -> np.ndarray:
+    """a * b broadcast to ``shape`` into a new C-ordered array, so that a sum over its last axis is numpy's
+    pairwise sum of each row and a sum over another axis adds its slices first to last (numpy lays out a
     product of strided views in its own order, where an axis's sum may be pairwise instead)."""
-    return np.multiply(a, b, out=np.empty(np.broadcast_shapes(a.shape, b.shape)))
+    return np.multiply(a, b, out=np.empty(shape))
 
 
 def _noise_weight(rss: float, dof: int, floor_px: float) -> float:

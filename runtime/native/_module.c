@@ -25,6 +25,8 @@ static module_state *state_of(PyObject *module)
     return (module_state *)PyModule_GetState(module);
 }
 
+static void raise_frame_error(PyObject *module, int code, const dimenet_frame_stats *st, Py_ssize_t n_points);
+
 /* A buffer of ``kind`` ('d' float64, '?' bool) with ndim dimensions, C contiguous; shape[i] < 0: any. */
 static int get_view(PyObject *obj, Py_buffer *view, const char *name, char kind, int ndim, const Py_ssize_t *shape,
                     int writable)
@@ -119,7 +121,7 @@ static PyObject *grid_features(PyObject *module, PyObject *args)
     Py_buffer p2, p3, mask, rvecs, tvecs, K, layout, feats, rows, stats;
     Py_buffer *views[10] = {NULL};
     int n_views = 0, code = DIMENET_OK, failed = 0;
-    Py_ssize_t F, N, f, failed_frame = 0;
+    Py_ssize_t F, N, f;
     Py_ssize_t shape[3];
     dimenet_feature_spec spec;
     dimenet_frame_stats st;
@@ -189,22 +191,12 @@ static PyObject *grid_features(PyObject *module, PyObject *args)
         }
         if (code != DIMENET_OK) {
             failed = 1;
-            failed_frame = f;
             break;
         }
     }
     Py_END_ALLOW_THREADS
     if (failed) {
-        if (code == DIMENET_E_BEHIND_CAMERA) { /* rectify.checks.behind_camera_error's message */
-            PyErr_Format(state_of(module)->input_error,
-                         "%zu of %zd points lie behind the camera at the best pose under K_c: "
-                         "the correspondences do not fit one pinhole camera",
-                         st.n_behind, N);
-        } else if (code == DIMENET_E_ARGUMENT) {
-            PyErr_Format(PyExc_ValueError, "grid_features: frame %zd: %s", failed_frame, dimenet_error_message(code));
-        } else {
-            PyErr_SetString(state_of(module)->input_error, dimenet_error_message(code));
-        }
+        raise_frame_error(module, code, &st, N);
         goto done;
     }
     result = Py_None;
@@ -218,8 +210,112 @@ done:
 #undef VIEW
 }
 
+/* The InputError of a failed frame (the numpy path's messages) or the ValueError of a bad argument. */
+static void raise_frame_error(PyObject *module, int code, const dimenet_frame_stats *st, Py_ssize_t n_points)
+{
+    if (code == DIMENET_E_BEHIND_CAMERA) { /* rectify.checks.behind_camera_error's message */
+        PyErr_Format(state_of(module)->input_error,
+                     "%zu of %zd points lie behind the camera at the best pose under K_c: "
+                     "the correspondences do not fit one pinhole camera",
+                     st->n_behind, n_points);
+    } else if (code == DIMENET_E_ARGUMENT) {
+        PyErr_SetString(PyExc_ValueError, dimenet_error_message(code));
+    } else {
+        PyErr_SetString(state_of(module)->input_error, dimenet_error_message(code));
+    }
+}
+
+PyDoc_STRVAR(frame_features_doc,
+             "frame_features(points_2d, points_3d, rvec, tvec, K_c, image_size, layout, features) -> e_c\n--\n\n"
+             "One frame's feature into ``features`` (1, D) float64 at its C0 pose (the rectifier's hot path, "
+             "rectify.stages.frame_features), the GIL released: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, "
+             "rvec and tvec (3,), K_c (3, 3) px, image_size (width, height) px, layout (17,) the packed "
+             "FeatureSpec. Returns e_c (px), the mean norm of the PMD. InputError as the numpy path's: a point "
+             "behind the camera, the data step on points that fix no pose.");
+
+static PyObject *frame_features(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[] = {"points_2d", "points_3d", "rvec", "tvec", "K_c", "layout", "features"};
+    Py_buffer views[7];
+    int n_views = 0, code = DIMENET_OK;
+    Py_ssize_t N = 0;
+    double width_px, height_px;
+    dimenet_feature_spec spec;
+    dimenet_frame_stats st;
+    size_t D = 0, n_scratch = 0;
+    double *scratch = NULL;
+    PyObject *result = NULL, *size;
+    const char kinds_nd[7] = {2, 2, 1, 1, 2, 1, 2};
+    int i;
+
+    if (nargs != 8) {
+        PyErr_Format(PyExc_TypeError, "frame_features takes 8 arguments, got %zd", nargs);
+        return NULL;
+    }
+    size = args[5];
+    if (!PyTuple_Check(size) || PyTuple_GET_SIZE(size) != 2) {
+        PyErr_SetString(PyExc_TypeError, "image_size must be a tuple (width, height)");
+        return NULL;
+    }
+    width_px = PyFloat_AsDouble(PyTuple_GET_ITEM(size, 0));
+    height_px = PyFloat_AsDouble(PyTuple_GET_ITEM(size, 1));
+    if (PyErr_Occurred()) {
+        return NULL;
+    }
+    for (i = 0; i < 7; i++) {
+        PyObject *obj = args[i < 5 ? i : i + 1];
+        Py_ssize_t any[2] = {-1, -1};
+        if (get_view(obj, &views[i], names[i], 'd', kinds_nd[i], any, i == 6) != 0) {
+            goto done;
+        }
+        n_views++;
+    }
+    N = views[0].shape[0];
+    if (views[0].shape[1] != 2 || views[1].shape[0] != N || views[1].shape[1] != 3 || views[2].shape[0] != 3
+        || views[3].shape[0] != 3 || views[4].shape[0] != 3 || views[4].shape[1] != 3
+        || views[5].shape[0] != LAYOUT_SIZE) {
+        PyErr_SetString(PyExc_ValueError, "frame_features: points_2d (N, 2), points_3d (N, 3), rvec and tvec (3,), "
+                                          "K_c (3, 3) and layout (17,) expected");
+        goto done;
+    }
+    if (spec_from_layout((const double *)views[5].buf, (const double *)views[4].buf, width_px, height_px, &spec) != 0
+        || dimenet_feature_size(&spec, &D) != DIMENET_OK
+        || dimenet_scratch_doubles(&spec, (size_t)N, &n_scratch) != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, "frame_features: the layout, image size or grid is not a valid feature spec");
+        goto done;
+    }
+    if (views[6].shape[0] != 1 || views[6].shape[1] != (Py_ssize_t)D) {
+        PyErr_Format(PyExc_ValueError, "features must be (1, %zu)", D);
+        goto done;
+    }
+    scratch = (double *)PyMem_RawMalloc(n_scratch * sizeof(double) + 1);
+    if (scratch == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    memset(&st, 0, sizeof st);
+    Py_BEGIN_ALLOW_THREADS
+    code = dimenet_frame_features(&spec, (size_t)N, (const double *)views[0].buf, (const double *)views[1].buf, NULL,
+                                  (const double *)views[2].buf, (const double *)views[3].buf,
+                                  DIMENET_REFUSE_BEHIND_CAMERA, (double *)views[6].buf, D, NULL, scratch, n_scratch,
+                                  &st);
+    Py_END_ALLOW_THREADS
+    if (code != DIMENET_OK) {
+        raise_frame_error(module, code, &st, N);
+        goto done;
+    }
+    result = PyFloat_FromDouble(st.e_c_px);
+done:
+    PyMem_RawFree(scratch);
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"grid_features", grid_features, METH_VARARGS, grid_features_doc},
+    {"frame_features", (PyCFunction)(void (*)(void))frame_features, METH_FASTCALL, frame_features_doc},
     {NULL, NULL, 0, NULL},
 };
 

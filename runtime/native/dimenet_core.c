@@ -25,8 +25,8 @@ static double python_square(double x)
 
 /* numpy's pairwise summation block (numpy/_core/src/umath/loops_utils.h.src). */
 #define PAIRWISE_BLOCK 128
-/* Scratch doubles per point: the point rows (6), its depth (1), its packed Gram inputs (5). */
-#define SCRATCH_PER_POINT 12
+/* Scratch doubles per point: the point rows (6), its depth (1), its monomials (11). */
+#define SCRATCH_PER_POINT 18
 
 static const char *const MESSAGES[] = {
     "ok",
@@ -101,7 +101,7 @@ int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, s
     if (spec_cells(spec, &cells) != DIMENET_OK || n_scratch == NULL) {
         return DIMENET_E_ARGUMENT;
     }
-    /* rows (6 n) and depths (n), the cell sums (6 cells), then the used points' rows (5 n) */
+    /* rows (6 n) and depths (n), the cell sums (6 cells), then the used points' monomials (11 n) */
     if (n_points > (limit - DIMENET_POINT_ROWS * cells) / SCRATCH_PER_POINT) {
         return DIMENET_E_ARGUMENT;
     }
@@ -290,83 +290,80 @@ int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, do
     return DIMENET_OK;
 }
 
-/* The monomials q of one point (geometry.normal_equations._monomials), then its residuals. */
-static void monomials(double x_mm, double y_mm, double inv_z, double du_px, double dv_px, double q[DIMENET_GRAM_SIZE])
-{
-    double a = x_mm * inv_z, b = y_mm * inv_z;
-    q[0] = 1.0;
-    q[1] = a;
-    q[2] = b;
-    q[3] = a * b;
-    q[4] = a * a;
-    q[5] = b * b;
-    q[6] = inv_z;
-    q[7] = a * inv_z;
-    q[8] = b * inv_z;
-    q[9] = du_px;
-    q[10] = dv_px;
-}
-
 /* The upper triangle of the Gram in row order: 66 products of two monomials. */
 #define GRAM_UPPER 66
 
-/* The points a Gram reads: X, Y (mm), 1/Z (1/mm) in {C} and the residuals u, v (px), each a run. */
-typedef struct {
-    const double *x, *y, *inv_z, *du, *dv;
-} gram_points;
-
-static void gram_products(const gram_points *p, size_t i, double out[GRAM_UPPER])
+/* d += the 66 products q[a] q[b], b >= a, in row order (row a starts at 11 a - a (a - 1) / 2). */
+static void gram_add(double d[GRAM_UPPER], const double *q, size_t stride)
 {
-    double q[DIMENET_GRAM_SIZE];
     int a, b, k = 0;
-    monomials(p->x[i], p->y[i], p->inv_z[i], p->du[i], p->dv[i], q);
     for (a = 0; a < DIMENET_GRAM_SIZE; a++) {
-        for (b = a; b < DIMENET_GRAM_SIZE; b++) {
-            out[k++] = q[a] * q[b];
+        for (b = a; b < DIMENET_GRAM_SIZE; b++, k++) {
+            d[k] += q[(size_t)a * stride] * q[(size_t)b * stride];
         }
     }
 }
 
-/* numpy's pairwise sum (pairwise_sum above) of each of the 66 products over the points start to
- * start + n: geometry.monomial_gram's np.multiply(Q[rows], Q[cols]).sum(1). */
-static void gram_pairwise(const gram_points *p, size_t start, size_t n, double out[GRAM_UPPER])
+/* numpy's pairwise sum (pairwise_sum above) of each of the 66 products over n points (8 <= n <= 128):
+ * lanes[m * stride + i] monomial m of point i. The eight partial sums of a product (points j, j + 8,
+ * j + 16, ...) stay in registers over the block, each rounded as in numpy's loop. */
+static void gram_block(const double *lanes, size_t stride, size_t n, double out[GRAM_UPPER])
 {
-    double pp[GRAM_UPPER];
-    size_t i;
-    int j, k;
-    if (n < 8) {
-        for (k = 0; k < GRAM_UPPER; k++) {
-            out[k] = 0.0;
-        }
-        for (i = 0; i < n; i++) {
-            gram_products(p, start + i, pp);
-            for (k = 0; k < GRAM_UPPER; k++) {
-                out[k] += pp[k];
-            }
-        }
-    } else if (n <= PAIRWISE_BLOCK) {
-        double r[8][GRAM_UPPER];
-        for (j = 0; j < 8; j++) {
-            gram_products(p, start + (size_t)j, r[j]);
-        }
-        for (i = 8; i < n - (n % 8); i += 8) {
+    size_t i, full = n - (n % 8);
+    int a, b, j, k;
+    for (a = 0, k = 0; a < DIMENET_GRAM_SIZE; a++) {
+        for (b = a; b < DIMENET_GRAM_SIZE; b++, k++) {
+            const double *qa = lanes + (size_t)a * stride, *qb = lanes + (size_t)b * stride;
+            double r[8], res;
             for (j = 0; j < 8; j++) {
-                gram_products(p, start + i + (size_t)j, pp);
-                for (k = 0; k < GRAM_UPPER; k++) {
-                    r[j][k] += pp[k];
+                r[j] = qa[j] * qb[j];
+            }
+            for (i = 8; i < full; i += 8) {
+                for (j = 0; j < 8; j++) {
+                    r[j] += qa[i + (size_t)j] * qb[i + (size_t)j];
                 }
             }
-        }
-        for (k = 0; k < GRAM_UPPER; k++) {
-            out[k] = ((r[0][k] + r[1][k]) + (r[2][k] + r[3][k])) + ((r[4][k] + r[5][k]) + (r[6][k] + r[7][k]));
-        }
-        for (; i < n; i++) {
-            gram_products(p, start + i, pp);
-            for (k = 0; k < GRAM_UPPER; k++) {
-                out[k] += pp[k];
+            res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+            for (i = full; i < n; i++) {
+                res += qa[i] * qb[i];
             }
+            out[k] = res;
         }
-    } else {
+    }
+}
+
+/* The monomials q of one point (geometry.normal_equations._monomials), then its residuals, into
+ * q[m * stride]. */
+static void monomials(double x_mm, double y_mm, double inv_z, double du_px, double dv_px, double *q, size_t stride)
+{
+    double a = x_mm * inv_z, b = y_mm * inv_z;
+    q[0] = 1.0;
+    q[stride] = a;
+    q[2 * stride] = b;
+    q[3 * stride] = a * b;
+    q[4 * stride] = a * a;
+    q[5 * stride] = b * b;
+    q[6 * stride] = inv_z;
+    q[7 * stride] = a * inv_z;
+    q[8 * stride] = b * inv_z;
+    q[9 * stride] = du_px;
+    q[10 * stride] = dv_px;
+}
+
+/* Where a Gram's points are: their monomials side by side (lanes, stride apart), or their raw rows. */
+typedef struct {
+    const double *lanes;
+    size_t stride;
+    const double *x, *y, *inv_z, *du, *dv;
+} gram_points;
+
+/* geometry.monomial_gram's sums: numpy's pairwise sum of each product over the points start to
+ * start + n (the same tree: blocks of at most 128 points, halves a multiple of 8 long). */
+static void gram_pairwise(const gram_points *p, size_t start, size_t n, double out[GRAM_UPPER])
+{
+    size_t i;
+    int k;
+    if (n > PAIRWISE_BLOCK) {
         double second[GRAM_UPPER];
         size_t n2 = n / 2;
         n2 -= n2 % 8;
@@ -375,6 +372,35 @@ static void gram_pairwise(const gram_points *p, size_t start, size_t n, double o
         for (k = 0; k < GRAM_UPPER; k++) {
             out[k] += second[k];
         }
+        return;
+    }
+    if (p->lanes == NULL) { /* raw rows: their monomials into a block of lanes first */
+        double lanes[DIMENET_GRAM_SIZE * PAIRWISE_BLOCK];
+        for (i = 0; i < n; i++) {
+            monomials(p->x[start + i], p->y[start + i], p->inv_z[start + i], p->du[start + i], p->dv[start + i],
+                      lanes + i, PAIRWISE_BLOCK);
+        }
+        if (n >= 8) {
+            gram_block(lanes, PAIRWISE_BLOCK, n, out);
+            return;
+        }
+        for (k = 0; k < GRAM_UPPER; k++) {
+            out[k] = 0.0;
+        }
+        for (i = 0; i < n; i++) {
+            gram_add(out, lanes + i, PAIRWISE_BLOCK);
+        }
+        return;
+    }
+    if (n >= 8) {
+        gram_block(p->lanes + start, p->stride, n, out);
+        return;
+    }
+    for (k = 0; k < GRAM_UPPER; k++) { /* fewer than 8: one by one from 0 */
+        out[k] = 0.0;
+    }
+    for (i = 0; i < n; i++) {
+        gram_add(out, p->lanes + start + i, p->stride);
     }
 }
 
@@ -400,6 +426,7 @@ int dimenet_monomial_gram(size_t n_points, const double *x_c0_mm, const double *
                                           || residual_u_px == NULL || residual_v_px == NULL))) {
         return DIMENET_E_ARGUMENT;
     }
+    p.lanes = NULL, p.stride = 0;
     p.x = x_c0_mm, p.y = y_c0_mm, p.inv_z = inv_z_c0_per_mm, p.du = residual_u_px, p.dv = residual_v_px;
     gram_of(&p, n_points, gram);
     return DIMENET_OK;
@@ -570,13 +597,14 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
 {
     /* depth exponents of the channels (features.py FeatureSpec.depth_exponents): X, Y 1, 1/Z -1 */
     static const double DEPTH_EXPONENT[DIMENET_CHANNELS] = {0.0, 0.0, 1.0, 1.0, -1.0};
-    size_t cells, size, need, i, cell;
+    size_t cells = 0, size, need, i, cell;
     const size_t N = n_points;
     double R[9], P[5][4], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE];
-    double *rows, *depths, *sums, *counts, multiplier[DIMENET_CHANNELS];
-    double scale_x, scale_y, last_x, last_y, norm_sum = 0.0;
+    double *rows, *depths, *sums, *counts, multiplier[DIMENET_CHANNELS], *channel_sums[DIMENET_CHANNELS];
+    double scale_x, scale_y, last_x, last_y, norm_sum = 0.0, norms[4], *lanes;
+    double p00, p01, p02, p03, p10, p11, p12, p13, p20, p21, p22, p23, p30, p31, p32, p33, p40, p41, p42, p43;
     size_t n_used = 0, n_behind = 0;
-    int all_in_front = 1, C, k, r, code = DIMENET_OK;
+    int all_in_front = 1, all_channels = 1, C, k, r, cols, channel[DIMENET_CHANNELS], code = DIMENET_OK;
 
     if (dimenet_feature_size(spec, &size) != DIMENET_OK || dimenet_scratch_doubles(spec, N, &need) != DIMENET_OK) {
         return DIMENET_E_ARGUMENT;
@@ -588,10 +616,12 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
     }
     spec_cells(spec, &cells);
     C = spec->n_channels;
+    cols = spec->grid_cols;
     rows = point_rows != NULL ? point_rows : scratch;
     depths = scratch + DIMENET_POINT_ROWS * N;
     sums = depths + N; /* (C + 1) x cells: the channels' sums, then the counts */
     counts = sums + (size_t)C * cells;
+    lanes = spec->data_step || spec->moments ? sums + DIMENET_POINT_ROWS * cells : NULL; /* 11 x N */
 
     /* _point_features_into: P (5 x 4) = [K_c[:2] [R | t]; [R | t]]; each point's row P [X 1] */
     rodrigues(rvec_w_to_c0_rad, R);
@@ -607,61 +637,83 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
                       + spec->K_c_px[r * 3 + 2] * P[4][k];
         }
     }
+    p00 = P[0][0], p01 = P[0][1], p02 = P[0][2], p03 = P[0][3], p10 = P[1][0], p11 = P[1][1], p12 = P[1][2];
+    p13 = P[1][3], p20 = P[2][0], p21 = P[2][1], p22 = P[2][2], p23 = P[2][3], p30 = P[3][0], p31 = P[3][1];
+    p32 = P[3][2], p33 = P[3][3], p40 = P[4][0], p41 = P[4][1], p42 = P[4][2], p43 = P[4][3];
+    /* the point rows; the unused points' from a point zeroed as grid_features zeroes them (np.where) */
     for (i = 0; i < N; i++) {
         int used = mask == NULL || mask[i];
-        /* grid_features zeroes the unused points (np.where) before the rows */
         double x = used ? points_2d_px[2 * i] : 0.0, y = used ? points_2d_px[2 * i + 1] : 0.0;
         double X = used ? points_3d_w_mm[3 * i] : 0.0, Y = used ? points_3d_w_mm[3 * i + 1] : 0.0;
         double Z = used ? points_3d_w_mm[3 * i + 2] : 0.0;
-        double v[5], inv_z;
-        for (r = 0; r < 5; r++) {
-            v[r] = ((P[r][0] * X + P[r][1] * Y) + P[r][2] * Z) + P[r][3];
-        }
-        depths[i] = used ? v[4] : 0.0;
-        inv_z = 1.0 / v[4];
-        rows[0 * N + i] = v[0] * inv_z - x;
-        rows[1 * N + i] = v[1] * inv_z - y;
-        rows[2 * N + i] = v[2];
-        rows[3 * N + i] = v[3];
+        double u = ((p00 * X + p01 * Y) + p02 * Z) + p03, v = ((p10 * X + p11 * Y) + p12 * Z) + p13;
+        double xc = ((p20 * X + p21 * Y) + p22 * Z) + p23, yc = ((p30 * X + p31 * Y) + p32 * Z) + p33;
+        double zc = ((p40 * X + p41 * Y) + p42 * Z) + p43, inv_z = 1.0 / zc;
+        rows[i] = u * inv_z - x;
+        rows[N + i] = v * inv_z - y;
+        rows[2 * N + i] = xc;
+        rows[3 * N + i] = yc;
         rows[4 * N + i] = inv_z;
         rows[5 * N + i] = 1.0;
-        if (used) {
-            double du = rows[i], dv = rows[N + i];
-            n_used++;
-            norm_sum += sqrt(du * du + dv * dv);
-            n_behind += inv_z <= 0.0;
-            all_in_front &= inv_z >= 0.0 && inv_z < HUGE_VAL;
-        }
+        depths[i] = used ? zc : 0.0;
     }
 
-    /* the cells' sums in point order (np.bincount); one cell: numpy's sum over the axis */
+    /* the used points: e_c's norms in OpenCV's order (cv::sum: four at a time, then one by one), the
+     * cells' sums in point order (np.bincount), the Gram's monomials side by side */
     memset(sums, 0, sizeof(double) * (size_t)(C + 1) * cells);
-    if (cells == 1) {
-        for (k = 0; k < C; k++) {
-            const double *row = rows + (size_t)spec->channels[k] * N;
-            sums[k] = mask == NULL ? pairwise_sum(row, N) : masked_sum(row, mask, N);
+    for (k = 0; k < C; k++) {
+        channel[k] = spec->channels[k];
+        channel_sums[k] = sums + (size_t)k * cells;
+        all_channels &= C == DIMENET_CHANNELS && channel[k] == k;
+    }
+    /* Grid.cell_index: x u / width and y v / height clamped to [0, u - 1] x [0, v - 1] (np.fmax sends
+     * NaN to 0), floored by the cast */
+    scale_x = (double)cols / spec->image_width_px;
+    scale_y = (double)spec->grid_rows / spec->image_height_px;
+    last_x = (double)(cols - 1);
+    last_y = (double)(spec->grid_rows - 1);
+    for (i = 0; i < N; i++) {
+        double du, dv, inv_z, cx, cy;
+        if (mask != NULL && !mask[i]) {
+            continue;
         }
-        counts[0] = (double)n_used;
-    } else {
-        /* Grid.cell_index: x u / width and y v / height clamped to [0, u - 1] x [0, v - 1] (fmax: NaN
-         * to 0), floored */
-        scale_x = (double)spec->grid_cols / spec->image_width_px;
-        scale_y = (double)spec->grid_rows / spec->image_height_px;
-        last_x = (double)(spec->grid_cols - 1);
-        last_y = (double)(spec->grid_rows - 1);
-        for (i = 0; i < N; i++) {
-            double cx, cy;
-            if (mask != NULL && !mask[i]) {
-                continue;
-            }
-            cx = fmin(fmax(points_2d_px[2 * i] * scale_x, 0.0), last_x);
-            cy = fmin(fmax(points_2d_px[2 * i + 1] * scale_y, 0.0), last_y);
-            cell = (size_t)cy * (size_t)spec->grid_cols + (size_t)cx;
-            for (k = 0; k < C; k++) {
-                sums[(size_t)k * cells + cell] += rows[(size_t)spec->channels[k] * N + i];
+        du = rows[i], dv = rows[N + i], inv_z = rows[4 * N + i];
+        norms[n_used % 4] = sqrt(du * du + dv * dv);
+        if (n_used % 4 == 3) {
+            norm_sum += ((norms[0] + norms[1]) + norms[2]) + norms[3];
+        }
+        n_behind += inv_z <= 0.0;
+        all_in_front &= inv_z >= 0.0 && inv_z < HUGE_VAL;
+        if (lanes != NULL) {
+            monomials(rows[2 * N + i], rows[3 * N + i], inv_z, du, dv, lanes + n_used, N);
+        }
+        n_used++;
+        if (cells > 1) {
+            cx = points_2d_px[2 * i] * scale_x;
+            cy = points_2d_px[2 * i + 1] * scale_y;
+            cx = cx >= 0.0 ? (cx < last_x ? cx : last_x) : 0.0;
+            cy = cy >= 0.0 ? (cy < last_y ? cy : last_y) : 0.0;
+            cell = (size_t)cy * (size_t)cols + (size_t)cx;
+            if (all_channels) { /* variant A: the five channels in order */
+                sums[cell] += du, sums[cells + cell] += dv, sums[2 * cells + cell] += rows[2 * N + i];
+                sums[3 * cells + cell] += rows[3 * N + i], sums[4 * cells + cell] += inv_z;
+            } else {
+                for (k = 0; k < C; k++) {
+                    channel_sums[k][cell] += rows[(size_t)channel[k] * N + i];
+                }
             }
             counts[cell] += 1.0;
         }
+    }
+    for (k = 0; k < (int)(n_used % 4); k++) {
+        norm_sum += norms[k];
+    }
+    if (cells == 1) { /* numpy's sum over the points' axis (pairwise; under a mask, run by run) */
+        for (k = 0; k < C; k++) {
+            const double *row = rows + (size_t)channel[k] * N;
+            sums[k] = mask == NULL ? pairwise_sum(row, N) : masked_sum(row, mask, N);
+        }
+        counts[0] = (double)n_used;
     }
 
     /* the cell means times the channels' scales (with depth_mm: times depth factor ^ exponent) */
@@ -685,23 +737,11 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
     }
 
     /* gram_inputs: the data step, then the moments, from the used points' monomial Gram */
-    if (spec->data_step || spec->moments) {
+    if (lanes != NULL) {
         double *out = features + cells * (size_t)C;
         gram_points p;
-        if (mask == NULL) {
-            p.x = rows + 2 * N, p.y = rows + 3 * N, p.inv_z = rows + 4 * N, p.du = rows, p.dv = rows + N;
-        } else { /* the used points' rows, in order (points[b][:, mask[b]]) */
-            double *packed = sums + (size_t)(C + 1) * cells;
-            size_t m = 0;
-            for (i = 0; i < N; i++) {
-                if (mask[i]) {
-                    packed[m] = rows[2 * N + i], packed[N + m] = rows[3 * N + i], packed[2 * N + m] = rows[4 * N + i];
-                    packed[3 * N + m] = rows[i], packed[4 * N + m] = rows[N + i];
-                    m++;
-                }
-            }
-            p.x = packed, p.y = packed + N, p.inv_z = packed + 2 * N, p.du = packed + 3 * N, p.dv = packed + 4 * N;
-        }
+        memset(&p, 0, sizeof p);
+        p.lanes = lanes, p.stride = N;
         gram_of(&p, n_used, G);
         if (spec->data_step) {
             code = data_step(G, n_used, spec->K_c_px[0], spec->K_c_px[4], spec->pmd_scale_per_px, out);

@@ -73,8 +73,9 @@ typedef struct dimenet_feature_spec {
 
 /* What a frame's kernel measured beside its feature. */
 typedef struct dimenet_frame_stats {
-    double e_c_px;       /* mean Euclidean norm of the used points' PMD (px): e(K_c) at the C0 pose;
-                            NaN without a used point */
+    double e_c_px;       /* mean Euclidean norm of the used points' PMD (px): e(K_c) at the C0 pose
+                            (geometry.frame_mean_norm: the norms summed in cv::sum's order, four
+                            at a time); NaN without a used point */
     size_t n_used;       /* the points the mask keeps (all without one) */
     size_t n_behind;     /* of them, those with 1 / Z_C0 <= 0 */
 } dimenet_frame_stats;
@@ -90,7 +91,7 @@ typedef struct dimenet_frame_stats {
 int dimenet_feature_size(const dimenet_feature_spec *spec, size_t *n_features);
 
 /* The doubles of scratch dimenet_frame_features needs for a frame of n_points points:
- * 12 n_points + 6 cells. DIMENET_E_ARGUMENT for a bad spec or an overflow. */
+ * 18 n_points + 6 cells. DIMENET_E_ARGUMENT for a bad spec or an overflow. */
 int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, size_t *n_scratch);
 
 /* One frame's feature (the reference's grid_features for one frame, then gram_inputs), at its C0

@@ -403,6 +403,19 @@ def _moment_inputs(G: np.ndarray, n: int, pmd_scale: float) -> np.ndarray:
     return (G * np.outer(s, s / n)).ravel()[MOMENT_INDEX]
 
 
+def native_frame_features(points_2d, points_3d, K_c, image_size, spec: FeatureSpec, rvec, tvec) -> tuple:
+    """The rectifier's hot path (``stages.frame_features``) in one call of the compiled core (``native.core``
+    must be set): one frame's (1, D) feature at its C0 pose (rvec, tvec (3,)) and e_c (px), the mean norm
+    of its PMD; InputError when a point lies behind the camera, or as ``grid_features``'s. points_2d
+    (N, 2) px, points_3d (N, 3) mm, K_c (3, 3) px float64."""
+    feats = np.empty((1, spec.size))
+    size = image_size if type(image_size) is tuple else tuple(image_size)
+    p2, p3 = np.ascontiguousarray(points_2d, np.float64), np.ascontiguousarray(points_3d, np.float64)
+    r, t = np.ascontiguousarray(rvec, np.float64), np.ascontiguousarray(tvec, np.float64)
+    e_c = native.core.frame_features(p2, p3, r, t, K_c, size, spec.native_layout, feats)
+    return feats, e_c
+
+
 def _native_grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, poses, return_points: bool):
     """``grid_features`` through the compiled core (``native.core``): the same inputs, outputs and
     InputErrors, one kernel call for the F frames (tests/native/ hold the two equal)."""

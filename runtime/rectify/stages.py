@@ -15,6 +15,7 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MIN_POINTS,
@@ -49,7 +50,7 @@ from dimenet.runtime.rectify.checks import (
     structured,
     worse_reason,
 )
-from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.rectify.features import grid_features, native_frame_features
 from dimenet.runtime.rectify.inference import NetworkK, network_statistics
 from dimenet.runtime.rectify.map_fit import map_rectify
 from dimenet.runtime.rectify.results import BatchRectification, Rectification
@@ -235,6 +236,8 @@ def batch_inference_poses(cam: ModelCamera, fr: Frames, rvec_c0, tvec_c0, reason
 def frame_features(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0) -> tuple[np.ndarray, float]:
     """One frame's grid feature (1, D) at its C0 pose and e_c, its mean error (px) under K_c there
     (the feature's PMD rows); InputError when a point lies behind the camera."""
+    if native.core is not None:  # all of it in one call of the compiled core (runtime/native)
+        return native_frame_features(p2, p3, cam.K_c, cam.spec.image_size, cam.spec.features, rvec_c0, tvec_c0)
     feats, points = grid_features(
         p2[None],
         p3[None],

@@ -137,7 +137,7 @@ static void test_sizes(void)
     CHECK(dimenet_feature_size(&s, &n) == DIMENET_OK && n == 240 + 8 + 64, "any-scene's feature size");
     s = model_spec(0);
     CHECK(dimenet_feature_size(&s, &n) == DIMENET_OK && n == 240, "default's feature size");
-    CHECK(dimenet_scratch_doubles(&s, 320, &scratch) == DIMENET_OK && scratch == 12 * 320 + 6 * 48, "scratch size");
+    CHECK(dimenet_scratch_doubles(&s, 320, &scratch) == DIMENET_OK && scratch == 18 * 320 + 6 * 48, "scratch size");
     CHECK(dimenet_feature_size(NULL, &n) == DIMENET_E_ARGUMENT, "NULL spec");
     CHECK(dimenet_feature_size(&s, NULL) == DIMENET_E_ARGUMENT, "NULL size");
     CHECK(dimenet_scratch_doubles(&s, (size_t)-1, &scratch) == DIMENET_E_ARGUMENT, "scratch size overflow");
@@ -170,7 +170,7 @@ static void test_sizes(void)
 static void test_exact_frame(int any_scene)
 {
     enum { N = 320 };
-    static double p2[2 * N], p3[3 * N], rows[6 * N], feats[312], reference[240], scratch[12 * N + 6 * 48];
+    static double p2[2 * N], p3[3 * N], rows[6 * N], feats[312], reference[240], scratch[18 * N + 6 * 48];
     static const double rvec[3] = {0.12, -0.31, 0.05}, tvec[3] = {12.0, -25.0, 610.0};
     dimenet_feature_spec s = model_spec(any_scene);
     dimenet_frame_stats st;
@@ -212,7 +212,7 @@ static void test_exact_frame(int any_scene)
 static void test_hostile(void)
 {
     enum { N = 64 };
-    static double p2[2 * N], p3[3 * N], rows[6 * N], feats[312], scratch[12 * N + 6 * 48];
+    static double p2[2 * N], p3[3 * N], rows[6 * N], feats[312], scratch[18 * N + 6 * 48];
     static unsigned char mask[N];
     const double rvec[3] = {0.1, 0.2, 0.3}, tvec[3] = {0, 0, 500}, behind[3] = {0, 0, -500};
     const size_t S = sizeof scratch / sizeof scratch[0];
@@ -316,7 +316,7 @@ static void test_hostile(void)
 static void test_other_specs(void)
 {
     enum { N = 100 };
-    static double p2[2 * N], p3[3 * N], feats[7 * 5 * 5 + 72], scratch[12 * N + 6 * 35];
+    static double p2[2 * N], p3[3 * N], feats[7 * 5 * 5 + 72], scratch[18 * N + 6 * 35];
     static unsigned char mask[N];
     const double rvec[3] = {-0.2, 0.1, 0.0}, tvec[3] = {5, 5, 700};
     dimenet_feature_spec s = model_spec(1);
@@ -329,13 +329,13 @@ static void test_other_specs(void)
     }
     s.grid_cols = 1, s.grid_rows = 1, s.n_channels = 2, s.channels[0] = 4, s.channels[1] = 0, s.depth_mm = 0;
     dimenet_feature_size(&s, &D);
-    code = dimenet_frame_features(&s, N, p2, p3, mask, rvec, tvec, 0, feats, D, NULL, scratch, 12 * N + 6, &st);
+    code = dimenet_frame_features(&s, N, p2, p3, mask, rvec, tvec, 0, feats, D, NULL, scratch, 18 * N + 6, &st);
     CHECK(code == DIMENET_OK && D == 2 + 72 && st.n_used == 66, "a 1 x 1 grid of 1/Z and dx on masked points");
     CHECK(near(feats[1], -0.5 * 0.1, 1e-9), "the mean dx of a frame half a pixel off, scaled");
     s.grid_cols = 7, s.grid_rows = 5, s.n_channels = 3, s.channels[0] = 2, s.channels[1] = 3, s.channels[2] = 4;
     s.data_step = 0;
     dimenet_feature_size(&s, &D);
-    code = dimenet_frame_features(&s, N, p2, p3, NULL, rvec, tvec, 0, feats, D, NULL, scratch, 12 * N + 6 * 35, &st);
+    code = dimenet_frame_features(&s, N, p2, p3, NULL, rvec, tvec, 0, feats, D, NULL, scratch, 18 * N + 6 * 35, &st);
     CHECK(code == DIMENET_OK && D == 105 + 64, "a 7 x 5 grid, variant E, moments");
 }
 
