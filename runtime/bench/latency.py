@@ -22,6 +22,7 @@ import onnxruntime as ort
 from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.formats.dataset import Dataset
+from dimenet.runtime.native import implementation
 from dimenet.runtime.rectify.model import OnnxModel, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.sim.profiles import get_profile
@@ -161,6 +162,7 @@ def run_bench(
         "providers": rectifier.model.providers,
         "opencv_version": cv2.__version__,
         "numpy_version": np.__version__,
+        "implementation": implementation(),
         "cpu_model": cpu_model(),
         "model": rectifier.model.source,
         "model_sha256": rectifier.model.sha256,
@@ -179,7 +181,7 @@ def format_report(r: dict) -> str:
         f"mode {r['mode']}"
         f"{', refine' if r['refine'] else ''}; model {r['model']} (sha256 {r['model_sha256'][:16]})",
         f"onnxruntime {r['ort_version']} {','.join(r['providers'])}, OpenCV {r['opencv_version']}, "
-        f"CPU {r['cpu_model']}",
+        f"CPU {r['cpu_model']}; implementation {r['implementation']}",
         f"session creation {r['session_create_ms']:.1f} ms, first call {r['first_call_us']:.0f} µs",
         f"  {'µs':<22} {'p50':>9} {'p90':>9} {'p99':>9} {'max':>9}",
         *(row(f"stage {name}", s) for name, s in r["stages_us"].items()),

@@ -82,6 +82,14 @@ def _commands() -> list[Command]:
     return [found[k] for k in sorted(found)]
 
 
+def version_line() -> str:
+    """``dimenet --version``: the version and the implementation running (dimenet.runtime.native: c, the
+    compiled core, or python; an ImplementationError for a DIMENET_IMPLEMENTATION it does not know)."""
+    from dimenet.runtime.native import implementation
+
+    return f"dimenet {__version__} (implementation {implementation()})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dimenet",
@@ -89,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EXAMPLE_MAIN,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("-V", "--version", action="version", version=f"dimenet {__version__}")
+    parser.add_argument("-V", "--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for cmd in _commands():
         p = sub.add_parser(

@@ -187,7 +187,9 @@ def test_the_version_has_one_source_and_dimenet_version_shows_it():
     assert "__version__ =" not in (root / "runtime" / "__init__.py").read_text()
     assert runtime.__version__ == metadata.version("dimenet-runtime") == declared
     shown = dimenet("--version")
-    assert shown.returncode == 0 and shown.stdout.strip() == f"dimenet {declared}"
+    from dimenet.runtime.native import implementation
+
+    assert shown.returncode == 0 and shown.stdout.strip() == f"dimenet {declared} (implementation {implementation()})"
 
 
 def test_the_changelog_and_citation_name_the_version_and_the_licence_is_there():

@@ -13,6 +13,7 @@ from helpers import default_rectifier
 
 import dimenet.runtime
 from dimenet.runtime import errors
+from dimenet.runtime.native import implementation
 
 
 def test_every_error_of_the_errors_module_is_exported_and_a_value_error():
@@ -43,7 +44,8 @@ def test_opencv_shaped_points_give_the_same_result(frames):
 
 def test_python_dash_m_dimenet_is_the_command_and_the_package_is_typed():
     done = subprocess.run([sys.executable, "-m", "dimenet", "--version"], capture_output=True, text=True, timeout=60)
-    assert done.returncode == 0 and done.stdout.strip() == f"dimenet {dimenet.runtime.__version__}", done.stderr
+    version = f"dimenet {dimenet.runtime.__version__} (implementation {implementation()})"
+    assert done.returncode == 0 and done.stdout.strip() == version, done.stderr
     assert resources.files("dimenet.runtime").joinpath("py.typed").is_file()
 
 
