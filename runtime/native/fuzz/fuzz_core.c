@@ -1,0 +1,175 @@
+/* A fuzz target for every entry point of dimenet_core.h (libFuzzer's LLVMFuzzerTestOneInput).
+ *
+ * The input bytes become a feature spec, a frame and a pose: the first bytes choose the grid, the
+ * channels, the depth, the data step and moments, a mask, the flags and whether the numbers are raw
+ * IEEE bit patterns (NaN, inf, subnormal, huge) or plausible values (pixels in the image, a scene in
+ * front of the camera), so that both the argument checks and the deep paths (the Gram, the data step's
+ * Cholesky) run. Every buffer is sized exactly, so AddressSanitizer sees any access past it; a result
+ * that breaks the API's promises (an unknown code, more points used than given) aborts.
+ *
+ * With clang (libFuzzer):
+ *   clang -std=c99 -g -O1 -fsanitize=fuzzer,address,undefined -I runtime/native \
+ *       runtime/native/fuzz/fuzz_core.c runtime/native/dimenet_core.c -lm -o fuzz_core
+ *   ./fuzz_core -max_total_time=60
+ * With gcc only, replay.c drives it with pseudo-random inputs (tests/native/test_c_core.py). */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "dimenet_core.h"
+
+typedef struct {
+    const uint8_t *data;
+    size_t size, at;
+} bytes;
+
+static unsigned take(bytes *b)
+{
+    return b->at < b->size ? b->data[b->at++] : 0u;
+}
+
+/* A double: raw bits (any IEEE value) or lo + (hi - lo) u for a 16-bit fraction u. */
+static double number(bytes *b, int raw, double lo, double hi)
+{
+    if (raw) {
+        uint64_t bits = 0;
+        double x;
+        int i;
+        for (i = 0; i < 8; i++) {
+            bits = bits << 8 | take(b);
+        }
+        memcpy(&x, &bits, sizeof x);
+        return x;
+    } else {
+        unsigned high = take(b), u = high << 8 | take(b);
+        return lo + (hi - lo) * (double)u / 65535.0;
+    }
+}
+
+static void check(int ok)
+{
+    if (!ok) {
+        abort();
+    }
+}
+
+static int known(int code)
+{
+    return code >= DIMENET_OK && code <= DIMENET_E_NOT_POSITIVE_DEFINITE;
+}
+
+/* The paper's variants A to E (rectify/features.py VARIANTS), or (a first byte of 200 or more) any
+ * channels, bad ones included. */
+static const int VARIANTS[5][DIMENET_CHANNELS] = {{0, 1, 2, 3, 4}, {0, 1}, {0, 1, 4}, {0, 1, 2, 3}, {2, 3, 4}};
+static const int VARIANT_SIZE[5] = {5, 2, 3, 4, 3};
+
+int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size);
+
+int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
+{
+    bytes b;
+    dimenet_feature_spec spec;
+    dimenet_frame_stats stats;
+    size_t n, i, D = 0, S = 0;
+    unsigned mode, flags, variant;
+    int raw, code, c, use_mask, behind;
+    double *p2, *p3, *features, *rows, *scratch, rvec[3], tvec[3], jj[100], inverse[100], gram[121];
+    unsigned char *mask;
+
+    b.data = data, b.size = size, b.at = 0;
+    mode = take(&b);
+    raw = mode & 1u;
+    use_mask = (mode >> 1) & 1u;
+    flags = (mode >> 2) & 1u ? DIMENET_REFUSE_BEHIND_CAMERA : 0u;
+    behind = (mode >> 3) & 1u;
+    memset(&spec, 0, sizeof spec);
+    spec.grid_cols = (int)(take(&b) % 17u); /* 0: a bad spec */
+    spec.grid_rows = (int)(take(&b) % 13u);
+    variant = take(&b);
+    spec.n_channels = variant < 200u ? VARIANT_SIZE[variant % 5u] : (int)(take(&b) % 7u); /* 0 and 6: bad */
+    for (c = 0; c < DIMENET_CHANNELS; c++) {
+        spec.channels[c] = variant < 200u ? VARIANTS[variant % 5u][c] : (int)(take(&b) % 6u); /* 5: bad */
+        spec.channel_scale[c] = number(&b, raw, 1e-3, 1e3);
+    }
+    spec.depth_mm = (mode >> 4) & 1u ? number(&b, raw, 0.0, 2000.0) : 0.0;
+    spec.data_step = (int)((mode >> 5) & 1u);
+    spec.moments = (int)((mode >> 6) & 1u);
+    spec.pmd_scale_per_px = number(&b, raw, 0.01, 1.0);
+    spec.image_width_px = number(&b, raw, 1.0, 8000.0);
+    spec.image_height_px = number(&b, raw, 1.0, 6000.0);
+    spec.K_c_px[0] = number(&b, raw, 100.0, 8000.0);
+    spec.K_c_px[4] = number(&b, raw, 100.0, 8000.0);
+    spec.K_c_px[2] = number(&b, raw, 0.0, 8000.0);
+    spec.K_c_px[5] = number(&b, raw, 0.0, 6000.0);
+    spec.K_c_px[8] = 1.0;
+    for (i = 0; i < 3; i++) {
+        rvec[i] = number(&b, raw, -3.2, 3.2);
+        tvec[i] = number(&b, raw, -300.0, 300.0);
+    }
+    tvec[2] = behind ? -fabs(tvec[2]) : (raw ? tvec[2] : 400.0 + fabs(tvec[2]) * 2.0);
+    n = take(&b) % 200u;
+    if (n > (b.size - b.at) / 2) {
+        n = (b.size - b.at) / 2;
+    }
+
+    /* the sizes: a bad spec must be refused by each of them alike */
+    code = dimenet_feature_size(&spec, &D);
+    check(code == DIMENET_OK || code == DIMENET_E_ARGUMENT);
+    check(code == DIMENET_OK || dimenet_scratch_doubles(&spec, n, &S) == DIMENET_E_ARGUMENT);
+    check(dimenet_error_message(code) != NULL && dimenet_error_message(-7) != NULL);
+    if (code != DIMENET_OK || D > 100000 || dimenet_scratch_doubles(&spec, n, &S) != DIMENET_OK || S > 4000000) {
+        check(dimenet_frame_features(&spec, 0, NULL, NULL, NULL, rvec, tvec, 0, jj, 1, NULL, inverse, 100, &stats)
+              == DIMENET_E_ARGUMENT);
+        return 0;
+    }
+    p2 = (double *)malloc(sizeof(double) * (2 * n + 1));
+    p3 = (double *)malloc(sizeof(double) * (3 * n + 1));
+    mask = (unsigned char *)malloc(n + 1);
+    features = (double *)malloc(sizeof(double) * D);
+    rows = (double *)malloc(sizeof(double) * (DIMENET_POINT_ROWS * n + 1));
+    scratch = (double *)malloc(sizeof(double) * S);
+    if (!p2 || !p3 || !mask || !features || !rows || !scratch) {
+        free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
+        return 0;
+    }
+    for (i = 0; i < n; i++) {
+        unsigned k = take(&b);
+        p2[2 * i] = number(&b, raw, -10.0, 8010.0);
+        p2[2 * i + 1] = number(&b, raw, -10.0, 6010.0);
+        p3[3 * i] = number(&b, raw, -300.0, 300.0);
+        p3[3 * i + 1] = number(&b, raw, -300.0, 300.0);
+        p3[3 * i + 2] = (k & 1u) ? 0.0 : number(&b, raw, -100.0, 100.0); /* planes and volumes */
+        mask[i] = (unsigned char)((k >> 1) % 5u != 0u);
+    }
+
+    /* the frame kernel, with and without the point rows and the stats; the wrong sizes refused */
+    memset(&stats, 0, sizeof stats);
+    code = dimenet_frame_features(&spec, n, p2, p3, use_mask ? mask : NULL, rvec, tvec, flags, features, D, rows,
+                                  scratch, S, &stats);
+    check(known(code) && code != DIMENET_E_ARGUMENT);
+    check(stats.n_used <= n && stats.n_behind <= stats.n_used);
+    check(flags != 0u || code != DIMENET_E_BEHIND_CAMERA);
+    code = dimenet_frame_features(&spec, n, p2, p3, use_mask ? mask : NULL, rvec, tvec, flags, features, D, NULL,
+                                  scratch, S, NULL);
+    check(known(code) && code != DIMENET_E_ARGUMENT);
+    check(dimenet_frame_features(&spec, n, p2, p3, NULL, rvec, tvec, 0, features, D, NULL, scratch, S - 1, NULL)
+          == DIMENET_E_ARGUMENT);
+    check(dimenet_frame_features(&spec, n, p2, p3, NULL, rvec, tvec, 0, features, D + 1, NULL, scratch, S, NULL)
+          == DIMENET_E_ARGUMENT);
+    check(dimenet_frame_features(&spec, n, p2, p3, NULL, rvec, tvec, 8u, features, D, NULL, scratch, S, NULL)
+          == DIMENET_E_ARGUMENT);
+
+    /* the Gram of the point rows, and the Hessian inverse of a matrix made of the input */
+    check(dimenet_monomial_gram(n, rows + 2 * n, rows + 3 * n, rows + 4 * n, rows, rows + n, gram) == DIMENET_OK);
+    for (i = 0; i < 100; i++) {
+        jj[i] = gram[(i * 7) % 121];
+    }
+    for (i = 0; i < 10; i++) {
+        jj[i * 10 + i] = fabs(jj[i * 10 + i]);
+    }
+    code = dimenet_prior_posterior(jj, spec.pmd_scale_per_px, spec.channel_scale[0], inverse);
+    check(known(code) && code != DIMENET_E_ARGUMENT && code != DIMENET_E_BEHIND_CAMERA);
+    free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
+    return 0;
+}
