@@ -140,6 +140,11 @@ class FeatureSpec:
         tail = [self.depth_mm or 0.0, float(self.data_step), float(self.moments), self.scale["dx"]]
         return np.array(head + tail, dtype=np.float64)
 
+    @cached_property
+    def native_call(self) -> tuple:
+        """(``native_layout``, (1, size)): what the compiled core's one-frame call takes, in one lookup."""
+        return self.native_layout, (1, self.size)
+
     @property
     def grid_size(self) -> int:
         """The grid's inputs: channels x cells, first in the feature."""
@@ -408,11 +413,16 @@ def native_frame_features(points_2d, points_3d, K_c, image_size, spec: FeatureSp
     must be set): one frame's (1, D) feature at its C0 pose (rvec, tvec (3,)) and e_c (px), the mean norm
     of its PMD; InputError when a point lies behind the camera, or as ``grid_features``'s. points_2d
     (N, 2) px, points_3d (N, 3) mm, K_c (3, 3) px float64."""
-    feats = np.empty((1, spec.size))
+    layout, shape = spec.native_call
+    feats = np.empty(shape)
     size = image_size if type(image_size) is tuple else tuple(image_size)
-    p2, p3 = np.ascontiguousarray(points_2d, np.float64), np.ascontiguousarray(points_3d, np.float64)
-    r, t = np.ascontiguousarray(rvec, np.float64), np.ascontiguousarray(tvec, np.float64)
-    e_c = native.core.frame_features(p2, p3, r, t, K_c, size, spec.native_layout, feats)
+    try:  # the arrays as they come (validated_frame's are float64, C-contiguous)
+        e_c = native.core.frame_features(points_2d, points_3d, rvec, tvec, K_c, size, layout, feats)
+    except TypeError:  # another type or layout: as numpy would take them
+        p2, p3 = np.ascontiguousarray(points_2d, np.float64), np.ascontiguousarray(points_3d, np.float64)
+        r, t = np.ascontiguousarray(rvec, np.float64), np.ascontiguousarray(tvec, np.float64)
+        K = np.ascontiguousarray(K_c, np.float64)
+        e_c = native.core.frame_features(p2, p3, r, t, K, size, layout, feats)
     return feats, e_c
 
 

@@ -152,3 +152,17 @@ def test_threads_calling_the_compiled_core_at_once_get_the_serial_results():
     for one, other in zip(serial, threaded):
         for a, b in zip(one, other):
             np.testing.assert_array_equal(a, b)
+
+
+@compiled
+def test_the_hot_path_takes_arrays_of_another_type_or_layout_as_numpy_does():
+    rng = np.random.default_rng(4)
+    x, X, _, rvec, tvec = random_frames(rng, frames=1, points=50, noise_px=0.5)
+    cam = Rectifier.load(K_c=K_TEST, image_size=IMAGE)._cam
+    with native.using("python"):
+        want = stages.frame_features(cam, x[0], X[0], rvec[0], tvec[0])
+    with native.using("c"):
+        odd = np.asfortranarray(x[0]), X[0].tolist(), list(rvec[0]), np.repeat(tvec[0], 2)[::2]  # strided
+        got = stages.frame_features(cam, *odd)
+    np.testing.assert_array_equal(got[0], want[0])
+    assert got[1] == want[1]
