@@ -360,7 +360,7 @@ def _run_reproduce(args: argparse.Namespace) -> int:
 REPRODUCE = Command(
     name="reproduce",
     summary="Regenerate the paper's Tables 2-5 on the simulated profiles and the generic default beside them "
-    "(trains 9 models, fine-tunes one; ~12 min on 2 cores).",
+    "(trains 9 models, fine-tunes one; 9-16 min on a 2-core VM, 5-9 with --address local:2; --quick: ~2 min).",
     example="dimenet reproduce --out reproduction",
     add_arguments=_add_reproduce,
     run=_run_reproduce,
