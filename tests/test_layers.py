@@ -34,6 +34,7 @@ LAYERS = (
     ("dimenet.runtime.errors",),
     ("dimenet.runtime.json_text", "dimenet.runtime.assets", "dimenet.runtime.plugins"),
     ("dimenet.runtime.geometry",),
+    ("dimenet.runtime.native",),
     ("dimenet.runtime.rectify",),
     ("dimenet.runtime",),
     ("dimenet.runtime.formats", "dimenet.runtime.jobs"),
