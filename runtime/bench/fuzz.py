@@ -31,6 +31,7 @@ from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
 from dimenet.runtime.formats.rig import load_rig
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, solve_pnp_start
+from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.rectify.model import bundled_model_bytes, onnx_model_from_bytes
 from dimenet.runtime.rectify.onnx_graph import MAX_MODEL_BYTES
 from dimenet.runtime.rectify.rectifier import Rectifier
@@ -240,8 +241,8 @@ def fuzz_full_graph(
     and sigma is the population's (``Rectifier.population_K_cov``), as for a frame that keeps K_c."""
     import onnxruntime as ort
 
-    from dimenet.export.full_graph import full_graph
-    from dimenet.export.golden import parity_px
+    tools = entry_points("dimenet.export_tools")  # the export package's, reached as it registers them
+    full_graph, parity_px = tools["full_graph"].load(), tools["parity_px"].load()
 
     session = ort.InferenceSession(full_graph(blob, source), providers=["CPUExecutionProvider"])
     model = onnx_model_from_bytes(blob, source)
@@ -408,7 +409,7 @@ def fuzz_ort_file(blob: bytes, source: str, n_cases: int, rng: np.random.Generat
     ort`, ``export.onnx_export.ort_format_bytes``: needs torch and onnx) through the runtime's loader: each
     must end in a typed error or load as a model whose Delta K on probe features is the original's, bit
     for bit; a model that loads and gives another is silent-wrong."""
-    from dimenet.export.onnx_export import ort_format_bytes
+    ort_format_bytes = entry_points("dimenet.export_tools")["ort_format_bytes"].load()
 
     original = ort_format_bytes(blob, source)
     model = onnx_model_from_bytes(original, "model.ort")
