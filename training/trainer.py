@@ -182,45 +182,29 @@ def _inputs(unit: Unit, frames: Dataset, spec_features: FeatureSpec, K_c: Option
     kept = np.array([r is None for r in reasons])
     if not kept.all():
         frames, rvec, tvec = frames.select(kept), rvec[kept], tvec[kept]
+
+    def features(frames: Dataset, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+        p2, p3, mask = frames.points_2d, frames.points_3d, frames.infer_mask
+        return grid_features(p2, p3, mask, K_c, frames.image_size, spec_features, poses=(rvec, tvec))
+
     try:
-        feats = grid_features(
-            frames.points_2d,
-            frames.points_3d,
-            frames.infer_mask,
-            K_c,
-            frames.image_size,
-            spec_features,
-            poses=(rvec, tvec),
-        )
+        feats = features(frames, rvec, tvec)
     except InputError:  # a frame whose points fix no data step (a singular Hessian): dropped as one without a pose
-        steps = np.array([_has_step(frames, b, K_c, spec_features, rvec, tvec) for b in range(frames.n_frames)])
+        one = np.eye(frames.n_frames, dtype=bool)  # row b selects frame b alone
+        steps = np.array(
+            [_has_step(features, frames.select(one[b]), rvec[one[b]], tvec[one[b]]) for b in range(len(one))]
+        )
         frames, rvec, tvec = frames.select(steps), rvec[steps], tvec[steps]
         kept[np.flatnonzero(kept)[~steps]] = False
-        feats = grid_features(
-            frames.points_2d,
-            frames.points_3d,
-            frames.infer_mask,
-            K_c,
-            frames.image_size,
-            spec_features,
-            poses=(rvec, tvec),
-        )
+        feats = features(frames, rvec, tvec)
     K_c = torch.from_numpy(np.broadcast_to(K_c, (frames.n_frames, 3, 3)).copy())
     return (torch.from_numpy(feats.astype(np.float32)), *_tensors(frames), K_c), kept
 
 
-def _has_step(frames: Dataset, b: int, K_c, spec_features: FeatureSpec, rvec, tvec) -> bool:
-    """Whether frame b's feature can be formed (its data step's Hessian is positive definite)."""
+def _has_step(features, frame: Dataset, rvec: np.ndarray, tvec: np.ndarray) -> bool:
+    """Whether one frame's feature can be formed by ``features`` (its data step's Hessian is positive definite)."""
     try:
-        grid_features(
-            frames.points_2d[b : b + 1],
-            frames.points_3d[b : b + 1],
-            frames.infer_mask[b : b + 1],
-            K_c,
-            frames.image_size,
-            spec_features,
-            poses=(rvec[b : b + 1], tvec[b : b + 1]),
-        )
+        features(frame, rvec, tvec)
     except InputError:
         return False
     return True
