@@ -149,15 +149,19 @@ def map_rectify(
 ) -> tuple[MapFit | None, str | None]:
     """``map_fit`` from the C0 pose (``pose`` (rvec, tvec) under K_c (3, 3), else SQPnP here),
     checked: (fit, None), or (None, why) when there is no start pose, no step lowered the cost
-    (the turned C0 pose is not k_net's optimum, so the caller's own PnP under k_net is better)
-    or the MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the
+    (the turned C0 pose is not k_net's optimum, so the caller's own PnP under k_net is better),
+    the points fix no MAP pose (its Hessian is not positive definite: points on a line), or the
+    MAP K is not finite or outside ``k_bounds`` (4, 2) px; the caller then keeps the
     DIME-Net K. ``uncertainty``: as ``map_fit``'s."""
     if pose is None:
         try:
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
             return None, "no C0 pose under K_c"
-    result = map_fit(points_2d, points_3d, k_net, K_cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
+    try:
+        result = map_fit(points_2d, points_3d, k_net, K_cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
+    except InputError:
+        return None, "the points fix no MAP pose (its Hessian is not positive definite)"
     if result.steps == 0:
         return None, "the MAP step did not lower the cost"
     if not frame_within_bounds(result.k.tolist(), k_bounds.tolist()):

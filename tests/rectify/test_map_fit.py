@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from helpers import constant_uncertainty, random_frames
 
+from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import calibrate, k_matrix, k_params, project, solve_pnp_start
 from dimenet.runtime.rectify.map_fit import map_fit, map_rectify, turned_to_principal_point
 from dimenet.runtime.rectify.uncertainty import NOISE_SCALE_PX
@@ -89,6 +90,18 @@ def test_map_rectify_refuses_a_fit_whose_step_raised_the_cost():
     # From a start 1 rad off, the one Gauss-Newton step overshoots: the start is no answer.
     far = map_rectify(x, X, k, np.eye(4) * 25.0, bounds, K[0], pose=(rvec[0] + [1.0, 0.0, 0.0], tvec[0]))
     assert far == (None, "the MAP step did not lower the cost")
+
+
+def test_map_rectify_gives_way_where_the_points_fix_no_pose():
+    # Points on one line: the turn about it is free, the Hessian singular whatever the prior on K.
+    x, X, K, rvec, tvec = random_frames(np.random.default_rng(0), 1, 60, noise_px=0.5)
+    X_line = np.outer(np.linspace(-1.0, 1.0, 60), X[0][1] - X[0][0]) + X[0][0]
+    x_line = project(X_line, K[0], rvec[0], tvec[0])
+    k, bounds = k_params(K[0]), np.stack([k_params(K[0]) - 500, k_params(K[0]) + 500], -1)
+    with pytest.raises(InputError, match="not positive definite"):
+        map_fit(x_line, X_line, k, np.eye(4) * 25.0, rvec[0], tvec[0])
+    got = map_rectify(x_line, X_line, k, np.eye(4) * 25.0, bounds, K[0], pose=(rvec[0], tvec[0]))
+    assert got == (None, "the points fix no MAP pose (its Hessian is not positive definite)")
 
 
 def test_map_on_one_planar_view_follows_the_prior_where_the_data_says_nothing():
