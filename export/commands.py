@@ -10,6 +10,7 @@ from dimenet.runtime.cli.arguments import integer_in, nonempty_path
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
 from dimenet.runtime.formats.atomic import atomic_write
+from dimenet.runtime.rectify.model import BUNDLED_HELP
 
 from .opset import DEFAULT_OPSET, MAX_OPSET, MIN_OPSET
 
@@ -19,7 +20,7 @@ def _add_export(p: argparse.ArgumentParser) -> None:
         "source",
         metavar="SOURCE",
         help="a trained model folder from `dimenet train` (RUN_DIR); with --graph full or --golden also a "
-        "MODEL.onnx or a bundled model ('default' or 'any-scene')",
+        "MODEL.onnx or a bundled model: " + BUNDLED_HELP,
     )
     p.add_argument("--out", type=nonempty_path, metavar="FILE.onnx", help="ONNX file to write (atomically)")
     p.add_argument(

@@ -11,6 +11,7 @@ from pathlib import Path
 from dimenet.runtime.cli.arguments import grid_size, nonempty_path, seed
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
+from dimenet.runtime.rectify.model import BUNDLED_HELP
 from dimenet.runtime.rectify.spec import HEADS
 
 from .config import (
@@ -118,7 +119,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--init",
         metavar="MODEL",
-        help="fine-tune: start from a model's weights, a bundled model ('default' or 'any-scene'), a RUN_DIR or a "
+        help=f"fine-tune: start from a model's weights, a bundled model ({BUNDLED_HELP}), a RUN_DIR or a "
         "MODEL.onnx; its grid, features (data step, moments), head and layer sizes are kept (a generic init stays "
         "generic; a flag asking for others is named in a warning)",
     )

@@ -44,11 +44,20 @@ from dimenet.runtime.rectify.spec import (
 )
 
 # The bundled models (files in dimenet.runtime.assets) by the name that stands for a model path wherever
-# one is taken ("./default": a file of that name): "default", the paper-scene grid model, the fastest;
-# "any-scene", the scene-robust encoder (the frame's own step and moments, the gated head), for rigs,
-# distances and scenes other than the paper's (training/METHOD.md, "The two bundled models").
-BUNDLED_MODELS = {"default": "default_model.onnx", "any-scene": "any_scene_model.onnx"}
+# one is taken ("./default": a file of that name): "default" (also named "any-scene"), the scene-robust
+# encoder (the frame's own step and moments, the gated head) that holds on rigs, distances and scenes
+# other than the paper's; "paper-rig", the paper's grid model, for its rig at its framing and for
+# `dimenet reproduce` (training/METHOD.md, "The two bundled models"; 0.7.0 made any-scene the default).
+BUNDLED_MODELS = {
+    "default": "any_scene_model.onnx",
+    "any-scene": "any_scene_model.onnx",
+    "paper-rig": "paper_rig_model.onnx",
+}
 DEFAULT_NAME = "default"
+# One name per bundled file, for whatever is done once per model (golden sets, fuzz, reports).
+MODEL_NAMES = ("default", "paper-rig")
+# How the commands' help names the bundled models.
+BUNDLED_HELP = "default (the any-scene encoder, also named any-scene) or paper-rig (the paper's grid model)"
 DEFAULT_MODEL = BUNDLED_MODELS[DEFAULT_NAME]
 # Most ONNX Runtime intra-op threads a session may ask for: more only contend for the cores (the CLI's
 # --threads and --workers take the same cap); 10**6 threads crash the process, 10**5 spin for minutes.

@@ -12,6 +12,7 @@ from helpers import importable
 
 from dimenet.runtime.cli.commands import bench as bench_command
 from dimenet.runtime.cli.main import main
+from dimenet.runtime.rectify.model import bundled_source
 
 
 def run_without_torch(*args: str) -> subprocess.CompletedProcess:
@@ -79,7 +80,7 @@ def test_bench_without_torch_still_runs_its_help():
 def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
     assert main(["bench", "--fuzz", "12", "--seed", "3", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["model"] == "bundled default model (default_model.onnx)"
+    assert report["model"] == bundled_source("default")
     assert set(report["counts"]) == {
         "rectify",
         "rectify_batch",

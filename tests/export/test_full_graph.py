@@ -28,7 +28,7 @@ from dimenet.runtime.rectify.rectifier import Rectifier  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN_DIR = ROOT / "models_spec" / "golden"
 GOLDEN = GOLDEN_DIR / "golden.json"
-NAMED_GOLDEN = {"default": GOLDEN, "any-scene": GOLDEN_DIR / "any-scene" / "golden.json"}
+NAMED_GOLDEN = {"default": GOLDEN, "paper-rig": GOLDEN_DIR / "paper-rig" / "golden.json"}
 # Every operator the full graph may hold: standard ONNX, no control flow, no custom domain.
 FULL_GRAPH_OPS = {
     "Add", "Cast", "Concat", "Constant", "Cos", "Div", "Equal", "Erf", "Exp", "Floor", "Gather", "Gelu", "Gemm",
@@ -206,6 +206,7 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
     for args, words in (
         (["export", "default", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
         (["export", "any-scene", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
+        (["export", "paper-rig", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
         (["export", "default"], "give --out FILE.onnx (a model) or --golden DIR"),
         (["export", "default", "--out", str(out), "--golden", str(tmp_path)], "one of them"),
     ):
@@ -214,13 +215,13 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
         assert len(err) == 1 and words in err[0], err
 
 
-def test_the_any_scene_model_s_committed_golden_set_is_what_export_writes_today(tmp_path, capsys):
+def test_the_paper_rig_model_s_committed_golden_set_is_what_export_writes_today(tmp_path, capsys):
     from dimenet.runtime.cli.main import main
 
-    assert main(["export", "any-scene", "--golden", str(tmp_path)]) == 0
-    assert "golden vectors of any-scene" in capsys.readouterr().out
+    assert main(["export", "paper-rig", "--golden", str(tmp_path)]) == 0
+    assert "golden vectors of paper-rig" in capsys.readouterr().out
     written = json.loads((tmp_path / "golden.json").read_text())
-    assert_json_close(written, json.loads(NAMED_GOLDEN["any-scene"].read_text()), rtol=1e-8, atol=1e-6)
+    assert_json_close(written, json.loads(NAMED_GOLDEN["paper-rig"].read_text()), rtol=1e-8, atol=1e-6)
 
 
 @pytest.mark.parametrize("moments", [False, True])

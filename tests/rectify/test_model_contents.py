@@ -184,8 +184,9 @@ def _written(folder, blob):
 
 def test_the_bundled_and_device_models_hold_only_what_the_exporter_writes():
     from dimenet.runtime.assets import asset
+    from dimenet.runtime.rectify.model import BUNDLED_MODELS
 
-    for blob in (asset("default_model.onnx").read_bytes(), DEVICE_MODEL.read_bytes()):
+    for blob in (*(asset(f).read_bytes() for f in sorted(set(BUNDLED_MODELS.values()))), DEVICE_MODEL.read_bytes()):
         check_model_bytes(blob, "model")  # no error
 
 

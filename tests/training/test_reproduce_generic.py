@@ -1,5 +1,5 @@
 """`dimenet reproduce`'s generic rows (training/reproduce/generic.py) on small inputs: every row
-is computed and reported, for the bundled generic default and a device model beside it."""
+is computed and reported, for the bundled paper-rig model and a device model beside it."""
 
 from __future__ import annotations
 
@@ -35,16 +35,16 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     side = {
         "fine_tune": (tuned.run_dir, tuned.seconds),
         "fresh_family": generic.fresh_family(),
-        "fresh_scenes": {name: generic.fresh_scenes(name) for name in ("default", "any-scene")},
+        "fresh_scenes": {name: generic.fresh_scenes(name) for name in ("paper-rig", "default")},
     }
-    results = generic.run_generic(data, device, config, load_model(), side)
+    results = generic.run_generic(data, device, config, load_model(generic.GENERIC_MODEL), side)
     rows = results["zero_shot"]
     assert set(rows) == {"galaxy-s8 rig", "galaxy-s8 rig 64 pts", "galaxy-s8 natural", "galaxy-s8 planar"}
     assert rows["galaxy-s8 rig"]["generic"]["dimenet"] > 0.9 and rows["galaxy-s8 rig"]["device"]["dimenet"] > 0.9
     assert len(results["fresh_family"]) == 2 and all(r["rho"] > 0.5 for r in results["fresh_family"])
     assert set(results["fine_tune"]["rows"]) == {"rig 64 pts", "natural"}
-    assert set(results["fresh_scenes"]) == {"default", "any-scene"}
-    scenes = results["fresh_scenes"]["default"]
+    assert set(results["fresh_scenes"]) == {"paper-rig", "default"}
+    scenes = results["fresh_scenes"]["paper-rig"]
     assert [len(scenes[name]) for name in ("rig", "far", "natural")] == [2, 1, 4]
     assert all(r["kind"] in ("room", "buildings", "objects") and r["features"] >= 15 for r in scenes["natural"])
     assert any(r["all"]["map"] is not None for r in scenes["natural"])
@@ -58,11 +58,12 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     assert inv["half_vs_full_mean_px"] < 1e-6 and inv["m_vs_mm_max_px"] < 1e-6
     assert inv["half_points_full_k_c_silent"] == 0
     text = "\n".join(_generic_report(results))
-    assert "## The generic default model beside the per-device ones" in text and "family-s101-001" in text
+    assert "## The paper's grid model (paper-rig, generic) beside the per-device ones" in text
+    assert "family-s101-001" in text
     assert "### Held-out scene families" in text and "Cameras without OIS (1 of" in text
-    assert "| far | 1 | default |" in text and "| far | 1 | any-scene |" in text
-    assert "| natural | 4 | any-scene |" in text and "- the any-scene model: " in text
+    assert "| far | 1 | paper-rig |" in text and "| far | 1 | default |" in text
+    assert "| natural | 4 | default |" in text and "- the default model: " in text
     assert "moves from K_c by at most 2σ" in text and "within 2σ of K_true" in text
-    # the any-scene model reads the frame's own step: on the held-out rigs it beats K_c in mode dimenet too
-    assert all(r["all"]["dimenet"] > 0.5 for r in results["fresh_scenes"]["any-scene"]["rig"])
+    # the default (any-scene) reads the frame's own step: on the held-out rigs it beats K_c in mode dimenet too
+    assert all(r["all"]["dimenet"] > 0.5 for r in results["fresh_scenes"]["default"]["rig"])
     assert np.isfinite(rows["galaxy-s8 planar"]["generic"]["map"])

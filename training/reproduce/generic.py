@@ -2,7 +2,7 @@
 paper's three profiles, on every camera of a fresh camera family, fine-tuned from a few frames,
 and its invariance to the stream's resolution and the world unit; and on held-out scene families
 (issue 35's): random rigs of seeds and framings the training never drew, and cameras without OIS, for
-each bundled model (the default and the any-scene one)."""
+each bundled model (the default, any-scene, and the paper's grid model, paper-rig)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.model import DEFAULT_NAME, OnnxModel
+from dimenet.runtime.rectify.model import OnnxModel
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import family_member, family_profiles, has_ois, hfov_deg, simulate_family
@@ -27,7 +27,10 @@ from dimenet.runtime.sim.scenes import FILL
 from ..config import ReproduceConfig, TrainConfig
 from .paper import DEVICES
 
-# The family the bundled model was trained on is seed 0 (models_spec/default-model.md); this
+# The generic model of the rows beside the paper's: the paper's grid model (the default before 0.7.0, whose
+# figures training/REPRODUCTION.md carries; the default's own are in models_spec/any-scene-model.md).
+GENERIC_MODEL = "paper-rig"
+# The family the bundled model was trained on is seed 0 (models_spec/paper-rig-model.md); this
 # one it never saw.
 FRESH_FAMILY_SEED = 101
 FRESH_FAMILY_CAMERAS = 20
@@ -88,7 +91,7 @@ def fresh_family(generic: Optional[Predictor] = None, cameras: Optional[int] = N
     """rho (rig, all points) of the generic model (default: the bundled one) on each camera (or the first
     ``cameras``) of a family it never saw. A job of ``runtime.jobs.engine.run_all`` too (it needs no other
     result)."""
-    generic = generic or load_predictor(DEFAULT_NAME)
+    generic = generic or load_predictor(GENERIC_MODEL)
     rows = []
     n = _first(FRESH_FAMILY_CAMERAS, cameras)
     family = simulate_family(n, FRESH_FAMILY_SEED)
@@ -100,7 +103,7 @@ def fresh_family(generic: Optional[Predictor] = None, cameras: Optional[int] = N
     return rows
 
 
-def fresh_scenes(model: str = DEFAULT_NAME, cameras: Optional[int] = None) -> dict:
+def fresh_scenes(model: str = GENERIC_MODEL, cameras: Optional[int] = None) -> dict:
     """A generic model (a bundled model's name, or what ``load_predictor`` takes) on held-out scene
     families: per FRESH_SCENES family and camera, rho of both modes on its rig test frames at every
     point and at SMALL_POINTS; per camera of the FRESH_NATURAL family, rho of both modes on its natural
@@ -188,10 +191,10 @@ def ois_off_coverage(generic: Predictor, cameras: Optional[int] = None) -> dict:
 
 
 def fine_tune_training(data: dict, out: Path, config: ReproduceConfig) -> tuple:
-    """The fine-tuning of the default on the first FINE_TUNE_FRAMES galaxy-s8 train frames, as
+    """The fine-tuning of GENERIC_MODEL on the first FINE_TUNE_FRAMES galaxy-s8 train frames, as
     (dataset, TrainConfig, run dir, init): reproduce trains it beside its other models."""
     cfg = TrainConfig(epochs=config.epochs, seed=config.seed, train_frames=FINE_TUNE_FRAMES)
-    return data["galaxy-s8"], cfg, out / "runs" / f"galaxy-s8-default-{FINE_TUNE_FRAMES}", "default"
+    return data["galaxy-s8"], cfg, out / "runs" / f"galaxy-s8-{GENERIC_MODEL}-{FINE_TUNE_FRAMES}", GENERIC_MODEL
 
 
 def fine_tune(data: dict, device: dict, run_dir: Path, seconds: float, config: ReproduceConfig) -> dict:

@@ -168,10 +168,10 @@ def _baselines_report(baselines: dict) -> list:
 def _generic_report(g: dict) -> list:
     inv, tune = g["invariance"], g["fine_tune"]
     L = [
-        "## The generic default model beside the per-device ones",
+        "## The paper's grid model (paper-rig, generic) beside the per-device ones",
         "",
         f"`{g['model']}`: one scale-free model trained on a simulated camera family that leaves the three "
-        "paper phones out (models_spec/default-model.md), so every row here is zero-shot for it; its camera "
+        "paper phones out (models_spec/paper-rig-model.md), so every row here is zero-shot for it; its camera "
         "is K_c calibrated on the dataset's train split. Per-device: the Table 5 models above. ρ %, "
         "generic \\| per-device.",
         "",
@@ -205,7 +205,7 @@ def _generic_report(g: dict) -> list:
     ]
     L += [
         "",
-        f"Fine-tuned from the default on the first {tune['frames']} galaxy-s8 train frames "
+        f"Fine-tuned from it on the first {tune['frames']} galaxy-s8 train frames "
         f"({tune['seconds']:.0f} s), ρ % fine-tuned \\| the per-device model trained on all: "
         + "; ".join(f"{case} {_pct(r['fine_tuned'])} \\| {_pct(r['device'])}" for case, r in tune["rows"].items())
         + ".",
@@ -236,7 +236,7 @@ def _scenes_report(by_model: dict) -> list:
         "street or table (16–600 labels with 0.3–5 px noise and a 3D error, around a board whose corners the "
         "errors are read on, as the paper's LEGO test): natural test frames, ρ n/a on cameras without OIS. K_c "
         f"calibrated on each camera's train split; ρ % median / worst camera, at every point and at {SMALL_POINTS} "
-        "inference points; each bundled model (`--model default`, `--model any-scene`).",
+        "inference points; each bundled model (`--model default`, the any-scene encoder; `--model paper-rig`).",
         "",
         f"| family | cameras | model | dimenet | map | dimenet {SMALL_POINTS} pts | map {SMALL_POINTS} pts |",
         "|---|---|---|---|---|---|---|",

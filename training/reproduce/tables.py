@@ -18,13 +18,13 @@ from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.jobs.engine import Engine
 from dimenet.runtime.rectify.grid import Grid
-from dimenet.runtime.rectify.model import BUNDLED_MODELS, load_model
+from dimenet.runtime.rectify.model import MODEL_NAMES, load_model
 from dimenet.runtime.sim.simulator import simulate
 
 from ..config import ReproduceConfig, TrainConfig
 from ..init_weights import initial_weights
 from ..trainer import train
-from .generic import fine_tune_training, fresh_family, fresh_scenes, run_generic
+from .generic import GENERIC_MODEL, fine_tune_training, fresh_family, fresh_scenes, run_generic
 from .paper import DEVICES, ETAS, GRIDS, NATURAL_FRAMES, NOISE_2D_PX, NOISE_3D_MM, PLANAR_FRAMES, POINTS, VARIANTS
 from .report import plot_eta, plot_methods, plot_points, report
 
@@ -94,7 +94,7 @@ def _generic_rows(
 ) -> dict:
     device = {d: load_predictor(run_dirs[f"{d}-8x6-A"]) for d in DEVICES}
     jobs = {"fine_tune": fine_tune_job, "fresh_family": fresh, "fresh_scenes": scenes}
-    return run_generic(data, device, config, load_model(), jobs)
+    return run_generic(data, device, config, load_model(GENERIC_MODEL), jobs)
 
 
 # The jobs of ``runtime.jobs.engine.Engine.run_all``: (kind, *arguments) -> JOBS[kind](*arguments). Each
@@ -154,8 +154,8 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
         )
         for device, grid, variant, epochs in jobs
     }
-    generic = load_model().spec.generic is not None
-    scene_jobs = {model: f"fresh scenes {model}" for model in BUNDLED_MODELS}  # each bundled model's job name
+    generic = load_model(GENERIC_MODEL).spec.generic is not None
+    scene_jobs = {model: f"fresh scenes {model}" for model in MODEL_NAMES}  # each bundled model's job name
     if generic:  # the generic rows' own jobs, which need no trained model: beside the trainings
         trainings["fine-tune"] = ("train", *fine_tune_training(data, out, config))
         trainings["fresh family"] = ("fresh_family", None, config.held_out_cameras)

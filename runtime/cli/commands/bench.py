@@ -19,6 +19,7 @@ from dimenet.runtime.cli.commands.render import MAX_PHOTOS
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.plugins import entry_points
+from dimenet.runtime.rectify.model import BUNDLED_HELP
 from dimenet.runtime.sim.profiles import PROFILES
 
 # Each bench's options and their defaults. The parser's defaults are None, so that an option
@@ -70,7 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     latency.add_argument(
         "--model",
         type=nonempty_path,
-        help="a .onnx from `dimenet export`, or a bundled model: default (the default) or any-scene; "
+        help=f"a .onnx from `dimenet export`, or a bundled model: {BUNDLED_HELP}; "
         "with --fuzz, the model the hostile frames go through",
     )
     latency.add_argument(
@@ -321,7 +322,7 @@ COMMAND = Command(
     "a 10 ms p99 (a 2-core VM: 0.6-4.4 ms)\n"
     "  dimenet bench --ingest bench-shots --n 30 --seed 1 --profile galaxy-s8 --workers 2   # renders there first\n"
     "  dimenet bench --bpnp --frames 32 --points 320 --repeats 200\n"
-    "  dimenet bench --fuzz 2000 --seed 1 --model any-scene\n"
+    "  dimenet bench --fuzz 2000 --seed 1 --model paper-rig\n"
     "  dimenet bench --stream 100000",
     add_arguments=add_arguments,
     run=run,

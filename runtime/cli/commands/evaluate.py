@@ -32,7 +32,7 @@ from dimenet.runtime.formats.dataset import SPLITS, read_dataset
 from dimenet.runtime.geometry import MIN_POINTS
 from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.grid import Grid
-from dimenet.runtime.rectify.model import DEFAULT_NAME, load_model
+from dimenet.runtime.rectify.model import BUNDLED_HELP, DEFAULT_NAME, load_model
 
 # The real-photo suite's sets, beside the project's folder as the tests find them.
 DEFAULT_PHOTOS = "../shared/real-photos"
@@ -62,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--model",
         type=nonempty_path,
         help="trained model: a RUN_DIR from `dimenet train`, a .onnx from `dimenet export`, or a bundled model: "
-        "default (the default) or any-scene",
+        + BUNDLED_HELP,
     )
     add_camera_argument(p)
     p.add_argument("--split", default="test", choices=SPLITS, help="frames to evaluate (default: test)")

@@ -32,7 +32,7 @@ from dimenet.runtime.formats.points import PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.jobs.progress import progress
-from dimenet.runtime.rectify.model import load_model
+from dimenet.runtime.rectify.model import BUNDLED_HELP, load_model
 from dimenet.runtime.rectify.rectifier import MODES, Rectifier
 from dimenet.runtime.rectify.results import BatchRectification
 
@@ -59,8 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--model",
         type=nonempty_path,
-        help="a .onnx from `dimenet export`, or a bundled model: default (the paper-scene model, the fastest; the "
-        "default) or any-scene (for rigs, distances and scenes other than the paper's)",
+        help=f"a .onnx from `dimenet export`, or a bundled model: {BUNDLED_HELP}",
     )
     add_camera_argument(p)
     p.add_argument(
@@ -298,7 +297,7 @@ COMMAND = Command(
     summary="Rectify K frame by frame with a DIME-Net model; print e under K_c and under the rectified K.",
     example="dimenet rectify s8.npz --model s8.onnx --mode map --out s8-rectified.npz\n"
     "  dimenet rectify frames.npz --camera cam.json --json   # the bundled generic model, your camera\n"
-    "  dimenet rectify frames.npz --camera cam.json --model any-scene   # a rig or scene not the paper's\n"
+    "  dimenet rectify frames.npz --camera cam.json --model paper-rig   # the paper's grid model\n"
     "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
