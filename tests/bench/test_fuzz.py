@@ -9,11 +9,11 @@ import pytest
 from helpers import example_camera
 
 from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_full_graph, fuzz_ort_file, fuzz_rectifier
-from dimenet.runtime.rectify.model import BUNDLED_MODELS, bundled_model_bytes
+from dimenet.runtime.rectify.model import MODEL_NAMES, bundled_model_bytes
 from dimenet.runtime.rectify.rectifier import Rectifier
 
 
-@pytest.mark.parametrize("model", sorted(BUNDLED_MODELS))
+@pytest.mark.parametrize("model", MODEL_NAMES)
 @pytest.mark.parametrize("mode", ["dimenet", "map"])
 def test_hostile_frames_end_typed_or_without_a_confident_wrong_k(frames, mode, model):
     camera = example_camera()
@@ -40,7 +40,7 @@ def scenes():
     return simulate("galaxy-s8", seed=7, natural_frames=3, planar_frames=3)
 
 
-@pytest.mark.parametrize("model", sorted(BUNDLED_MODELS))
+@pytest.mark.parametrize("model", MODEL_NAMES)
 def test_the_full_graph_equals_the_runtime_on_the_fuzz_s_frames_within_the_parity_bound(scenes, model):
     """The full graph against ``Rectifier.network`` on frames of every scene, in other units, subsets and
     hostile variants, half of them with masked NaN, inf and camera-centre points among theirs, and on no
@@ -53,7 +53,7 @@ def test_the_full_graph_equals_the_runtime_on_the_fuzz_s_frames_within_the_parit
     assert counts["ok"] > 50 and counts["typed"] > 20, report.table()  # compared, and refused by the runtime
 
 
-@pytest.mark.parametrize("model", sorted(BUNDLED_MODELS))
+@pytest.mark.parametrize("model", MODEL_NAMES)
 def test_mutated_ort_files_end_in_typed_errors_or_the_original_s_delta_k(model):
     pytest.importorskip("onnx")
     pytest.importorskip("torch")  # the ORT-format conversion sits beside the torch export

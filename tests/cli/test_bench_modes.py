@@ -99,9 +99,9 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
 
 
 def test_bench_fuzz_runs_the_model_asked_for(capsys):
-    assert main(["bench", "--fuzz", "6", "--seed", "3", "--model", "any-scene"]) == 0
+    assert main(["bench", "--fuzz", "6", "--seed", "3", "--model", "paper-rig"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("model bundled any-scene model (any_scene_model.onnx)\n"), out
+    assert out.startswith("model bundled paper-rig model (paper_rig_model.onnx)\n"), out
     assert main(["bench", "--fuzz", "3", "--model", "missing.onnx"]) == 2
     assert "missing.onnx: no such model file" in capsys.readouterr().err
 

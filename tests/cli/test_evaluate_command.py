@@ -37,10 +37,10 @@ def test_evaluate_methods_errors_exit_2(tmp_path, capsys):
         assert message in err and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("name", ["default", "any-scene"])
+@pytest.mark.parametrize("name", ["default", "paper-rig"])
 def test_a_bundled_model_s_name_is_taken_wherever_a_model_is(tmp_path, capsys, name):
     """Issue 34: `train --init default` was accepted while `evaluate --model default` was refused; the
-    any-scene model is named alike."""
+    paper-rig model is named alike."""
     from dimenet.runtime.evaluation.predictor import load_predictor
     from dimenet.runtime.rectify.model import BUNDLED_MODELS, bundled_source, load_model
 

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[2].parent / "shared" / "real-photos"
 
 
 @pytest.mark.skipif(bool(missing_sets(ROOT)), reason=f"the real photos are not all there: {ROOT}")
-@pytest.mark.parametrize("model", ["default", "any-scene"])
+@pytest.mark.parametrize("model", ["default", "paper-rig"])
 def test_the_real_photo_suite_meets_its_targets(capsys, model):
     assert main(["evaluate", "--suite", "real", "--photos", str(ROOT), "--model", model, "--json"]) == 0
     report = json.loads(capsys.readouterr().out)

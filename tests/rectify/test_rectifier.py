@@ -229,7 +229,7 @@ def test_non_finite_or_worse_k_falls_back_to_k_c(frames, delta_k, reason):
     assert all(reason in r for r in batch.fallback) and np.all(np.isfinite(batch.reprojection_error_px))
 
 
-@pytest.mark.parametrize("name", ["default", "any-scene"])
+@pytest.mark.parametrize("name", ["default", "paper-rig"])
 def test_missing_bundled_model_is_a_model_error(monkeypatch, name):
     monkeypatch.setitem(model_module.BUNDLED_MODELS, name, "absent_model.onnx")
     with pytest.raises(ModelError, match=f"no bundled {name} model"):

@@ -21,7 +21,7 @@ def _frames():
         return [(d["points_2d"][b][d["valid"][b]], d["points_3d"][b][d["valid"][b]]) for b in range(4)]
 
 
-@pytest.mark.parametrize("name", ["default", "any-scene"])
+@pytest.mark.parametrize("name", ["default", "paper-rig"])
 @pytest.mark.parametrize("mode", ["dimenet", "map"])
 def test_delta_k_is_the_same_in_any_unit(name, mode):
     camera = example_camera()

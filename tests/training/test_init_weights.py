@@ -98,7 +98,7 @@ def test_a_run_dir_gives_back_its_weights_and_spec(tmp_path, torch_model, spec):
     assert torch.equal(initial_weights(str(run_dir)).state_dict["fc1.weight"], torch_model.fc1.weight)
 
 
-@pytest.mark.parametrize("name", ["default", "any-scene"])
+@pytest.mark.parametrize("name", ["default", "paper-rig"])
 def test_each_bundled_model_reproduces_onnx_runtime(spec, name):
     weights = initial_weights(name)
     bundled = load_model(name)
