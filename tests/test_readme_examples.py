@@ -13,6 +13,7 @@ import pytest
 from readme_examples import ROOT, Example, cut_short, help_examples, left_out, readme_blocks
 
 from dimenet.runtime.cli.main import CliError, build_parser
+from dimenet.runtime.rectify.model import BUNDLED_MODELS
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +100,7 @@ def test_files_the_examples_read_come_from_an_earlier_example_or_the_samples(blo
     """Each file a command line names as an input (DATA, --points, --camera, --model, MANIFEST...) is written by an
     earlier line (its --out, --camera-out, a heredoc) or by `dimenet samples --out .`."""
     examples = [b for b in blocks if left_out(b) is None] + [e for e in help_examples() if left_out(e) is None]
-    written = {"default", "any-scene", "paper", "../shared/real-photos"}
+    written = {*BUNDLED_MODELS, "paper", "../shared/real-photos"}
     for example in examples:
         for line in example.text.splitlines():
             heredoc = re.match(r"cat > (\S+) <<", line)

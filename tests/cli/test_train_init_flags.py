@@ -37,12 +37,12 @@ def trained(s8_dataset, tmp_path, monkeypatch):
 
 
 def test_flags_an_init_fixes_are_named_when_it_overrides_them(trained, capsys):
-    code, config, err = trained(capsys, "--init", "default", "--data-step", "--moments", "--grid", "16x12")
+    code, config, err = trained(capsys, "--init", "paper-rig", "--data-step", "--moments", "--grid", "16x12")
     assert code == 0
     assert err == [
-        "dimenet train: warning: --grid 16x12 is ignored: --init default keeps its own grid, 8x6",
-        "dimenet train: warning: --data-step is ignored: --init default keeps its own feature, without the data step",
-        "dimenet train: warning: --moments is ignored: --init default keeps its own feature, without the moments",
+        "dimenet train: warning: --grid 16x12 is ignored: --init paper-rig keeps its own grid, 8x6",
+        "dimenet train: warning: --data-step is ignored: --init paper-rig keeps its own feature, without the data step",
+        "dimenet train: warning: --moments is ignored: --init paper-rig keeps its own feature, without the moments",
     ]
     assert (config.grid, config.data_step, config.moments, config.head) == ("8x6", False, False, "mlp")
 

@@ -31,7 +31,7 @@ from dimenet.runtime.rectify.rectifier import Rectifier
 pytestmark = pytest.mark.skipif(not native.compiled_available(), reason="the compiled core is not built")
 
 GOLDEN_DIR = Path(__file__).resolve().parents[2] / "models_spec" / "golden"
-GOLDEN = {"default": GOLDEN_DIR / "golden.json", "any-scene": GOLDEN_DIR / "any-scene" / "golden.json"}
+GOLDEN = {"default": GOLDEN_DIR / "golden.json", "paper-rig": GOLDEN_DIR / "paper-rig" / "golden.json"}
 FEATURE_TOL = 1e-12
 K_TOL_PX = 1e-9
 POSE_TOL_REL = 1e-9

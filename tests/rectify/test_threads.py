@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from helpers import example_camera
 
+from dimenet.runtime.rectify.model import MODEL_NAMES
 from dimenet.runtime.rectify.rectifier import Rectifier
 
 THREADS = 8
@@ -40,7 +41,7 @@ def varied(frames):
     return out
 
 
-@pytest.fixture(scope="module", params=["default", "any-scene"])
+@pytest.fixture(scope="module", params=MODEL_NAMES)
 def rectifier(request):
     camera = example_camera()
     return Rectifier.load(request.param, K_c=camera.K, image_size=camera.image_size)

@@ -15,7 +15,7 @@ from test_rectifier_camera import rig_frames
 
 from dimenet.runtime.geometry import distort_points
 from dimenet.runtime.rectify.checks import loses_to_k_c, worse
-from dimenet.runtime.rectify.model import load_model
+from dimenet.runtime.rectify.model import MODEL_NAMES, load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
 
@@ -43,7 +43,7 @@ def zero_network(spec):
 
 @pytest.mark.parametrize("refine", [False, True])
 @pytest.mark.parametrize("lens", [False, True])
-@pytest.mark.parametrize("model", ["default", "any-scene"])
+@pytest.mark.parametrize("model", MODEL_NAMES)
 def test_a_zero_delta_k_ties_and_keeps_its_candidate(frames, model, lens, refine):
     camera = example_camera()
     camera = Camera(camera.K, camera.image_size, DIST if lens else None)
