@@ -2,7 +2,8 @@
 
 The compiled core (``dimenet.runtime.native._core``, built from dimenet_core.c and _module.c beside
 this file by ``pip install .``) computes the feature stage of every encoder
-(``rectify.features.grid_features``); the numpy code stays the reference and the fallback. The choice
+(``rectify.features.grid_features``) and the pose under the candidate K (``pose_steps`` below:
+``geometry.pose_step``); the numpy code stays the reference and the fallback. The choice
 is made once, at import:
 
 - ``DIMENET_IMPLEMENTATION`` unset (or empty): "c" when the extension imports, else "python" (a
@@ -23,7 +24,11 @@ from contextlib import contextmanager
 from types import ModuleType
 from typing import Optional
 
+import numpy as np
+
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.geometry.pose_step import POSE_STEPS
+from dimenet.runtime.geometry.pose_step import pose_steps as _pose_steps_reference
 
 ENV_VARIABLE = "DIMENET_IMPLEMENTATION"
 IMPLEMENTATIONS = ("c", "python")
@@ -92,3 +97,19 @@ def using(name: str) -> Iterator[None]:
         yield
     finally:
         set_implementation(previous)
+
+
+def pose_steps(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> tuple[np.ndarray, np.ndarray]:
+    """``geometry.pose_step.pose_steps`` (the pose under k (4,) px after ``steps`` Gauss-Newton steps from
+    rvec, tvec (3,)) in the running implementation, the same pose to the bit: points_2d (N, 2) px and
+    points_3d (N, 3) mm float64. InputError when a step has no solution."""
+    if core is None:
+        return _pose_steps_reference(points_2d, points_3d, k, rvec, tvec, steps)
+    rvec_out, tvec_out = np.empty(3), np.empty(3)
+    try:  # the arrays as they come (validated_frame's are float64, C-contiguous)
+        core.pose_steps(points_2d, points_3d, k, rvec, tvec, steps, rvec_out, tvec_out)
+    except TypeError:  # another type or layout: as numpy would take them
+        p2, p3 = np.ascontiguousarray(points_2d, np.float64), np.ascontiguousarray(points_3d, np.float64)
+        args = (np.ascontiguousarray(a, np.float64).reshape(-1) for a in (k, rvec, tvec))
+        core.pose_steps(p2, p3, *args, steps, rvec_out, tvec_out)
+    return rvec_out, tvec_out

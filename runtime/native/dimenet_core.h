@@ -35,6 +35,8 @@ extern "C" {
 #define DIMENET_E_BEHIND_CAMERA 2     /* a used point is not in front of the camera at the C0 pose */
 #define DIMENET_E_HESSIAN_DIAGONAL 3  /* the data step's Hessian has a zero or non-finite diagonal */
 #define DIMENET_E_NOT_POSITIVE_DEFINITE 4 /* the data step's Hessian is not positive definite */
+#define DIMENET_E_NO_POSE_STEP 5      /* dimenet_pose_steps: a step's pose block is not positive definite,
+                                         or the pose is not finite */
 
 /* A point's raw channels, in the reference's CHANNELS order: the projection model discrepancy (PMD)
  * dx, dy = K_c proj(X_C0) - x (px), then X_C0, Y_C0 (mm) and 1 / Z_C0 (1/mm). */
@@ -126,6 +128,25 @@ int dimenet_monomial_gram(size_t n_points, const double *x_c0_mm, const double *
  * scaled to 1 by OpenCV's Cholesky. DIMENET_E_HESSIAN_DIAGONAL, DIMENET_E_NOT_POSITIVE_DEFINITE. */
 int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, double weight_per_px2,
                             double inverse[100]);
+
+/* The most Gauss-Newton steps dimenet_pose_steps takes. */
+#define DIMENET_MAX_POSE_STEPS 64
+
+/* The doubles of scratch dimenet_pose_steps needs for n_points points: 5 n_points. DIMENET_E_ARGUMENT
+ * on an overflow. */
+int dimenet_pose_scratch_doubles(size_t n_points, size_t *n_scratch);
+
+/* The pose under the pinhole k_px (fx, fy, cx, cy) after `steps` (0 to DIMENET_MAX_POSE_STEPS)
+ * Gauss-Newton steps of the reprojection error from the start pose (the reference's
+ * geometry.pose_step.pose_steps, to the bit): the pose perturbed on the left (X_C -> exp([w]x) X_C +
+ * tau), the step -(J J^T)^-1 J r of the pose block of geometry.gram_normal_equations (the monomial Gram
+ * of the points at the current pose, numpy's pairwise sums), solved by Cholesky; the rotation carried
+ * as a unit quaternion. points_2d_px (n_points x 2), points_3d_w_mm (n_points x 3); rvec_rad, tvec_mm
+ * (3 each) the result (may alias the start). scratch: n_scratch >= dimenet_pose_scratch_doubles's.
+ * Returns DIMENET_OK, DIMENET_E_ARGUMENT or DIMENET_E_NO_POSE_STEP. */
+int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double *points_3d_w_mm,
+                       const double k_px[4], const double rvec_start_rad[3], const double tvec_start_mm[3], int steps,
+                       double rvec_rad[3], double tvec_mm[3], double *scratch, size_t n_scratch);
 
 /* The text of an error code (the reference's InputError message where it has one); never NULL. */
 const char *dimenet_error_message(int code);

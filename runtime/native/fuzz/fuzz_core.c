@@ -56,7 +56,7 @@ static void check(int ok)
 
 static int known(int code)
 {
-    return code >= DIMENET_OK && code <= DIMENET_E_NOT_POSITIVE_DEFINITE;
+    return code >= DIMENET_OK && code <= DIMENET_E_NO_POSE_STEP;
 }
 
 /* The paper's variants A to E (rectify/features.py VARIANTS), or (a first byte of 200 or more) any
@@ -170,6 +170,35 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     }
     code = dimenet_prior_posterior(jj, spec.pmd_scale_per_px, spec.channel_scale[0], inverse);
     check(known(code) && code != DIMENET_E_ARGUMENT && code != DIMENET_E_BEHIND_CAMERA);
+
+    /* the pose under a K near K_c from the input's pose (scratch: 18 n >= the pose's 5 n), 0 to 3 steps;
+     * a failed call leaves its outputs as they were, a bad argument is refused */
+    {
+        double k[4], r_out[3], t_out[3], before[6];
+        size_t P = 0;
+        int steps = (int)(take(&b) % 4u);
+        k[0] = spec.K_c_px[0] + number(&b, raw, -50.0, 50.0);
+        k[1] = spec.K_c_px[4] + number(&b, raw, -50.0, 50.0);
+        k[2] = spec.K_c_px[2] + number(&b, raw, -50.0, 50.0);
+        k[3] = spec.K_c_px[5] + number(&b, raw, -50.0, 50.0);
+        check(dimenet_pose_scratch_doubles(n, &P) == DIMENET_OK && P <= S);
+        for (i = 0; i < 3; i++) {
+            r_out[i] = before[i] = -1.0, t_out[i] = before[3 + i] = -2.0;
+        }
+        code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, steps, r_out, t_out, scratch, P);
+        check(code == DIMENET_OK || code == DIMENET_E_NO_POSE_STEP);
+        for (i = 0; i < 3 && code != DIMENET_OK; i++) {
+            check(r_out[i] == before[i] && t_out[i] == before[3 + i]);
+        }
+        for (i = 0; i < 3 && code == DIMENET_OK; i++) {
+            check(isfinite(r_out[i]) && isfinite(t_out[i]));
+        }
+        check(dimenet_pose_steps(n, p2, p3, k, rvec, tvec, DIMENET_MAX_POSE_STEPS + 1, r_out, t_out, scratch, P)
+              == DIMENET_E_ARGUMENT);
+        check(n == 0 || dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 1, r_out, t_out, scratch, P - 1)
+                            == DIMENET_E_ARGUMENT);
+        check(dimenet_pose_steps(n, p2, p3, NULL, rvec, tvec, 1, r_out, t_out, scratch, P) == DIMENET_E_ARGUMENT);
+    }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
 }
