@@ -26,6 +26,7 @@ from typing import Any, Optional
 import numpy as np
 
 from dimenet.runtime.errors import PointsError
+from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.text import decimal
 from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
 
@@ -292,3 +293,16 @@ def read_points(path: str | Path) -> Iterator[PointsFrame]:
             yield from _frames(_jsonl_points(lines), lines, t_as_text=False)
         else:
             yield from _frames(_csv_points(lines), lines, t_as_text=True)
+
+
+POINTS_COLUMNS = ("frame_id", "t_ns", "x_px", "y_px", "X_mm", "Y_mm", "Z_mm")
+
+
+def write_points(path: str | Path, rows: Iterable[tuple]) -> Path:
+    """Write a format-1 points CSV (POINTS_COLUMNS) of ``rows`` (frame_id, t_ns or None, x, y px, X, Y, Z mm),
+    the rows of a frame consecutive, atomically (``formats.atomic``)."""
+    text = io.StringIO()
+    text.write(",".join(POINTS_COLUMNS) + "\n")
+    for fid, t, *values in rows:
+        text.write(",".join([str(fid), "" if t is None else str(int(t)), *(repr(float(v)) for v in values)]) + "\n")
+    return atomic_write(path, lambda f: f.write(text.getvalue().encode("utf-8")))

@@ -16,6 +16,8 @@ from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.jobs.engine import run_all
 from dimenet.runtime.sim.family import MAX_FAMILY, SCENES, family_member, family_profiles, hfov_deg
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
+from dimenet.runtime.sim.recording import KINDS as RECORDING_KINDS
+from dimenet.runtime.sim.recording import simulate_recording, write_recording
 from dimenet.runtime.sim.simulator import checked_dist_coeffs, simulate
 
 MAX_EXTRA_FRAMES = 10_000  # natural or planar frames: ~13 KB and ~4 ms each (2**40: MemoryError)
@@ -31,6 +33,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"simulate N random cameras (1 to {MAX_FAMILY}; see models_spec/simulator.md, 'Camera family'), "
         "one dataset each in the --out directory",
     )
+    camera.add_argument(
+        "--recording",
+        choices=RECORDING_KINDS,
+        help="a hand-held recording with a temporal OIS loop of a random natural scene or rig (models_spec/"
+        "simulator.md, 'Recordings'): --out is a directory getting points.csv, gyro.csv, camera.json, truth.npz",
+    )
+    p.add_argument("--seconds", type=float, default=10.0, help="with --recording, its length (s, default 10)")
+    p.add_argument("--cuts", type=integer_in(0, 100), default=1, help="with --recording, cuts in it (default 1)")
+    p.add_argument(
+        "--held-out",
+        action="store_true",
+        help="with --recording, draw the hand and OIS from the held-out trace model (training never draws from it)",
+    )
+    p.add_argument("--ois-off", action="store_true", help="with --recording, a camera without OIS")
     p.add_argument(
         "--scenes",
         choices=SCENES,
@@ -164,7 +180,32 @@ def run_family(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_recording(args: argparse.Namespace) -> int:
+    try:
+        recording = simulate_recording(
+            args.seed,
+            seconds=args.seconds,
+            kind=args.recording,
+            held_out=args.held_out,
+            ois=not args.ois_off,
+            cuts=args.cuts,
+        )
+    except InputError as exc:
+        raise CliError(f"dimenet simulate --recording: {exc}") from None
+    paths = write_recording(recording, args.out)
+    ds = recording.dataset
+    trace = ds.meta["recording"]["trace"]
+    print(
+        f"recording seed {args.seed}: {ds.n_frames} frames at {trace['fps']:g} fps, {args.recording} scene, "
+        f"cuts at {list(recording.cuts)}, refocus at {list(recording.refocus)}, gyro {len(recording.gyro)} samples "
+        f"-> {', '.join(str(p) for p in paths.values())}"
+    )
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.recording is not None:
+        return run_recording(args)
     if args.family is not None:
         return run_family(args)
     if args.scenes != "paper":
@@ -193,7 +234,8 @@ COMMAND = Command(
     "  dimenet simulate --profile galaxy-s8 --platform-k --dist-coeffs 0.08,-0.15,0,0 --out s8-sdk.npz\n"
     "  dimenet simulate --family 100 --seed 0 --natural-frames 10 --out family\n"
     "  dimenet simulate --family 100 --seed 0 --scenes random --out family-scenes\n"
-    "  dimenet simulate --family 100 --seed 0 --out family --address local:2   # the fleet extra: Ray jobs",
+    "  dimenet simulate --family 100 --seed 0 --out family --address local:2   # the fleet extra: Ray jobs\n"
+    "  dimenet simulate --recording natural --seed 3 --seconds 10 --held-out --out rec   # a hand-held video",
     add_arguments=add_arguments,
     run=run,
 )
