@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -63,12 +65,19 @@ def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray)
 
 def _power_of_two_unit(points_3d: np.ndarray) -> float:
     """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite); the
-    points are taken over their largest coordinate first, so 1e300 mm does not overflow."""
-    largest = float(np.max(np.abs(points_3d))) if points_3d.size else 0.0
-    if not (0.0 < largest < np.inf):
+    points are taken over their largest coordinate first, so 1e300 mm does not overflow. On the hot path
+    (stage pnp_kc): OpenCV's largest |coordinate| (exact, NaN refused by checkRange) and the sum of squares
+    as numpy's mean takes it, then Python's float math: 6 against 19 us at 320 points."""
+    if points_3d.size and points_3d.dtype == np.float64 and cv2.checkRange(points_3d)[0]:
+        largest = cv2.norm(points_3d, cv2.NORM_INF)
+    else:
+        largest = float(np.max(np.abs(points_3d))) if points_3d.size else 0.0
+    if not (0.0 < largest < math.inf):
         return 1.0
-    rms = largest * float(np.sqrt(np.mean(np.square(points_3d / largest)) * 3.0))
-    return float(np.ldexp(1.0, int(np.round(np.log2(rms)))))
+    squares = points_3d / largest
+    np.square(squares, out=squares)
+    rms = largest * math.sqrt(float(squares.sum()) / squares.size * 3.0)
+    return math.ldexp(1.0, round(math.log2(rms)))
 
 
 def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
