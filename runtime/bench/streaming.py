@@ -24,14 +24,14 @@ import numpy as np
 
 from dimenet.runtime.evaluation.rectify_points import rectified_records
 from dimenet.runtime.formats.dataset import Dataset
-from dimenet.runtime.formats.points import PointsFrame, read_points
+from dimenet.runtime.formats.points import POINTS_COLUMNS, PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.rectify.model import load_model
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
 
 FRAME_NS = 33_333_333  # t_ns step: 30 frames/s
-CSV_HEADER = "frame_id,t_ns,x_px,y_px,X_mm,Y_mm,Z_mm\n"
+CSV_HEADER = ",".join(POINTS_COLUMNS) + "\n"
 
 
 def points_csv(frames: Dataset, n_frames: int) -> Iterator[str]:

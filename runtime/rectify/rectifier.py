@@ -199,6 +199,13 @@ class Rectifier:
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
 
+    def stream(self, **options):
+        """A new ``rectify.stream.Stream``: one recording's K tracked frame by frame (``Stream.update``), its
+        state its own, so many streams and threads may share this Rectifier; ``options`` as ``Stream``'s."""
+        from dimenet.runtime.rectify.stream import Stream
+
+        return Stream(self, **options)
+
     def network(
         self, points_2d: ArrayLike, points_3d: ArrayLike, rvec_c0: ArrayLike, tvec_c0: ArrayLike
     ) -> NetworkEstimate:

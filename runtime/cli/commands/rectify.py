@@ -24,7 +24,7 @@ from dimenet.runtime.cli.arguments import nonempty_path
 from dimenet.runtime.cli.camera_option import add_camera_argument, require_dataset_size, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
-from dimenet.runtime.evaluation.rectify_points import rectified_records
+from dimenet.runtime.evaluation.rectify_points import rectified_records, streamed_records
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera_file import camera_file, read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
@@ -73,15 +73,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--out",
         type=nonempty_path,
         metavar="RESULT.npz",
-        help="write K, rvec, tvec, e, e_c, delta_k, fallback and (with an uncertainty model) K_cov per frame, "
-        "and K_c, image_size, model_sha256; with --points: FILE.jsonl, the JSON lines",
+        help="write K, rvec, tvec, e, e_c, delta_k, fallback, fallback_code and (with an uncertainty model) K_cov "
+        "per frame, and K_c, image_size, model_sha256; with --points: FILE.jsonl, the JSON lines",
     )
     p.add_argument("--refine", action="store_true", help="polish poses with cv2.solvePnPRefineLM (e as in evaluate)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    p.add_argument(
+        "--temporal",
+        action="store_true",
+        help="with --points: track K through the recording (rectify.stream: each frame's K fused with the frames "
+        "before, reset at cuts, refocus and gaps in t_ns); each line adds event and fused",
+    )
 
 
 def result_arrays(frames: Dataset, res: BatchRectification, rectifier: Rectifier) -> dict:
-    """The RESULT.npz arrays (plain dtypes, no pickle): fallback '' where K is the model's; K_cov
+    """The RESULT.npz arrays (plain dtypes, no pickle): fallback and fallback_code (``FALLBACK_CODES``)
+    '' where there is none; K_cov
     (F, 4, 4) px^2, NaN where K is K_c's, only when the model has an uncertainty model; which
     camera and model produced them: K_c (3, 3) px, image_size (2,) px (width, height),
     model_sha256 (a str array of shape ())."""
@@ -95,6 +102,7 @@ def result_arrays(frames: Dataset, res: BatchRectification, rectifier: Rectifier
         "e_c": res.reprojection_error_kc_px,
         "delta_k": res.delta_k,
         "fallback": np.array([r or "" for r in res.fallback]),
+        "fallback_code": np.array([c or "" for c in res.fallback_code]),
         "K_c": rectifier.K_c,
         "image_size": np.array(rectifier.image_size, dtype=np.int64),
         "model_sha256": np.array(rectifier.model.sha256),
@@ -208,11 +216,18 @@ def _run_points(args: argparse.Namespace) -> int:
         raise CliError("dimenet rectify: give a dataset file, --example or --points FILE (one of them)")
     if args.json:
         raise CliError("dimenet rectify: --json applies to a dataset; --points always writes JSON lines")
+    if args.temporal and args.mode != "dimenet":
+        raise CliError("dimenet rectify: --temporal fuses the network's K over frames: it needs --mode dimenet")
     rectifier = _points_rectifier(args)
     header = run_record(rectifier, refine=args.refine, points=args.points, camera=args.camera)
     frames = _with_progress(read_points(args.points), args.points)
     tally: Counter = Counter()
-    lines = json_lines(header, counted(rectified_records(rectifier, frames, refine=args.refine), tally))
+    if args.temporal:
+        header["temporal"] = True
+        records = streamed_records(rectifier.stream(refine=args.refine), frames)
+    else:
+        records = rectified_records(rectifier, frames, refine=args.refine)
+    lines = json_lines(header, counted(records, tally))
     if args.out:
         atomic_write(args.out, lambda f: f.writelines(line.encode("utf-8") for line in lines))
         print(f"{tally['frames']} frames ({tally['refused']} refused, {tally['fallbacks']} fallbacks) -> {args.out}")
@@ -246,6 +261,8 @@ def _check_out(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     _check_out(args)
+    if args.temporal and not args.points:
+        raise CliError("dimenet rectify: --temporal tracks K through a recording: it needs --points FILE")
     if args.points:
         return _run_points(args)
     frames = _frames(args)
@@ -266,6 +283,7 @@ def run(args: argparse.Namespace) -> int:
                 "K": k_params(arrays["K"][i]).tolist(),
                 "K_sigma_px": _k_sigma(arrays, i),
                 "fallback": arrays["fallback"][i] or None,
+                "fallback_code": arrays["fallback_code"][i] or None,
             }
             for i in range(frames.n_frames)
         ]
@@ -299,6 +317,7 @@ COMMAND = Command(
     "  dimenet rectify frames.npz --camera cam.json --json   # the bundled generic model, your camera\n"
     "  dimenet rectify frames.npz --camera cam.json --model paper-rig   # the paper's grid model\n"
     "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
+    "  dimenet rectify --points rec.csv --camera cam.json --temporal   # K tracked through the recording\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,

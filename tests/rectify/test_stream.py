@@ -1,0 +1,127 @@
+"""Rectifier.stream (issue 51 step 2): one recording's K filter, its state its own, the never-worse rule on
+every frame, events at the start, cuts and gaps, constant memory; `dimenet rectify --points --temporal`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dimenet.runtime.cli.main import main
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.rectify.stream import Stream
+from dimenet.runtime.sim.recording import nominal_camera, simulate_recording, write_recording
+
+
+@pytest.fixture(scope="module")
+def recording():
+    return simulate_recording(3, seconds=2.5, cuts=1)
+
+
+@pytest.fixture(scope="module")
+def rectifier(recording):
+    camera = nominal_camera(recording)
+    return Rectifier.load(K_c=camera.K, image_size=camera.image_size)
+
+
+def frames(recording):
+    ds = recording.dataset
+    for i in range(ds.n_frames):
+        m = ds.infer_mask[i]
+        yield ds.points_2d[i, m], ds.points_3d[i, m], int(recording.t_ns[i])
+
+
+@pytest.fixture(scope="module")
+def streamed(recording, rectifier):
+    stream = rectifier.stream()
+    return [stream.update(*f) for f in frames(recording)]
+
+
+def test_events_at_the_start_and_the_cut(recording, streamed):
+    events = {i: f.event for i, f in enumerate(streamed) if f.event}
+    assert events[0] == "start"
+    assert recording.cuts and any(events.get(c) for c in recording.cuts)
+    assert sum(1 for e in events.values() if e == "cut") <= len(recording.cuts)
+
+
+def test_every_frame_is_never_worse_than_k_c(streamed):
+    for f in streamed:
+        r = f.result
+        assert r.reprojection_error_px <= r.reprojection_error_kc_px
+        if f.fused:
+            sigma = np.sqrt(np.diag(r.K_cov))
+            assert np.all(sigma > 0) and r.fallback is None
+        else:
+            assert r is f.per_frame
+
+
+def test_the_filter_narrows_sigma_below_one_frame(streamed, rectifier):
+    """Settled frames carry less uncertainty than one frame's network estimate (the evidence of many)."""
+    fused = [f for f in streamed[10:] if f.fused and f.event is None and f.per_frame.K_cov is not None]
+    assert fused
+    one = np.median([np.sqrt(np.diag(f.per_frame.K_cov)) for f in fused], 0)
+    many = np.median([np.sqrt(np.diag(f.result.K_cov)) for f in fused], 0)
+    assert np.all(many < one)
+
+
+def test_streams_share_one_rectifier_without_sharing_state(recording, rectifier, streamed):
+    """Two streams interleaved on one Rectifier give what each gives alone (the state is the stream's)."""
+    a, b = rectifier.stream(), rectifier.stream()
+    out_a, out_b = [], []
+    for f in list(frames(recording))[:20]:
+        out_a.append(a.update(*f))
+        out_b.append(b.update(*f))
+    for x, y, z in zip(out_a, out_b, streamed):
+        np.testing.assert_array_equal(x.result.K, z.result.K)
+        np.testing.assert_array_equal(y.result.K, z.result.K)
+    assert not hasattr(rectifier, "k") and not hasattr(rectifier, "P")
+
+
+def test_a_gap_resets_and_memory_stays_flat(recording, rectifier):
+    stream = rectifier.stream()
+    fs = list(frames(recording))[:12]
+    for f in fs[:6]:
+        stream.update(*f)
+    sizes = {k: np.asarray(v).nbytes for k, v in vars(stream).items() if isinstance(v, np.ndarray)}
+    p2, p3, t = fs[6]
+    assert stream.update(p2, p3, t + 2 * 10**9).event == "gap"
+    for p2, p3, t in fs[7:]:
+        stream.update(p2, p3, t + 2 * 10**9)
+    assert sizes == {k: np.asarray(v).nbytes for k, v in vars(stream).items() if isinstance(v, np.ndarray)}
+
+
+def test_ois_off_stays_within_two_sigma_of_k_c():
+    """OIS off: the stream's |K - K_c| within 2 sigma on most frames (the filter does not invent motion)."""
+    rec = simulate_recording(4, seconds=2.0, ois=False, cuts=0)
+    camera = nominal_camera(rec)
+    stream = Rectifier.load(K_c=camera.K, image_size=camera.image_size).stream()
+    inside = []
+    for f in frames(rec):
+        out = stream.update(*f).result
+        d = np.abs(k_params(out.K) - k_params(camera.K))
+        inside.append(not d.any() or bool(np.all(d <= 2.0 * np.sqrt(np.diag(out.K_cov)))))
+    assert np.mean(inside) >= 0.9
+
+
+def test_bad_options(rectifier):
+    with pytest.raises(InputError, match="tau_s"):
+        Stream(rectifier, tau_s=(1.0, 1.0, 0.0, 1.0))
+
+
+def test_cli_temporal_writes_one_line_per_frame(recording, tmp_path, capsys):
+    paths = write_recording(recording, tmp_path)
+    args = ["rectify", "--points", str(paths["points"]), "--camera", str(paths["camera"]), "--temporal"]
+    assert main(args) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert lines[0]["temporal"] is True
+    assert len(lines) == recording.dataset.n_frames + 1
+    assert lines[1]["event"] == "start" and all("fused" in line for line in lines[1:])
+    assert all(line["e_px"] <= line["e_c_px"] for line in lines[1:])
+
+
+def test_cli_temporal_needs_points(capsys):
+    assert main(["rectify", "--example", "--temporal"]) == 2
+    assert "--temporal" in capsys.readouterr().err
