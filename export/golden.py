@@ -119,7 +119,7 @@ def parity_px(delta_k) -> float:
 
 def expected(rect: Rectifier, frame: GoldenFrame) -> dict:
     """What the Python runtime gives for one frame: the C0 pose (SQPnP under K_c), the network's
-    Delta K, K and sigma (``Rectifier.network``), and ``rectify``'s K, fallback and errors."""
+    Delta K, K and sigma (``Rectifier.network``), and ``rectify``'s K, fallback, its code and errors."""
     rvec, tvec = solve_pnp_start(frame.points_2d, frame.points_3d, frame.K_c)
     net = rect.network(frame.points_2d, frame.points_3d, rvec, tvec)
     result = rect.rectify(frame.points_2d, frame.points_3d)
@@ -131,6 +131,7 @@ def expected(rect: Rectifier, frame: GoldenFrame) -> dict:
         "sigma": None if net.sigma is None else net.sigma.tolist(),
         "rectified_K": result.K.tolist(),
         "fallback": result.fallback,
+        "fallback_code": result.fallback_code,
         "e_px": result.reprojection_error_px,
         "e_c_px": result.reprojection_error_kc_px,
     }

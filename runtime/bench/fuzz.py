@@ -109,7 +109,7 @@ def _judge_frame(rect: Rectifier, X: np.ndarray, res) -> tuple[str, str]:
     depth = np.asarray(X, dtype=np.float64) @ cv2.Rodrigues(res.rvec)[0][2] + res.tvec[2]
     if not depth.min() > 0:
         return "silent-wrong", f"a point behind the camera at the returned pose (fallback {res.fallback!r})"
-    if res.fallback is not None and not res.fallback.startswith("map:"):
+    if res.fallback is not None and res.fallback.refusal:
         population = rect.population_K_cov
         kept_cov = res.K_cov is None if population is None else np.array_equal(res.K_cov, population)
         same = np.array_equal(res.K, rect.K_c) and kept_cov

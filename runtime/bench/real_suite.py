@@ -130,7 +130,7 @@ def _cameras(ds: Dataset, s: SuiteSet) -> tuple:
 def _row(s: SuiteSet, ds: Dataset, camera: Camera, K_star, model, mode: str, lens: bool) -> SuiteRow:
     rect = Rectifier(model, mode, camera)
     r = rect.rectify_batch(ds.points_2d, ds.points_3d, ds.valid)
-    kept = np.array([f is not None and not f.startswith("map:") for f in r.fallback])
+    kept = np.array([f is not None and f.refusal for f in r.fallback])
     dc = r.K[:, :2, 2] - rect.K_c[:2, 2]
     sigma = np.sqrt(np.diagonal(r.K_cov, axis1=1, axis2=2)) if r.K_cov is not None else np.full((len(dc), 4), np.nan)
     if s.reference == "K_c":
@@ -152,7 +152,7 @@ def _row(s: SuiteSet, ds: Dataset, camera: Camera, K_star, model, mode: str, len
         avg_e_c_px=float(np.mean(r.reprojection_error_kc_px)),
         avg_e_px=float(np.mean(r.reprojection_error_px)),
         fallbacks=int(kept.sum()),
-        structure=sum(f is not None and "structure" in f for f in r.fallback),
+        structure=r.fallback_code.count("structure"),
         worse=worse,
         covered=covered,
         median_dc_px=float(np.median(np.hypot(*dc.T))),

@@ -248,7 +248,7 @@ def runtime_estimate(frames: Dataset, predictor: Predictor, mode: str) -> Method
     DIME-Net's K do not), as `dimenet rectify` returns it."""
     rect = Rectifier(predictor, mode, predictor.camera)
     r = rect.rectify_batch(frames.points_2d, frames.points_3d, frames.valid, infer_mask=frames.infer_mask)
-    kept = sum(f is not None and not f.startswith("map:") for f in r.fallback)
+    kept = sum(f is not None and f.refusal for f in r.fallback)
     return MethodEstimate(K=r.K, K_cov=r.K_cov, fallbacks=kept)
 
 

@@ -43,8 +43,9 @@ def run_record(rectifier: Rectifier, *, refine: bool, points: str, camera: Optio
 
 
 def frame_record(frame: PointsFrame, res: Rectification) -> dict:
-    """One rectified frame: K (3, 3) px, rvec rad and tvec mm {W}->{C}, e and e_c px, fallback,
-    K_sigma_px the standard deviations of (fx, fy, cx, cy) px or None (no uncertainty model, or K_c)."""
+    """One rectified frame: K (3, 3) px, rvec rad and tvec mm {W}->{C}, e and e_c px, fallback and its
+    fallback_code (``FALLBACK_CODES``), K_sigma_px the standard deviations of (fx, fy, cx, cy) px or None (no
+    uncertainty model, or K_c)."""
     cov = res.K_cov
     return {
         "frame_id": frame.frame_id,
@@ -55,6 +56,7 @@ def frame_record(frame: PointsFrame, res: Rectification) -> dict:
         "e_px": float(res.reprojection_error_px),
         "e_c_px": float(res.reprojection_error_kc_px),
         "fallback": res.fallback,
+        "fallback_code": res.fallback_code,
         "K_sigma_px": None if cov is None else np.sqrt(np.diag(cov)).tolist(),
     }
 

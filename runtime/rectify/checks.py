@@ -44,6 +44,7 @@ from dimenet.runtime.geometry import (
     covariance_invariants,
     covariance_invariants_batch,
 )
+from dimenet.runtime.rectify.results import Fallback
 
 # Largest mean error under K_c (at its best pose) a frame may have, as a fraction of K_c's fx:
 # 0.006 f is 18 px on the paper's phones, twice the worst of their simulated rig, planar and
@@ -201,25 +202,32 @@ def loses_to_k_c(e, e_c, fx_c: float):
     return worse(e, e_c) | mismatched(e, e_c, fx_c)
 
 
-def worse_reason(e: float, e_c: float, fx_c: float, user_px: float = 1.0) -> str:
+def worse_reason(e: float, e_c: float, fx_c: float, user_px: float = 1.0) -> Fallback:
     """Why ``loses_to_k_c``: the worse rule, else the mismatch rule (e, e_c, fx_c in model px;
     the reason in the user's, ``user_px`` per model px)."""
     if worse(e, e_c):
-        return f"the predicted K fits worse than K_c: {e * user_px:.3f} px vs {e_c * user_px:.3f} px over the points"
-    return (
+        return Fallback(
+            "worse_than_k_c",
+            f"the predicted K fits worse than K_c: {e * user_px:.3f} px vs {e_c * user_px:.3f} px over the points",
+        )
+    return Fallback(
+        "mismatch",
         f"the points do not fit this camera: the predicted K leaves {e * user_px:.1f} of their "
         f"{e_c * user_px:.1f} px mean error under K_c, which an OIS state does not make: points of another "
-        f"resolution, K_c of another lens, or 3D points of another scene or unit?"
+        f"resolution, K_c of another lens, or 3D points of another scene or unit?",
     )
 
 
-def implausible_reason(delta_k, k) -> str:
+def implausible_reason(delta_k, k) -> Fallback:
     """Why K = K_c + Delta K was refused: Delta K (4,) px not finite, or k (4,) px (fx, fy, cx, cy,
     in the user's pixels) outside K_bounds."""
     if not np.all(np.isfinite(delta_k)):
-        return "the model's Delta K is not finite"
+        return Fallback("implausible", "the model's Delta K is not finite")
     fx, fy, cx, cy = (float(v) for v in k)
-    return f"implausible K (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px) outside the model's K_bounds"
+    return Fallback(
+        "implausible",
+        f"implausible K (fx={fx:.1f}, fy={fy:.1f}, cx={cx:.1f}, cy={cy:.1f} px) outside the model's K_bounds",
+    )
 
 
 def structured(structure: ResidualStructure, limit_px: float) -> bool:
@@ -230,7 +238,7 @@ def structured(structure: ResidualStructure, limit_px: float) -> bool:
     return structure.amplitude_px > limit_px and structure.ratio > STRUCTURE_RATIO
 
 
-def structure_reason(structure: ResidualStructure, user_px: float, lens_free: bool) -> str:
+def structure_reason(structure: ResidualStructure, user_px: float, lens_free: bool) -> Fallback:
     """Why ``structured``, in the user's px (``user_px`` per model px); with a radial share of at
     least RADIAL_SHARE under a camera with no lens (``lens_free``), the lens is named."""
     head = (
@@ -238,11 +246,14 @@ def structure_reason(structure: ResidualStructure, user_px: float, lens_free: bo
         f"structure (F = {structure.ratio:.1f}) that neither OIS nor corner noise makes"
     )
     if lens_free and structure.radial_share >= RADIAL_SHARE:
-        return (
+        return Fallback(
+            "structure",
             f"{head}, shaped like a radial lens error ({structure.radial_share:.0%} of it): give the camera its "
-            f"lens (`dimenet calibrate --distortion opencv5 --camera-out`, or dist_coeffs in the camera file)"
+            f"lens (`dimenet calibrate --distortion opencv5 --camera-out`, or dist_coeffs in the camera file)",
         )
-    return f"{head}: a sheet that is not flat, a lens K_c leaves out, or a scene unlike the model's?"
+    return Fallback(
+        "structure", f"{head}: a sheet that is not flat, a lens K_c leaves out, or a scene unlike the model's?"
+    )
 
 
 def out_of_range(e_c, fx_c: float):
@@ -251,11 +262,12 @@ def out_of_range(e_c, fx_c: float):
     return np.logical_not(e_c <= MAX_KC_ERROR_F * fx_c)
 
 
-def out_of_range_reason(e_c: float, fx_c: float, user_px: float = 1.0) -> str:
-    return (
+def out_of_range_reason(e_c: float, fx_c: float, user_px: float = 1.0) -> Fallback:
+    return Fallback(
+        "out_of_range",
         f"the points fit K_c with a mean error of {e_c * user_px:.1f} px, beyond the "
         f"{MAX_KC_ERROR_F * fx_c * user_px:.0f} px "
-        f"this model was made for: wrong correspondences, or points of another camera, resolution or unit?"
+        f"this model was made for: wrong correspondences, or points of another camera, resolution or unit?",
     )
 
 
@@ -267,8 +279,8 @@ def behind_camera_error(n_behind: int, n: int) -> InputError:
     )
 
 
-NO_POSE_REASON = "no pose under the predicted K"
-BEHIND_REASON = "a point lies behind the camera at the pose under the predicted K"
+NO_POSE_REASON = Fallback("no_pose", "no pose under the predicted K")
+BEHIND_REASON = Fallback("behind_camera", "a point lies behind the camera at the pose under the predicted K")
 
 
 def all_inside(bounds, points_2d: np.ndarray, points_3d: np.ndarray) -> bool:

@@ -38,6 +38,7 @@ from dimenet.runtime.geometry import (
     prior_step,
     solve_pnp_start,
 )
+from dimenet.runtime.rectify.results import Fallback
 from dimenet.runtime.rectify.spec import frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import Uncertainty
 
@@ -157,15 +158,15 @@ def map_rectify(
         try:
             pose = solve_pnp_start(points_2d, points_3d, K_c)
         except InputError:
-            return None, "no C0 pose under K_c"
+            return None, Fallback("map_no_c0_pose", "no C0 pose under K_c")
     try:
         result = map_fit(points_2d, points_3d, k_net, K_cov_net, *pose, K_start=K_c, uncertainty=uncertainty)
     except InputError:
-        return None, "the points fix no MAP pose (its Hessian is not positive definite)"
+        return None, Fallback("map_no_pose", "the points fix no MAP pose (its Hessian is not positive definite)")
     if result.steps == 0:
-        return None, "the MAP step did not lower the cost"
+        return None, Fallback("map_no_step", "the MAP step did not lower the cost")
     if not frame_within_bounds(result.k.tolist(), k_bounds.tolist()):
-        return None, "the MAP K is implausible (outside the model's K_bounds)"
+        return None, Fallback("map_implausible", "the MAP K is implausible (outside the model's K_bounds)")
     if (points_3d @ cv2.Rodrigues(result.rvec)[0][2] + result.tvec[2]).min() <= 0:
-        return None, "a point lies behind the camera at the MAP pose"
+        return None, Fallback("map_behind_camera", "a point lies behind the camera at the MAP pose")
     return result, None

@@ -8,6 +8,44 @@ from typing import Callable, Optional
 
 import numpy as np
 
+# Every fallback's stable code and its kind: a refusal keeps K_c's own solution; a note (mode map
+# only) says the MAP fit gave way and the network's K is returned. Codes are never reused or renamed.
+REFUSAL, NOTE = "refusal", "note"
+FALLBACK_CODES = {
+    "no_k_inferred": REFUSAL,  # too few inference points, or no C0 pose on them
+    "out_of_range": REFUSAL,  # e(K_c) beyond the model's range
+    "implausible": REFUSAL,  # Delta K not finite, or K outside K_bounds
+    "no_pose": REFUSAL,  # no PnP pose under the predicted K
+    "behind_camera": REFUSAL,  # a point behind the camera at the pose under the predicted K
+    "structure": REFUSAL,  # the residuals under K_c hold structure OIS does not make
+    "worse_than_k_c": REFUSAL,  # the worse rule: e(K) above e(K_c)
+    "mismatch": REFUSAL,  # the mismatch rule: the points do not fit this camera
+    "map_no_c0_pose": NOTE,  # no C0 pose under K_c to start the MAP fit
+    "map_no_pose": NOTE,  # the points fix no MAP pose
+    "map_no_step": NOTE,  # the MAP step did not lower the cost
+    "map_implausible": NOTE,  # the MAP K outside K_bounds
+    "map_behind_camera": NOTE,  # a point behind the camera at the MAP pose
+}
+
+
+class Fallback(str):
+    """A fallback's message (a str, as ``fallback`` has always been) made with its stable ``code``
+    (a key of FALLBACK_CODES) at the source, so no reader parses the text."""
+
+    code: str
+
+    def __new__(cls, code: str, message: str) -> Fallback:
+        if code not in FALLBACK_CODES:
+            raise ValueError(f"unknown fallback code {code!r}")
+        self = super().__new__(cls, message)
+        self.code = code
+        return self
+
+    @property
+    def refusal(self) -> bool:
+        """K_c's own solution was returned (else a note: map gave way to the network's K)."""
+        return FALLBACK_CODES[self.code] == REFUSAL
+
 
 @dataclass(frozen=True)
 class Rectification:
@@ -36,6 +74,11 @@ class Rectification:
         """(4, 4) px^2, computed on first access from ``covariance`` (None without one)."""
         return None if self.covariance is None else self.covariance()
 
+    @property
+    def fallback_code(self) -> Optional[str]:
+        """``fallback``'s code (FALLBACK_CODES), None where there is none."""
+        return None if self.fallback is None else self.fallback.code
+
 
 @dataclass(frozen=True)
 class BatchRectification:
@@ -53,6 +96,11 @@ class BatchRectification:
     fallback: tuple
     K_c: np.ndarray
     K_cov: Optional[np.ndarray] = None
+
+    @property
+    def fallback_code(self) -> tuple:
+        """Per frame ``fallback``'s code (FALLBACK_CODES) or None."""
+        return tuple(None if f is None else f.code for f in self.fallback)
 
 
 @dataclass(frozen=True)

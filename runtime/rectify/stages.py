@@ -53,7 +53,7 @@ from dimenet.runtime.rectify.checks import (
 from dimenet.runtime.rectify.features import grid_features, native_frame_features
 from dimenet.runtime.rectify.inference import NetworkK, network_statistics
 from dimenet.runtime.rectify.map_fit import map_rectify
-from dimenet.runtime.rectify.results import BatchRectification, Rectification
+from dimenet.runtime.rectify.results import BatchRectification, Fallback, Rectification
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera, frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import occupied_cells, thickness
 from dimenet.runtime.rectify.user_camera import Camera, PixelMap
@@ -226,7 +226,7 @@ def batch_inference_poses(cam: ModelCamera, fr: Frames, rvec_c0, tvec_c0, reason
                 raise InputError(f"{n} inference points, fewer than {MIN_POINTS}")
             rvec[b], tvec[b] = pnp(fr.points_2d[b][infer[b]], fr.points_3d[b][infer[b]], cam.K_c)
         except InputError as exc:
-            reasons[b], infer[b] = f"no K inferred: {exc}", False
+            reasons[b], infer[b] = Fallback("no_k_inferred", f"no K inferred: {exc}"), False
     return infer, rvec, tvec
 
 
@@ -328,7 +328,7 @@ def _map(cam: ModelCamera, p2, p3, k_net: np.ndarray, K_cov_net: np.ndarray, rve
     fit, why = map_rectify(
         p2, p3, k_net, K_cov_net, spec.K_bounds, cam.K_c, pose=(rvec_c0, tvec_c0), uncertainty=spec.uncertainty
     )
-    return (fit, None) if why is None else (None, f"map: {why}; DIME-Net's K is returned")
+    return (fit, None) if why is None else (None, Fallback(why.code, f"map: {why}; DIME-Net's K is returned"))
 
 
 def frame_map(cam: ModelCamera, p2, p3, cand: Candidate, rvec_c0, tvec_c0) -> Candidate:

@@ -44,6 +44,7 @@ def test_rectify_command_on_the_example_and_on_a_dataset(model_path, frames, tmp
         assert npz["K"].shape == (8, 3, 3) and npz["fallback"].dtype.kind == "U"
         assert np.all(np.isfinite(npz["e"])) and np.all(np.isfinite(npz["e_c"]))
         np.testing.assert_allclose(npz["e"], [f["e_px"] for f in report["frames"]])
+        assert npz["fallback_code"].tolist() == [f["fallback_code"] or "" for f in report["frames"]]
     data = tmp_path / "natural.npz"
     write_dataset(frames.select(frames.scene == "natural"), data)
     camera_file = []

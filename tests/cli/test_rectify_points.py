@@ -54,6 +54,7 @@ def test_each_line_is_rectify_on_the_frames_points(recording, camera_file, capsy
     for record, frame in zip(records, frames):
         res = rectifier.rectify(frame.points_2d, frame.points_3d)
         assert record["t_ns"] == frame.t_ns and record["fallback"] == res.fallback
+        assert record["fallback_code"] == res.fallback_code
         np.testing.assert_array_equal(record["K"], res.K)
         np.testing.assert_array_equal(record["tvec"], res.tvec)
         assert record["e_px"] == res.reprojection_error_px and record["e_c_px"] == res.reprojection_error_kc_px

@@ -57,6 +57,7 @@ def flips(a: np.ndarray, b: np.ndarray) -> int:
 def assert_same_results(reference, compiled, where: str) -> tuple[float, int]:
     """rectify's results equal within the bar; -> (largest K difference px, fallbacks that differ)."""
     assert reference.fallback == compiled.fallback, where
+    assert reference.fallback_code == compiled.fallback_code, where
     k_diff = float(np.abs(reference.K - compiled.K).max())
     assert k_diff <= K_TOL_PX, (where, k_diff)
     for a, b in ((reference.rvec, compiled.rvec), (reference.tvec, compiled.tvec)):

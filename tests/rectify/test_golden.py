@@ -41,6 +41,9 @@ def test_the_golden_set_spans_cameras_scenes_and_fallbacks(golden):
     assert {"structure", "worse than K_c", "mean error of"} <= {
         key for key in ("structure", "worse than K_c", "mean error of") for r in reasons if r and key in r
     }
+    codes = [f["expected"]["fallback_code"] for path in GOLDEN.values() for f in json.loads(path.read_text())["frames"]]
+    assert [c is None for c in codes] == [r is None for r in reasons]
+    assert {"structure", "worse_than_k_c", "out_of_range"} <= set(codes)
     assert (
         min(len(f["inputs"]["points_2d"]) for f in frames)
         <= 66
@@ -69,6 +72,7 @@ def test_the_runtime_gives_the_golden_numbers(named_golden):
             )
         result = rect.rectify(p2, p3)
         assert result.fallback == want["fallback"], frame["name"]
+        assert result.fallback_code == want["fallback_code"], frame["name"]
         np.testing.assert_allclose(result.K, np.array(want["rectified_K"]), rtol=0, atol=TOLERANCE_PX)
         assert abs(result.reprojection_error_px - want["e_px"]) <= TOLERANCE_PX
         assert abs(result.reprojection_error_kc_px - want["e_c_px"]) <= TOLERANCE_PX

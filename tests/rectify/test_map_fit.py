@@ -89,7 +89,7 @@ def test_map_rectify_refuses_a_fit_whose_step_raised_the_cost():
     assert near[1] is None and near[0].steps == 1
     # From a start 1 rad off, the one Gauss-Newton step overshoots: the start is no answer.
     far = map_rectify(x, X, k, np.eye(4) * 25.0, bounds, K[0], pose=(rvec[0] + [1.0, 0.0, 0.0], tvec[0]))
-    assert far == (None, "the MAP step did not lower the cost")
+    assert far == (None, "the MAP step did not lower the cost") and far[1].code == "map_no_step"
 
 
 def test_map_rectify_gives_way_where_the_points_fix_no_pose():
@@ -102,6 +102,7 @@ def test_map_rectify_gives_way_where_the_points_fix_no_pose():
         map_fit(x_line, X_line, k, np.eye(4) * 25.0, rvec[0], tvec[0])
     got = map_rectify(x_line, X_line, k, np.eye(4) * 25.0, bounds, K[0], pose=(rvec[0], tvec[0]))
     assert got == (None, "the points fix no MAP pose (its Hessian is not positive definite)")
+    assert got[1].code == "map_no_pose" and not got[1].refusal
 
 
 def test_map_on_one_planar_view_follows_the_prior_where_the_data_says_nothing():

@@ -96,6 +96,7 @@ def test_batch_infers_k_from_the_infer_mask(rectifier, frames):
     few[0, np.flatnonzero(few[0])[3:]] = False
     res = rectifier.rectify_batch(p2, p3, valid, infer_mask=few)
     assert res.fallback[0].startswith("no K inferred: 3 inference points")
+    assert res.fallback_code[0] == "no_k_inferred" and res.fallback[0].refusal
     np.testing.assert_array_equal(res.K[0], rectifier.K_c)
     full = rectifier.rectify_batch(p2, p3, valid, infer_mask=infer, refine=True)
     np.testing.assert_allclose(res.K[1:], full.K[1:], atol=1e-9)
@@ -192,8 +193,8 @@ def test_bad_frames_of_a_batch_are_named(rectifier, frames, monkeypatch):
         rectifier.rectify(*frame_points(frames, 0))
 
 
-def _assert_kc_solution(res, spec, reason):
-    assert res.fallback is not None and reason in res.fallback
+def _assert_kc_solution(res, spec, reason, code):
+    assert res.fallback is not None and reason in res.fallback and res.fallback_code == code
     np.testing.assert_array_equal(res.K, spec.K_c)
     np.testing.assert_array_equal(res.delta_k, np.zeros(4))
     assert res.reprojection_error_px == res.reprojection_error_kc_px
@@ -205,28 +206,30 @@ def test_implausible_k_from_huge_weights_falls_back_to_k_c(tmp_path, frames):
     huge = Rectifier.load(random_model_file(tmp_path / "huge.onnx", spec, weight_scale=1e4))
     p2, p3 = frame_points(frames, 0)
     res = huge.rectify(p2, p3)
-    _assert_kc_solution(res, spec, "outside the model's K_bounds")
+    _assert_kc_solution(res, spec, "outside the model's K_bounds", "implausible")
     _, rvec_c, _ = cv2.solvePnP(p3, p2, spec.K_c, None, flags=cv2.SOLVEPNP_SQPNP)
     np.testing.assert_allclose(res.rvec, rvec_c.ravel(), atol=1e-12)
     batch = huge.rectify_batch(frames.points_2d[:2], frames.points_3d[:2], frames.valid[:2])
     assert all("K_bounds" in r for r in batch.fallback) and np.all(batch.K == spec.K_c)
+    assert batch.fallback_code == ("implausible", "implausible")
 
 
 @pytest.mark.parametrize(
-    "delta_k, reason",
+    "delta_k, reason, code",
     [
-        ([np.nan, 0.0, 0.0, 0.0], "Delta K is not finite"),
-        ([0.0, 0.0, 400.0, -300.0], "fits worse than K_c"),
+        ([np.nan, 0.0, 0.0, 0.0], "Delta K is not finite", "implausible"),
+        ([0.0, 0.0, 400.0, -300.0], "fits worse than K_c", "worse_than_k_c"),
     ],
 )
-def test_non_finite_or_worse_k_falls_back_to_k_c(frames, delta_k, reason):
+def test_non_finite_or_worse_k_falls_back_to_k_c(frames, delta_k, reason, code):
     spec = replace(model_spec(frames), K_bounds=np.array([[0.0, 1e4]] * 4))
     stub = stub_rectifier(spec, delta_k)
     p2, p3 = frame_points(frames, 0)
-    _assert_kc_solution(stub.rectify(p2, p3), spec, reason)
-    _assert_kc_solution(stub.rectify(p2, p3, refine=True), spec, reason)
+    _assert_kc_solution(stub.rectify(p2, p3), spec, reason, code)
+    _assert_kc_solution(stub.rectify(p2, p3, refine=True), spec, reason, code)
     batch = stub.rectify_batch(frames.points_2d[:2], frames.points_3d[:2], frames.valid[:2])
     assert all(reason in r for r in batch.fallback) and np.all(np.isfinite(batch.reprojection_error_px))
+    assert batch.fallback_code == (code, code)
 
 
 @pytest.mark.parametrize("name", ["default", "paper-rig"])

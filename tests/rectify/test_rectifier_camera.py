@@ -107,6 +107,7 @@ def test_half_resolution_points_under_a_full_resolution_k_c_never_get_a_silent_k
         res = rect.rectify_batch(np.where(valid[..., None], to_half(p2), 0.0), p3, valid)
         assert all(res.fallback), res.fallback
         assert all(("K_c" in r) or ("camera" in r) for r in res.fallback)
+        assert set(res.fallback_code) <= {"out_of_range", "mismatch", "worse_than_k_c"}
         np.testing.assert_array_equal(res.K, np.broadcast_to(K_c, res.K.shape))
 
 

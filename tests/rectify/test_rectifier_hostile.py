@@ -55,7 +55,7 @@ def _assert_no_confident_wrong_k(rect, x, X, res):
     """Either K_c's solution with a reason, or a pose with every point in front of the camera."""
     Z = X @ cv2.Rodrigues(res.rvec)[0][2] + res.tvec[2]
     assert Z.min() > 0, "a pose with a point behind the camera was returned"
-    assert res.fallback is not None and not res.fallback.startswith("map:")
+    assert res.fallback is not None and res.fallback.refusal
     np.testing.assert_array_equal(res.K, rect.K_c)
     _assert_population_cov(rect, res.K_cov)
 
@@ -84,12 +84,13 @@ def test_out_of_range_frames_name_the_likely_cause_in_single_and_batch(bundled, 
     x, X = HOSTILE[case](frames)
     res = bundled.rectify(x, X)
     assert "beyond" in res.fallback and "another camera, resolution or unit" in res.fallback
+    assert res.fallback_code == "out_of_range"
     assert res.reprojection_error_kc_px > MAX_KC_ERROR_F * bundled.K_c[0, 0]
     good_x, good_X, _ = _rig_frame(frames, 1)
     n = min(len(x), len(good_x))
     batch = bundled.rectify_batch(np.stack([good_x[:n], x[:n]]), np.stack([good_X[:n], X[:n]]), np.ones((2, n), bool))
-    assert batch.fallback[0] is None or batch.fallback[0].startswith("map:")
-    assert "beyond" in batch.fallback[1]
+    assert batch.fallback[0] is None or not batch.fallback[0].refusal
+    assert "beyond" in batch.fallback[1] and batch.fallback_code[1] == "out_of_range"
     np.testing.assert_array_equal(batch.K[1], bundled.K_c)
     _assert_population_cov(bundled, None if batch.K_cov is None else batch.K_cov[1])
 

@@ -48,6 +48,7 @@ def _without_ois(frames, rng):
 
 def _kept(rect, res, words):
     assert res.fallback is not None and all(w in res.fallback for w in words), res.fallback
+    assert res.fallback_code == "structure"
     np.testing.assert_array_equal(res.K, rect.K_c)
     np.testing.assert_array_equal(res.K_cov, rect.population_K_cov)
     assert res.reprojection_error_px == res.reprojection_error_kc_px
