@@ -56,24 +56,24 @@ def _add_export(p: argparse.ArgumentParser) -> None:
 
 def _model_bytes(source: str, opset: int) -> bytes:
     """The dimenet-model/1 bytes of SOURCE: the bundled model, a MODEL.onnx or a RUN_DIR exported now."""
-    from dimenet.runtime.rectify.model import BUNDLED_MODELS, bundled_model_bytes, read_model_file
+    from dimenet.runtime.rectify.model import resolve_model
 
-    if source in BUNDLED_MODELS:
-        return bundled_model_bytes(source)
-    if Path(source).is_file():
-        return read_model_file(Path(source))
+    ref = resolve_model(source)
+    if not ref.run_dir:
+        return ref.model_bytes()
     from .onnx_export import run_model_bytes
 
     return run_model_bytes(source, opset=opset)
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from dimenet.runtime.rectify.model import BUNDLED_MODELS
+    from dimenet.runtime.rectify.model import resolve_model
 
     if (args.out is None) == (args.golden is None):
         raise CliError("dimenet export: give --out FILE.onnx (a model) or --golden DIR (golden vectors), one of them")
     inputs = [("SOURCE", Path(args.source))]
-    if args.source not in BUNDLED_MODELS and Path(args.source).is_dir():  # a RUN_DIR (torch reads it): its files too
+    ref = resolve_model(args.source)
+    if ref.run_dir:  # a RUN_DIR (torch reads it): its files too
         from dimenet.training.run_dir import SPEC, WEIGHTS
 
         inputs = [("SOURCE", Path(args.source) / name) for name in (WEIGHTS, SPEC)] + inputs
@@ -96,7 +96,7 @@ def _run_export(args: argparse.Namespace) -> int:
         from .onnx_export import ort_format_bytes
 
         blob = ort_format_bytes(blob, args.source)
-    elif args.source in BUNDLED_MODELS or Path(args.source).is_file():
+    elif not ref.run_dir:
         raise CliError(
             "dimenet export: --graph mlp exports a RUN_DIR (a model file already is one; --format ort converts it)"
         )

@@ -188,7 +188,7 @@ def _network_settings(args: argparse.Namespace, init) -> dict:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from dimenet.runtime.rectify.model import BUNDLED_MODELS
+    from dimenet.runtime.rectify.model import resolve_model
 
     from .init_weights import initial_weights
     from .run_dir import CHECKPOINT, CURVE, HISTORY, SPEC, WEIGHTS
@@ -204,7 +204,7 @@ def _run_train(args: argparse.Namespace) -> int:
             f"dimenet train: {checkpoint} is a training that stopped before its end: `dimenet train --resume "
             f"{args.out}` continues it; remove that file to start again"
         )
-    bundled = args.init is None or args.init in BUNDLED_MODELS
+    bundled = args.init is None or resolve_model(args.init).bundled is not None
     init_files = [] if bundled else [Path(args.init) / name for name in ("", WEIGHTS, SPEC)]
     refuse_overwriting_inputs(
         "dimenet train",

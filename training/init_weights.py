@@ -17,7 +17,6 @@ silently misread.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -26,14 +25,7 @@ import torch
 from onnx import helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
-from dimenet.runtime.rectify.model import (
-    BUNDLED_MODELS,
-    OnnxModel,
-    bundled_model_bytes,
-    bundled_source,
-    onnx_model_from_bytes,
-    read_model_file,
-)
+from dimenet.runtime.rectify.model import OnnxModel, onnx_model_from_bytes, resolve_model
 from dimenet.runtime.rectify.spec import ModelSpec
 
 from .model import OUTPUT_SCALE_PX, DimeNet, dime_net
@@ -223,21 +215,13 @@ def onnx_initial_weights(blob: bytes, source: str) -> tuple[dict, ModelSpec]:
 
 
 def initial_weights(source: str) -> InitialWeights:
-    """Weights to start training from. ``source``: a bundled model's name (``BUNDLED_MODELS``:
-    "default", "any-scene"; a folder of that name: "./default"), a RUN_DIR (weights.safetensors +
+    """Weights to start training from. ``source``: a bundled model's name (``resolve_model``; a folder of
+    that name: "./default"), a RUN_DIR (weights.safetensors +
     spec.json) or a MODEL.onnx file from `dimenet export`. Raises ModelError naming the source."""
-    if source in BUNDLED_MODELS:
-        state_dict, spec = onnx_initial_weights(bundled_model_bytes(source), bundled_source(source))
-        return InitialWeights(state_dict=state_dict, spec=spec, source=source)
-    path = Path(source)
-    if path.is_dir():
-        model, spec = load_run(path)
+    ref = resolve_model(source)
+    if ref.run_dir:
+        model, spec = load_run(ref.path)
         state_dict = {k: v.detach().clone().to(torch.float32) for k, v in model.state_dict().items()}
         return InitialWeights(state_dict=state_dict, spec=spec, source=source)
-    if not path.is_file():
-        raise ModelError(
-            f"{path}: no such model file or RUN_DIR (initial weights come from a bundled model, "
-            f"{' or '.join(map(repr, BUNDLED_MODELS))}, a RUN_DIR or a MODEL.onnx)"
-        )
-    state_dict, spec = onnx_initial_weights(read_model_file(path), str(path))
+    state_dict, spec = onnx_initial_weights(ref.model_bytes(), ref.source)
     return InitialWeights(state_dict=state_dict, spec=spec, source=source)

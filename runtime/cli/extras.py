@@ -15,10 +15,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, Optional
 
-from dimenet.runtime.rectify.model import BUNDLED_MODELS
+from dimenet.runtime.rectify.model import resolve_model
 
 # pyproject.toml's extras, each by the modules it brings (the dev extra's are no command's).
 EXTRAS = {
@@ -46,7 +45,7 @@ def _address(args: argparse.Namespace) -> bool:
 
 def _run_dir(path: Optional[str]) -> bool:
     """A RUN_DIR of `dimenet train` (torch loads it); a bundled model's name or a model file needs no torch."""
-    return path is not None and path not in BUNDLED_MODELS and Path(path).is_dir()
+    return path is not None and resolve_model(path).run_dir
 
 
 # command -> what it needs beyond the base install, and when. A command not named needs nothing more.

@@ -20,7 +20,7 @@ from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
 from dimenet.runtime.plugins import entry_points
 from dimenet.runtime.rectify.inference import network_k, network_statistics
-from dimenet.runtime.rectify.model import BUNDLED_MODELS, OnnxModel, load_model, load_onnx_model
+from dimenet.runtime.rectify.model import OnnxModel, load_model, load_onnx_model, resolve_model
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera
 from dimenet.runtime.rectify.uncertainty import STATISTICS
 from dimenet.runtime.rectify.user_camera import Camera
@@ -42,8 +42,8 @@ class KPrediction:
 
 @dataclass(frozen=True)
 class Predictor:
-    """spec: the model's dimenet-model/1 spec; delta_k: features (B, D) float32 -> (B, 4) px;
-    camera: the camera served (None: a device model's own; a generic model needs one, see
+    """A ``DeltaKModel`` (``rectify.model``). spec: the model's dimenet-model/1 spec; delta_k: features (B, D)
+    float32 -> (B, 4) px; camera: the camera served (None: a device model's own; a generic model needs one, see
     ``for_camera``). ``K_c``, ``K_bounds`` and ``image_size`` are the camera's, in its pixels."""
 
     spec: ModelSpec
@@ -124,18 +124,18 @@ class Predictor:
 
 
 def load_predictor(path: str | Path) -> Predictor:
-    """A predictor from a model path: a RUN_DIR (needs the train extra), an exported .onnx, or
-    the name of a bundled model (``BUNDLED_MODELS``: "default", "any-scene")."""
-    if str(path) in BUNDLED_MODELS:
-        return Predictor.of_model(load_model(path))
-    path = Path(path)
-    if not path.exists():
-        raise ModelError(f"{path}: no such model (a RUN_DIR from `dimenet train` or a .onnx from `dimenet export`)")
-    kind = "run_dir" if path.is_dir() else path.suffix.lstrip(".").lower()
+    """A predictor from a model (``resolve_model``): a bundled model's name, a RUN_DIR (needs the train extra)
+    or an exported .onnx."""
+    ref = resolve_model(path)
+    if ref.bundled is not None:
+        return Predictor.of_model(load_model(ref.bundled))
+    kind = "run_dir" if ref.run_dir else ref.path.suffix.lstrip(".").lower()
     loaders = entry_points("dimenet.predictors")
     if kind not in loaders:
-        raise ModelError(f"{path}: not a model this installation can load (known kinds: {', '.join(sorted(loaders))})")
-    return loaders[kind].load()(path)
+        raise ModelError(
+            f"{ref.path}: not a model this installation can load (known kinds: {', '.join(sorted(loaders))})"
+        )
+    return loaders[kind].load()(ref.path)
 
 
 def load_onnx_predictor(path: str | Path) -> Predictor:

@@ -25,7 +25,7 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Protocol, runtime_checkable
 
 import numpy as np
 import onnxruntime as ort
@@ -67,6 +67,20 @@ INPUT_NAME = "features"
 OUTPUT_NAME = "delta_k"
 DEFAULT_PROVIDERS = ("CPUExecutionProvider",)
 PROBE_FRAMES = 2  # the batch of zero features the load-time probe call runs
+
+
+@runtime_checkable
+class DeltaKModel(Protocol):
+    """Features -> Delta K, what a model is to the rectifier and the evaluation (``OnnxModel``, the evaluation's
+    ``Predictor``): its spec, how errors name it, a batch (B, D) float32 -> (B, 4) px and one frame's (1, D) ->
+    (4,) float64 px."""
+
+    spec: ModelSpec
+    source: str
+
+    def delta_k(self, features: np.ndarray) -> np.ndarray: ...
+
+    def frame_delta_k(self, features: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -322,13 +336,51 @@ def read_model_file(path: Path) -> bytes:
     return blob
 
 
+@dataclass(frozen=True)
+class ModelRef:
+    """A model named where one is taken: a bundled model (``bundled``, a key of BUNDLED_MODELS) or an existing
+    ``path`` (a model file, or a RUN_DIR that the training's loaders read)."""
+
+    bundled: Optional[str] = None
+    path: Optional[Path] = None
+
+    @property
+    def source(self) -> str:
+        """How errors and reports name the model."""
+        return bundled_source(self.bundled) if self.bundled is not None else str(self.path)
+
+    @property
+    def run_dir(self) -> bool:
+        """A folder (a RUN_DIR of `dimenet train`), not a model file nor a bundled model."""
+        return self.path is not None and self.path.is_dir()
+
+    def model_bytes(self) -> bytes:
+        """The model file's bytes (``bundled_model_bytes``, ``read_model_file``); a RUN_DIR has none."""
+        return bundled_model_bytes(self.bundled) if self.bundled is not None else read_model_file(self.path)
+
+
+def resolve_model(model: Optional[str | Path] = None) -> ModelRef:
+    """The one reading of a model argument: None is the default bundled model, a name in BUNDLED_MODELS that
+    bundled model ("./default": a file of that name), anything else a path that must exist (ModelError naming
+    the bundled models otherwise)."""
+    name = DEFAULT_NAME if model is None else str(model)
+    if name in BUNDLED_MODELS:
+        return ModelRef(bundled=name)
+    path = Path(model)
+    if not path.exists():
+        raise ModelError(
+            f"{path}: no such model file or RUN_DIR, nor a bundled model's name ({', '.join(BUNDLED_MODELS)})"
+        )
+    return ModelRef(path=path)
+
+
 def load_model(path: Optional[str | Path] = None, *, threads: int = 1, providers=None) -> OnnxModel:
-    """A ``dimenet-model/1`` .onnx file, or a bundled model by its name in BUNDLED_MODELS (without a
-    path: the default), ModelError when this installation lacks it."""
-    name = DEFAULT_NAME if path is None else str(path)
-    if name not in BUNDLED_MODELS:
-        return load_onnx_model(path, threads=threads, providers=providers)
-    return onnx_model_from_bytes(bundled_model_bytes(name), bundled_source(name), threads=threads, providers=providers)
+    """A ``dimenet-model/1`` .onnx file, or a bundled model (``resolve_model``), ModelError when this
+    installation lacks it."""
+    ref = resolve_model(path)
+    if ref.bundled is None:
+        return load_onnx_model(ref.path, threads=threads, providers=providers)
+    return onnx_model_from_bytes(ref.model_bytes(), ref.source, threads=threads, providers=providers)
 
 
 def bundled_source(name: str) -> str:

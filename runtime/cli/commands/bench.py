@@ -196,20 +196,13 @@ def _run_stream(args: argparse.Namespace) -> int:
 
 def _run_fuzz(args: argparse.Namespace) -> int:
     import tempfile
-    from pathlib import Path
 
     import numpy as np
 
     from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_full_graph, fuzz_ort_file, fuzz_rectifier
     from dimenet.runtime.bench.latency import bench_rectifier
     from dimenet.runtime.errors import DimenetError
-    from dimenet.runtime.rectify.model import (
-        BUNDLED_MODELS,
-        DEFAULT_NAME,
-        bundled_model_bytes,
-        load_model,
-        read_model_file,
-    )
+    from dimenet.runtime.rectify.model import load_model, resolve_model
     from dimenet.runtime.sim.simulator import simulate
 
     o = _options(args, FUZZ)
@@ -222,8 +215,7 @@ def _run_fuzz(args: argparse.Namespace) -> int:
         fuzz_rectifier(bench_rectifier(model, mode, frames), frames, args.fuzz, rng, report)
     with tempfile.TemporaryDirectory() as folder:
         fuzz_files(folder, args.fuzz, rng, report)
-    name = DEFAULT_NAME if o["model"] is None else o["model"]
-    blob = bundled_model_bytes(name) if name in BUNDLED_MODELS else read_model_file(Path(name))
+    blob = resolve_model(o["model"]).model_bytes()
     graph = _skipped("full graph", ("onnx",), "export")
     if not graph and model.spec.generic is None:
         graph = f"full graph: skipped, {model.source} is a device model (the full graph holds generic models)"
