@@ -41,6 +41,9 @@ class Fallback(str):
         self.code = code
         return self
 
+    def __getnewargs__(self) -> tuple:  # pickle and copy (a result sent to another process)
+        return self.code, str(self)
+
     @property
     def refusal(self) -> bool:
         """K_c's own solution was returned (else a note: map gave way to the network's K)."""

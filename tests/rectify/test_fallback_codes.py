@@ -3,6 +3,8 @@ in one frame and in a batch, and the code alone tells a refusal (K_c kept) from 
 
 from __future__ import annotations
 
+import copy
+import pickle
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -63,3 +65,9 @@ def test_codes_are_few_and_each_is_a_refusal_or_a_note():
     assert all(c.isidentifier() and c.islower() for c in FALLBACK_CODES)
     with pytest.raises(ValueError, match="unknown fallback code 'worse'"):
         Fallback("worse", "a message")
+
+
+def test_a_fallback_keeps_its_code_through_pickle_and_copy():
+    f = Fallback("no_pose", "no pose under the predicted K")
+    for g in (pickle.loads(pickle.dumps(f)), copy.deepcopy(f)):
+        assert g == f and g.code == "no_pose" and type(g) is Fallback
