@@ -14,10 +14,16 @@ and streams): a Kalman filter over k = (fx, fy, cx, cy) px. Each frame:
    a gap in t_ns (more than GAP_FRAMES frame times) or an innovation beyond INNOVATION_CHI2 (a refocus) resets the
    state to K_c with Q before the update (``StreamFrame.event`` says which);
 4. update, then the fused K's pose by PnP over the frame's points, and the same never-worse rule as per frame
-   (``checks.loses_to_k_c``): where the fused K fits the frame's points worse than K_c, the frame's result is the
-   per-frame one (K_c's or the network's own, which passed it), and the state is kept.
+   (``checks.loses_to_k_c``): where the fused K fits the frame's points worse than K_c (or leaves K_bounds, or has
+   no pose), the frame keeps K_c's own solution with the reason as its fallback, and the state is kept.
 
-Constant memory: the state is 4 + 16 numbers, the previous pose and time.
+With the gyroscope (``motion``, (G, 4) rows t_ns, gx, gy, gz rad/s in {C}: ``formats.motion``), the principal
+point is the OIS loop's prediction from the measured rotation (``rectify.gyro_ois``: the loop's cutoff and gain
+learned from the frames' points) and the focal length K_c's: on natural labels the network's f is biased per
+recording (measured: 5-60 px RMS where K_c's is 3-11), which no filter averages away, and the gyroscope says nothing
+of f. (A refocus is then not tracked.)
+
+Constant memory: the state is 4 + 16 numbers, the previous pose and time (and the gyroscope's bank).
 """
 
 from __future__ import annotations
@@ -31,8 +37,9 @@ import numpy as np
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params, rvec_to_matrix, undistort_points
 from dimenet.runtime.geometry import solve_pnp_start as pnp
-from dimenet.runtime.rectify.checks import loses_to_k_c
-from dimenet.runtime.rectify.results import Rectification
+from dimenet.runtime.rectify.checks import implausible_reason, loses_to_k_c, worse_reason
+from dimenet.runtime.rectify.gyro_ois import GyroOis
+from dimenet.runtime.rectify.results import Fallback, Rectification
 
 TAU_S = (30.0, 30.0, 0.6, 0.6)  # AR(1) time constants of fx, fy, cx, cy (s)
 FRAME_S = 1.0 / 30.0  # a frame's time when the stream has no t_ns
@@ -46,7 +53,8 @@ EVENTS = ("start", "cut", "gap", "jump")
 @dataclass(frozen=True)
 class StreamFrame:
     """One frame of a stream: ``result`` (a Rectification: K the fused K or, where that fits worse than K_c, the
-    per-frame result; K_cov the filter's covariance when the fused K stands), ``per_frame`` the frame's own
+    K_c's own solution with a fallback; K_cov the filter's covariance when the fused K stands, else the population
+    spread), ``per_frame`` the frame's own
     ``Rectifier.rectify`` result, ``event`` None or one of EVENTS (the state was reset before this frame),
     ``fused`` whether result.K is the filter's."""
 
@@ -59,7 +67,7 @@ class StreamFrame:
 class Stream:
     """One recording's K filter over a shared Rectifier (see the module doc). ``update`` one frame at a time."""
 
-    def __init__(self, rectifier, *, tau_s=TAU_S, frame_s: float = FRAME_S, refine: bool = False) -> None:
+    def __init__(self, rectifier, *, tau_s=TAU_S, frame_s: float = FRAME_S, refine: bool = False, motion=None) -> None:
         Q = rectifier.population_K_cov
         if Q is None:
             raise InputError(
@@ -75,6 +83,7 @@ class Stream:
         self.P: Optional[np.ndarray] = None
         self._t_ns: Optional[int] = None
         self._pose: Optional[tuple] = None
+        self.gyro = None if motion is None else GyroOis(motion, self.k_c)
 
     def _reset(self) -> None:
         self.k, self.P = self.k_c.copy(), self.Q.copy()
@@ -103,15 +112,17 @@ class Stream:
         """The frame's K fused with the stream's state: points as ``Rectifier.rectify`` takes them; ``t_ns`` the
         frame's time (ns, None: FRAME_S after the last). InputError as ``rectify``'s (the state is left as it was)."""
         rect = self.rectifier
+        if self.gyro is not None and t_ns is None:
+            raise InputError("a stream with motion needs each frame's t_ns (on the motion's clock)")
         res = rect.rectify(points_2d, points_3d, refine=self.refine)
         event, dt_s = self._event(t_ns, res)
+        z, R = k_params(res.K), res.K_cov
+        if R is None:
+            R = self.Q
         if event is not None:
             self._reset()
         else:
             self._predict(dt_s)
-        z, R = k_params(res.K), res.K_cov
-        if R is None:
-            R = self.Q
         S = self.P + R
         innovation = z - self.k
         if event is None and float(innovation @ np.linalg.solve(S, innovation)) > INNOVATION_CHI2:
@@ -122,9 +133,49 @@ class Stream:
         self.k = self.k + gain @ innovation
         self.P = (np.eye(4) - gain) @ self.P
         self.P = (self.P + self.P.T) / 2.0
-        self._t_ns = t_ns if t_ns is not None else None
+        self._t_ns = t_ns
         self._pose = (rvec_to_matrix(res.rvec), float(np.linalg.norm(res.tvec)))
+        if self.gyro is not None:
+            self._gyro_c(points_2d, points_3d, event, t_ns)
         return self._checked(points_2d, points_3d, res, event)
+
+    def _gyro_c(self, points_2d, points_3d, event: Optional[str], t_ns: int) -> None:
+        """The principal point from the gyroscope's prediction (``rectify.gyro_ois``) in place of the filter's, the
+        loop scored on the frame's points (in the pinhole image of K_c with a lens)."""
+        gyro, rect = self.gyro, self.rectifier
+        if event in ("cut", "gap"):
+            gyro.recentre()
+        gyro.advance(t_ns)
+        p2 = np.asarray(points_2d, dtype=np.float64).reshape(-1, 2)
+        p3 = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
+        if rect.dist_coeffs is not None:
+            p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
+        gyro.score(p2, p3, self.k_c)
+        c, var = gyro.c()
+        self.k = np.r_[self.k_c[:2], c]
+        self.P = self.P.copy()
+        self.P[2:, :] = self.P[:, 2:] = 0.0
+        self.P[2, 2], self.P[3, 3] = var
+
+    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback) -> StreamFrame:
+        """K_c's own solution for a frame whose tracked K is refused (the per-frame result when it is K_c's; else the
+        pose under K_c by PnP, e = e_c), with ``reason``; K_cov the population spread. The state is kept."""
+        if res.fallback is not None and res.fallback.refusal:
+            return StreamFrame(res, res, event, False)
+        rect = self.rectifier
+        rvec, tvec = pnp(p2, p3, rect.K_c)
+        Q = self.Q
+        kept = replace(
+            res,
+            K=rect.K_c.copy(),
+            rvec=rvec,
+            tvec=tvec,
+            reprojection_error_px=res.reprojection_error_kc_px,
+            delta_k=np.zeros(4),
+            fallback=reason,
+            covariance=lambda: Q,
+        )
+        return StreamFrame(kept, res, event, False)
 
     def _checked(self, points_2d, points_3d, res: Rectification, event: Optional[str]) -> StreamFrame:
         """The fused K's result on the frame's points, or the per-frame result where it fits worse than K_c."""
@@ -137,14 +188,17 @@ class Stream:
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
             e_c = frame_error_and_depth(p2, p3, rect.K_c, *pnp(p2, p3, rect.K_c))[0]
         if not rect.k_within_bounds(self.k):
-            return StreamFrame(res, res, event, False)
+            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self.k_c, self.k))
         try:
             rvec, tvec = pnp(p2, p3, K)
         except InputError:
-            return StreamFrame(res, res, event, False)
+            return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"))
         e, depth = frame_error_and_depth(p2, p3, K, rvec, tvec)
-        if depth <= 0 or loses_to_k_c(e, e_c, float(rect.K_c[0, 0])):
-            return StreamFrame(res, res, event, False)
+        if depth <= 0:
+            reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
+            return self._k_c_kept(res, p2, p3, event, reason)
+        if loses_to_k_c(e, e_c, float(rect.K_c[0, 0])):
+            return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, float(rect.K_c[0, 0])))
         P = self.P.copy()
         fused = replace(
             res,

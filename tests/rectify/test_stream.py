@@ -1,5 +1,6 @@
 """Rectifier.stream (issue 51 step 2): one recording's K filter, its state its own, the never-worse rule on
-every frame, events at the start, cuts and gaps, constant memory; `dimenet rectify --points --temporal`."""
+every frame (else K_c kept), events at the start, cuts and gaps, constant memory, the gyroscope's c;
+`dimenet rectify --points --temporal [--motion]`."""
 
 from __future__ import annotations
 
@@ -54,8 +55,9 @@ def test_every_frame_is_never_worse_than_k_c(streamed):
         if f.fused:
             sigma = np.sqrt(np.diag(r.K_cov))
             assert np.all(sigma > 0) and r.fallback is None
-        else:
-            assert r is f.per_frame
+        else:  # K_c kept, saying why
+            np.testing.assert_array_equal(r.K, r.K_c)
+            assert r.fallback.refusal and r.reprojection_error_px == r.reprojection_error_kc_px
 
 
 def test_the_filter_narrows_sigma_below_one_frame(streamed, rectifier):
@@ -124,4 +126,39 @@ def test_cli_temporal_writes_one_line_per_frame(recording, tmp_path, capsys):
 
 def test_cli_temporal_needs_points(capsys):
     assert main(["rectify", "--example", "--temporal"]) == 2
+    assert "--temporal" in capsys.readouterr().err
+
+
+def test_the_gyroscope_predicts_c_better_than_k_c():
+    """With the motion, c follows the OIS loop the gyroscope drives: closer to the truth than K_c's centre on the
+    settled frames where the tracked K stands, and never worse than K_c on the frame's points."""
+    rec = simulate_recording(2, seconds=5.0, cuts=0)
+    camera = nominal_camera(rec)
+    stream = Rectifier.load(K_c=camera.K, image_size=camera.image_size).stream(motion=rec.gyro)
+    err, err_c = [], []
+    for i, f in enumerate(frames(rec)):
+        out = stream.update(*f)
+        assert out.result.reprojection_error_px <= out.result.reprojection_error_kc_px
+        if i >= 30:
+            truth = k_params(rec.dataset.K_true[i])[2:]
+            err.append(stream.k[2:] - truth)
+            err_c.append(k_params(camera.K)[2:] - truth)
+    assert np.sqrt(np.mean(np.square(err))) < 0.7 * np.sqrt(np.mean(np.square(err_c)))
+    assert set(stream.gyro.loop()) == {"cutoff_hz", "gain", "bias_rad_s"}
+
+
+def test_motion_needs_t_ns(recording, rectifier):
+    stream = rectifier.stream(motion=recording.gyro)
+    p2, p3, _ = next(frames(recording))
+    with pytest.raises(InputError, match="t_ns"):
+        stream.update(p2, p3, None)
+
+
+def test_cli_motion(recording, tmp_path, capsys):
+    paths = write_recording(recording, tmp_path)
+    args = ["rectify", "--points", str(paths["points"]), "--camera", str(paths["camera"])]
+    assert main([*args, "--temporal", "--motion", str(paths["gyro"])]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert lines[0]["motion"] == str(paths["gyro"]) and len(lines) == recording.dataset.n_frames + 1
+    assert main([*args, "--motion", str(paths["gyro"])]) == 2
     assert "--temporal" in capsys.readouterr().err

@@ -28,6 +28,7 @@ from dimenet.runtime.evaluation.rectify_points import rectified_records, streame
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera_file import camera_file, read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
+from dimenet.runtime.formats.motion import read_gyro
 from dimenet.runtime.formats.points import PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.geometry import k_params
@@ -83,6 +84,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --points: track K through the recording (rectify.stream: each frame's K fused with the frames "
         "before, reset at cuts, refocus and gaps in t_ns); each line adds event and fused",
+    )
+    p.add_argument(
+        "--motion",
+        type=nonempty_path,
+        metavar="GYRO.csv",
+        help="with --temporal: the gyroscope's samples, t_ns,gx_rad_s,gy_rad_s,gz_rad_s on the points' clock in the "
+        "camera's axes (models_spec/points-csv.md, 'Motion'): c predicted from the rotation through the OIS loop",
     )
 
 
@@ -224,7 +232,9 @@ def _run_points(args: argparse.Namespace) -> int:
     tally: Counter = Counter()
     if args.temporal:
         header["temporal"] = True
-        records = streamed_records(rectifier.stream(refine=args.refine), frames)
+        motion = None if args.motion is None else read_gyro(args.motion)
+        header["motion"] = args.motion
+        records = streamed_records(rectifier.stream(refine=args.refine, motion=motion), frames)
     else:
         records = rectified_records(rectifier, frames, refine=args.refine)
     lines = json_lines(header, counted(records, tally))
@@ -255,12 +265,20 @@ def _check_out(args: argparse.Namespace) -> None:
     if args.out is None:
         return
     camera = None if args.camera is None else camera_file(args.camera)[0]
-    inputs = [("DATA", args.data), ("--points", args.points), ("--model", args.model), ("--camera", camera)]
+    inputs = [
+        ("DATA", args.data),
+        ("--points", args.points),
+        ("--model", args.model),
+        ("--camera", camera),
+        ("--motion", args.motion),
+    ]
     refuse_overwriting_inputs("dimenet rectify", [("--out", args.out)], [(n, p) for n, p in inputs if p is not None])
 
 
 def run(args: argparse.Namespace) -> int:
     _check_out(args)
+    if args.motion and not args.temporal:
+        raise CliError("dimenet rectify: --motion feeds the temporal mode: give --temporal with it")
     if args.temporal and not args.points:
         raise CliError("dimenet rectify: --temporal tracks K through a recording: it needs --points FILE")
     if args.points:
@@ -318,6 +336,7 @@ COMMAND = Command(
     "  dimenet rectify frames.npz --camera cam.json --model paper-rig   # the paper's grid model\n"
     "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
     "  dimenet rectify --points rec.csv --camera cam.json --temporal   # K tracked through the recording\n"
+    "  dimenet rectify --points rec.csv --camera cam.json --temporal --motion gyro.csv   # with the gyroscope\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,

@@ -1,0 +1,110 @@
+"""The gyroscope's prediction of the OIS lens shift, for a ``rectify.stream.Stream`` given the motion
+(`dimenet rectify --points FILE --temporal --motion GYRO.csv`; models_spec/points-csv.md, "Motion").
+
+An OIS loop moves the lens against the hand's rotation by a high-pass of that rotation (its centring filter), times
+a gain, so the principal point is c = c_rest + g f (tan hp(yaw), -tan hp(pitch)) in OpenCV {C} (x right, y down):
+a turn to the right (+yaw about y) moves the image left, the lens moves c right. c_rest is K_c's centre (the
+factory calibration, OIS at rest). The network cannot see this motion (OIS cancels exactly the motion it causes),
+so its c is no evidence of the loop; the frame's own points are, summed over many frames.
+
+``GyroOis`` runs, at the gyroscope's own rate, the high-pass of the integrated rates (yaw, pitch) for each cutoff
+of a bank (CUTOFFS_HZ), after subtracting the gyroscope's bias (its running mean: cumulative over the first
+BIAS_TAU_S, then exponential; what a bias leaves after the high-pass is a small constant). Each (cutoff, gain) pair
+of the bank (x GAINS) is scored by the mean reprojection error its K leaves on the frame's points (pose by PnP),
+every SCORE_EVERY-th frame, with a forgetting factor: the loop is the best-scored pair, learned from the frames,
+not assumed. sigma of c: SIGMA_FLOOR_PX and the spread of the best few pairs' predictions.
+
+Memory: a few numbers per cutoff and pair, and an index into the samples.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dimenet.runtime.errors import InputError
+from dimenet.runtime.geometry import frame_error_and_depth, k_matrix
+from dimenet.runtime.geometry import solve_pnp_start as pnp
+
+CUTOFFS_HZ = (0.25, 0.4, 0.6, 0.8, 1.0, 1.3, 1.7, 2.2)
+GAINS = (0.8, 0.9, 1.0, 1.1)
+BIAS_TAU_S = 5.0  # the gyroscope bias's running mean
+SCORE_EVERY = 3  # frames between two scorings of the bank (each scoring: one PnP per pair)
+SCORE_MEMORY = 0.99  # forgetting factor of the scores, per scoring
+SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the stroke's clip)
+SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
+
+
+class GyroOis:
+    """The OIS shift predicted from the gyroscope (see the module doc). ``samples`` (G, 4): t_ns, gx, gy, gz rad/s
+    in {C}, t_ns increasing; ``k_c`` (4,) px."""
+
+    def __init__(self, samples, k_c: np.ndarray) -> None:
+        samples = np.asarray(samples, dtype=np.float64)
+        if samples.ndim != 2 or samples.shape[1] != 4 or len(samples) < 2 or np.any(np.diff(samples[:, 0]) <= 0):
+            raise InputError(
+                f"motion must be (G >= 2, 4) rows of t_ns, gx, gy, gz with t_ns increasing, got {samples.shape}"
+            )
+        self.samples, self.k_c = samples, np.asarray(k_c, dtype=np.float64)
+        self._cutoffs = np.asarray(CUTOFFS_HZ)
+        self._next = 0  # the first sample not consumed
+        self._bias = np.zeros(3)
+        self._bias_s = 0.0
+        self._hp = np.zeros((len(CUTOFFS_HZ), 2))  # (yaw, pitch) high-passed, rad, per cutoff
+        self._scores = np.zeros((len(CUTOFFS_HZ), len(GAINS)))
+        self._frames = 0
+
+    def recentre(self) -> None:
+        """The OIS recentres (a cut): the high-pass states to 0; the loop's scores stay (the same phone)."""
+        self._hp[:] = 0.0
+
+    def advance(self, t_ns: int) -> None:
+        """Consume the samples up to ``t_ns``: the bias's running mean and the bank's high-pass at the gyro's rate."""
+        s = self.samples
+        while self._next < len(s) and s[self._next, 0] <= t_ns:
+            i = self._next
+            self._next += 1
+            if i == 0:
+                continue
+            step_s = (s[i, 0] - s[i - 1, 0]) * 1e-9
+            self._bias_s += step_s
+            self._bias += min(1.0, step_s / min(self._bias_s, BIAS_TAU_S)) * (s[i, 1:] - self._bias)
+            rate = s[i, 1:] - self._bias
+            a = 1.0 / (1.0 + 2.0 * math.pi * self._cutoffs * step_s)
+            self._hp = a[:, None] * (self._hp + np.array([rate[1], rate[0]]) * step_s)
+
+    def _shifts(self) -> np.ndarray:
+        """(cutoffs, 2) px the lens shift of each cutoff at gain 1."""
+        return self.k_c[0] * np.stack([np.tan(self._hp[:, 0]), -np.tan(self._hp[:, 1])], 1)
+
+    def score(self, points_2d: np.ndarray, points_3d: np.ndarray, k: np.ndarray) -> None:
+        """Score the bank on one frame's points (px, mm) with K's other parameters from ``k`` (4,) px, every
+        SCORE_EVERY-th call."""
+        self._frames += 1
+        if (self._frames - 1) % SCORE_EVERY:
+            return
+        shifts = self._shifts()
+        errors = np.empty_like(self._scores)
+        for i, shift in enumerate(shifts):
+            for j, gain in enumerate(GAINS):
+                K = k_matrix(np.r_[k[:2], self.k_c[2:] + gain * shift])
+                try:
+                    errors[i, j] = frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
+                except InputError:
+                    errors[i, j] = np.nan
+        if np.all(np.isfinite(errors)):
+            self._scores = SCORE_MEMORY * self._scores + errors
+
+    def c(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cx, cy) px of the best-scored loop now, and their variances (2,) px^2."""
+        shifts = self._shifts()
+        order = np.argsort(self._scores, axis=None)[:SPREAD_PAIRS]
+        pairs = [np.unravel_index(o, self._scores.shape) for o in order]
+        preds = np.array([self.k_c[2:] + GAINS[j] * shifts[i] for i, j in pairs])
+        return preds[0], SIGMA_FLOOR_PX**2 + preds.var(0)
+
+    def loop(self) -> dict:
+        """The loop as estimated: cutoff (Hz), gain, the gyroscope's bias (rad/s)."""
+        i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
+        return {"cutoff_hz": CUTOFFS_HZ[i], "gain": GAINS[j], "bias_rad_s": self._bias.tolist()}
