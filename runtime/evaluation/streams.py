@@ -1,0 +1,99 @@
+"""Streams scored (issue 51): a simulated recording (``sim.recording``) through the methods side by side, rho
+(``metrics.reduction_ratio``) over its settled frames on the points the methods never see.
+
+Methods: ``fixed`` K_c (rho 0 by construction), ``per_frame`` (``Rectifier.rectify``), ``temporal``
+(``Rectifier.stream()``) and ``gyro`` (``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
+the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
+reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
+does not stream), pose by PnP under K (``metrics.reprojection_error_under_k``); e* is K_true's. ``coverage``: the
+share of frames whose K_true lies within the method's 1 sigma in every parameter; ``within_2_sigma``: the share
+whose |K - K_c| is within 2 sigma (what OIS off must keep).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from dimenet.runtime.evaluation.metrics import reduction_ratio, reprojection_error_under_k
+from dimenet.runtime.geometry import k_params
+from dimenet.runtime.rectify.rectifier import Rectifier
+from dimenet.runtime.sim.recording import Recording, nominal_camera
+
+SETTLE = 10  # frames after the start, a cut or a refocus before a frame counts as settled
+AFTER_EVENT = (5, 10)  # frames [5, 10) after a cut or refocus: the recovery window
+METHODS = ("per_frame", "temporal", "gyro")
+
+
+@dataclass(frozen=True)
+class StreamScores:
+    """One recording's figures per method (METHODS): rho over settled frames and over the recovery window (None:
+    undefined, ``reduction_ratio``), coverage and within_2_sigma (shares of frames), the share of frames whose K is
+    the method's own (not K_c kept), and the frames."""
+
+    rho: dict
+    rho_after_event: dict
+    coverage: dict
+    within_2_sigma: dict
+    own_k: dict
+    frames: int
+    settled: int
+
+
+def _masks(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
+    F = recording.dataset.n_frames
+    settled, after = np.ones(F, bool), np.zeros(F, bool)
+    for event in (0, *recording.cuts, *recording.refocus):
+        settled[event : event + SETTLE] = False
+        if event:
+            after[event + AFTER_EVENT[0] : event + AFTER_EVENT[1]] = True
+    return settled, after
+
+
+def _rho(e_c, e, e_star, mask) -> Optional[float]:
+    return (
+        reduction_ratio(float(e_c[mask].mean()), float(e[mask].mean()), float(e_star[mask].mean()))
+        if mask.any()
+        else None
+    )
+
+
+def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None) -> StreamScores:
+    """Run the methods over ``recording`` (the bundled default model serving its nominal camera unless
+    ``rectifier``) and score them (see the module doc)."""
+    ds = recording.dataset
+    if rectifier is None:
+        camera = nominal_camera(recording)
+        rectifier = Rectifier.load(K_c=camera.K, image_size=camera.image_size)
+    streams = {"temporal": rectifier.stream(), "gyro": rectifier.stream(motion=recording.gyro)}
+    K = {m: np.empty((ds.n_frames, 3, 3)) for m in METHODS}
+    sigma = {m: np.full((ds.n_frames, 4), np.nan) for m in METHODS}
+    own = {m: np.zeros(ds.n_frames, bool) for m in METHODS}
+    for i in range(ds.n_frames):
+        m = ds.infer_mask[i]
+        p2, p3, t = ds.points_2d[i, m], ds.points_3d[i, m], int(recording.t_ns[i])
+        results = {name: s.update(p2, p3, t) for name, s in streams.items()}
+        outs = {"per_frame": results["temporal"].per_frame, **{n: r.result for n, r in results.items()}}
+        for name, res in outs.items():
+            K[name][i] = res.K
+            own[name][i] = res.fallback is None
+            if res.K_cov is not None:
+                sigma[name][i] = np.sqrt(np.diag(res.K_cov))
+    held = ds.valid & ~ds.infer_mask
+    e_c = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, rectifier.K_c)
+    e_star = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, ds.K_true)
+    settled, after = _masks(recording)
+    k_true, k_c = k_params(ds.K_true), k_params(rectifier.K_c)
+    rho, rho_after, coverage, within = {}, {}, {}, {}
+    for name in METHODS:
+        e = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, K[name])
+        rho[name], rho_after[name] = _rho(e_c, e, e_star, settled), _rho(e_c, e, e_star, after)
+        k = k_params(K[name])
+        with np.errstate(invalid="ignore"):
+            coverage[name] = float(np.mean(np.all(np.abs(k - k_true) <= sigma[name], 1)))
+            moved = np.any(k != k_c, 1)
+            within[name] = float(np.mean(~moved | np.all(np.abs(k - k_c) <= 2.0 * sigma[name], 1)))
+    shares = {name: float(own[name].mean()) for name in METHODS}
+    return StreamScores(rho, rho_after, coverage, within, shares, ds.n_frames, int(settled.sum()))
