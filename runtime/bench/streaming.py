@@ -5,7 +5,8 @@ The CSV (``models_spec/points-csv.md``) tiles the frames of a dataset, all their
 to 1e-4 px and 1e-4 mm (frame k is frame k mod F, id ``f<k>``, t_ns at 30 frames/s). It is then
 streamed through the same path as the command, ``formats.points.read_points``,
 ``evaluation.rectify_points.rectified_records`` (``Rectifier.rectify`` frame by frame) and ``json_lines``, each line
-written and flushed to /dev/null. Memory: the process's peak resident set size
+written and flushed to /dev/null; then again through ``Rectifier.stream`` (``--temporal``) and with a 200 Hz
+gyroscope (``--temporal --motion``): their extra microseconds per frame. Memory: the process's peak resident set size
 (``resource.getrusage``) after 10 % of the frames and at the end; equal figures show the stream
 runs in constant memory.
 """
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dimenet.runtime.evaluation.rectify_points import rectified_records
+from dimenet.runtime.evaluation.rectify_points import rectified_records, streamed_records
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.formats.points import POINTS_COLUMNS, PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
@@ -31,6 +32,7 @@ from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.user_camera import Camera
 
 FRAME_NS = 33_333_333  # t_ns step: 30 frames/s
+GYRO_HZ = 200.0  # the --motion pass's gyroscope rate
 CSV_HEADER = ",".join(POINTS_COLUMNS) + "\n"
 
 
@@ -87,6 +89,9 @@ def run_stream_bench(folder: str | Path, n_frames: int, frames: Dataset, camera:
             out.write(line)
             out.flush()
     seconds = time.perf_counter() - start
+    for name, motion in (("temporal", None), ("temporal_motion", bench_gyro(n_frames))):
+        figures[f"{name}_s"] = _timed_temporal(rectifier, path, motion)
+        figures[f"{name}_extra_us_per_frame"] = (figures[f"{name}_s"] - seconds) / n_frames * 1e6
     figures.update(
         refused=counts["refused"],
         fallbacks=counts["fallbacks"],
@@ -100,6 +105,28 @@ def run_stream_bench(folder: str | Path, n_frames: int, frames: Dataset, camera:
     return figures
 
 
+def bench_gyro(n_frames: int, rate_hz: float = GYRO_HZ) -> np.ndarray:
+    """(G, 4) gyroscope samples (t_ns, gx, gy, gz rad/s) at ``rate_hz`` over the bench's ``n_frames`` frames: a
+    slow sway, so the OIS loop's bank has work to do."""
+    t_ns = np.arange(0, n_frames * FRAME_NS + 1, int(1e9 / rate_hz), dtype=np.int64)
+    t_s = t_ns * 1e-9
+    rates = 0.02 * np.stack([np.sin(2.1 * t_s), np.cos(1.3 * t_s), 0.5 * np.sin(0.7 * t_s)], 1)
+    return np.column_stack([t_ns, rates])
+
+
+def _timed_temporal(rectifier: Rectifier, path: Path, motion) -> float:
+    """Seconds to stream the points CSV through ``Rectifier.stream`` (``--temporal``, with ``motion``: --motion),
+    each line written and flushed to /dev/null."""
+    header = run_record(rectifier, refine=False, points=str(path), camera=None)
+    records = streamed_records(rectifier.stream(motion=motion), read_points(path))
+    start = time.perf_counter()
+    with open(os.devnull, "w", encoding="utf-8") as out:
+        for line in json_lines(header, records):
+            out.write(line)
+            out.flush()
+    return time.perf_counter() - start
+
+
 def format_stream_report(r: dict) -> str:
     """A human-readable summary of ``run_stream_bench``'s figures."""
     return "\n".join(
@@ -108,6 +135,8 @@ def format_stream_report(r: dict) -> str:
             f"model {r['model']} (sha256 {r['model_sha256'][:16]})",
             f"rectify --points: {r['stream_s']:.1f} s, {r['frames_per_s']:.0f} frames/s, {r['mb_per_s']:.1f} MB/s; "
             f"{r['refused']} refused, {r['fallbacks']} fallbacks",
+            f"--temporal: {r['temporal_s']:.1f} s, {r['temporal_extra_us_per_frame']:+.0f} us a frame over per frame; "
+            f"--temporal --motion: {r['temporal_motion_s']:.1f} s, {r['temporal_motion_extra_us_per_frame']:+.0f} us",
             f"peak RSS {r['peak_rss_mb_before']:.1f} MB before the stream, {r['peak_rss_mb_at_10_percent']:.1f} MB "
             f"after 10 % of it, {r['peak_rss_mb']:.1f} MB at its end",
         ]
