@@ -34,14 +34,15 @@ from onnx import TensorProto, helper, numpy_helper
 
 from dimenet.runtime.errors import ModelError
 from dimenet.runtime.geometry.normal_equations import JACOBIAN_BASIS
-from dimenet.runtime.rectify.features import (
-    CHANNELS,
-    MOMENT_INDEX,
+from dimenet.runtime.rectify.encoders import grid, spans
+from dimenet.runtime.rectify.encoders.data_step import (
     STEP_CLIP_REL,
     STEP_NOISE_FLOOR_PX,
     STEP_PRIOR_REL,
     STEP_VARIANCE_FLOOR,
 )
+from dimenet.runtime.rectify.encoders.grid import CHANNELS
+from dimenet.runtime.rectify.encoders.moments import MOMENT_INDEX
 from dimenet.runtime.rectify.model import INPUT_NAME, OUTPUT_NAME, onnx_model_from_bytes
 from dimenet.runtime.rectify.spec import METADATA_KEY
 from dimenet.runtime.rectify.uncertainty import D_FLOOR_PX, T_FLOOR
@@ -195,7 +196,7 @@ def _block(g: _Builder, G: str, rows: tuple, cols: tuple) -> str:
 
 
 def _data_step(g: _Builder, G: str, n: str, focal: tuple, pmd_scale: float) -> str:
-    """The data step's 8 inputs (``rectify.features.gram_inputs``, ``geometry.prior_step``) [8]: the
+    """The data step's 8 inputs (``rectify.encoders.data_step``, ``geometry.prior_step``) [8]: the
     Gauss-Newton step over (pose, fx, fy, cx, cy) at the C0 pose and K_c with a prior of
     STEP_PRIOR_REL fx on K, its data weighted by 1 / s^2 twice (the pose's residuals, then the step's),
     the step's Delta K clipped to STEP_CLIP_REL fx times the PMD scale, then 1/2 ln(posterior / prior
@@ -249,8 +250,8 @@ def _data_step(g: _Builder, G: str, n: str, focal: tuple, pmd_scale: float) -> s
     return g.op("Concat", g.op("Mul", clipped, g.const(pmd_scale)), log_ratio, axis=0)
 
 
-def _moments(g: _Builder, G: str, n: str, pmd_scale: float) -> str:
-    """The moments (``rectify.features._moment_inputs``) [MOMENT_SIZE] from the points' Gram G [11, 11]
+def _moments(g: _Builder, G: str, n: str, focal: tuple, pmd_scale: float) -> str:
+    """The moments (``rectify.encoders.moments``) [MOMENT_SIZE] from the points' Gram G [11, 11]
     (``_gram``): s_i s_j G_ij / n with s each monomial's scale (1; z's n / sum(1/Z), sum(1/Z) = G[0, 6];
     the PMD's scale), gathered from the raveled matrix."""
     inv_z_sum = g.op("Reshape", _block(g, G, (0, 1), (6, 7)), g.const([], "shape", np.int64))
@@ -265,6 +266,11 @@ def _moments(g: _Builder, G: str, n: str, pmd_scale: float) -> str:
     scaled = g.op("Div", g.op("Mul", G, outer), n)
     flat = g.op("Reshape", scaled, g.const([121], "shape", np.int64))
     return g.op("Gather", flat, g.const(MOMENT_INDEX, "moments", np.int64), axis=0)
+
+
+# The subgraph of each encoder after the grid (``rectify.encoders.ENCODERS``), by its name: (g, the points'
+# Gram G [11, 11], their count n, K_c's (fx, fy), the PMD's scale) -> its inputs [size].
+GRAM_BUILDERS = {"data_step": _data_step, "moments": _moments}
 
 
 def full_graph(blob: bytes, source: str = "model") -> bytes:
@@ -342,14 +348,12 @@ def full_graph(blob: bytes, source: str = "model") -> bytes:
         )
         scale = g.op("Mul", scale, g.op("Pow", factor, g.const(features.depth_exponents)))
     flat = g.op("Reshape", g.op("Mul", chosen, scale), g.const([1, features.grid_size], "shape", np.int64))
-    if features.data_step or features.moments:
+    used = [name for name, span in spans(features).items() if name != grid.NAME and span.stop > span.start]
+    if used:
         G = _gram(g, weight, (g.op("Mul", X, inv_z), g.op("Mul", Y, inv_z), inv_z), (dx, dy))
-    if features.data_step:
-        step = _data_step(g, G, n, (fx, fy), features.scale["dx"])
-        flat = g.op("Concat", flat, g.op("Unsqueeze", step, g.const([0], "ax", np.int64)), axis=1)
-    if features.moments:
-        moments = _moments(g, G, n, features.scale["dx"])
-        flat = g.op("Concat", flat, g.op("Unsqueeze", moments, g.const([0], "ax", np.int64)), axis=1)
+    for name in used:
+        inputs = GRAM_BUILDERS[name](g, G, n, (fx, fy), features.scale["dx"])
+        flat = g.op("Concat", flat, g.op("Unsqueeze", inputs, g.const([0], "ax", np.int64)), axis=1)
     feats32 = g.op("Cast", g.op("Where", some, flat, g.const(0.0)), to=TensorProto.FLOAT)
     g.nodes.append(helper.make_node("Identity", [feats32], ["features"]))
     # The model's MLP, its names prefixed, reading the feature.

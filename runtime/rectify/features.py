@@ -18,22 +18,9 @@ millimetres of a scene depth_mm away. With the PMD measured in a canonical camer
 Variants (paper Table 3): A all five channels; B PMD only; C PMD + 1/Z; D PMD + X, Y;
 E X, Y, 1/Z only.
 
-The data step (``FeatureSpec.data_step``, spec >= 1.7; not the paper's): after the grid, STEP_SIZE
-more inputs say what the frame's own points say of K. One Gauss-Newton step over (pose, K) from
-the C0 pose and K_c (``geometry.prior_step``) with a weak prior on K (1 sigma STEP_PRIOR_REL * fx_c
-px per parameter): its Delta K (fx, fy, cx, cy) px times the PMD's scale, then the log of each
-parameter's posterior sigma over the prior's (0 where the points do not fix it, e.g. f and c on
-one plane). The step's Delta K is clipped to +- STEP_CLIP_REL * fx_c. The grid says where the points
-are; the step is how they fix K, whatever the scene (training/METHOD.md, "Any scene: the encoder").
-
-The moments (``FeatureSpec.moments``, spec >= 1.11; not the paper's): after the step, MOMENT_SIZE
-more inputs, the frame's point set pooled whatever its layout: the mean over its points of every
-product of two of [1, a, b, ab, a^2, b^2, z, a z, b z, s dx, s dy], a = X/Z and b = Y/Z in {C0}, z
-the point's inverse depth over the frame's mean inverse depth and s the PMD's scale (the upper
-triangle in row order, less the two that are always 1). The geometry's moments say how the
-points spread over the image and in depth (one plane or several, clustered or covering); the
-PMD's how it varies over them. They are the normal equations' own statistics
-(``geometry.monomial_gram``), so the step costs nothing more to read them.
+The feature is its encoders' inputs one after another (``rectify.encoders``, one module each): the grid
+above, then the data step (``FeatureSpec.data_step``, spec >= 1.7) and the moments (``FeatureSpec.moments``,
+spec >= 1.11), both read from the frame's monomial Gram (training/METHOD.md, "Any scene: the encoder").
 """
 
 from __future__ import annotations
@@ -48,47 +35,12 @@ import numpy as np
 
 from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import (
-    FEW_POSES,
-    MIN_POSE_POINTS,
-    gram_normal_equations,
-    monomial_gram,
-    prior_step,
-    rotation_matrices,
-    solve_pnp_start,
-)
+from dimenet.runtime.geometry import FEW_POSES, MIN_POSE_POINTS, monomial_gram, rotation_matrices, solve_pnp_start
 from dimenet.runtime.json_text import JsonProblem, is_number, required, shown
+from dimenet.runtime.rectify.encoders import ENCODERS, grid
+from dimenet.runtime.rectify.encoders.grid import CHANNELS, VARIANTS
 from dimenet.runtime.rectify.grid import Grid
 
-CHANNELS = ("dx", "dy", "X", "Y", "inv_z")
-VARIANTS = {
-    "A": ("dx", "dy", "X", "Y", "inv_z"),
-    "B": ("dx", "dy"),
-    "C": ("dx", "dy", "inv_z"),
-    "D": ("dx", "dy", "X", "Y"),
-    "E": ("X", "Y", "inv_z"),
-}
-# The data step's inputs: Delta K (4) then log sigma ratios (4); its prior's 1 sigma over fx_c; the
-# noise floor of its data weight (px).
-STEP_SIZE = 8
-STEP_PRIOR_REL = 0.1
-# The step's Delta K is clipped to +- this x fx_c before scaling: OIS moves c by up to ~0.02 fx and a factory K_c
-# is off by up to 0.03 f; a step past 0.05 fx_c is the prior's doing on points that fix no K (inputs of order 1).
-STEP_CLIP_REL = 0.05
-STEP_NOISE_FLOOR_PX = 0.1
-
-
-# The moments: the upper triangle of the 11 x 11 monomial Gram, less [1 * 1] and [1 * z] (both 1).
-def _moment_index() -> np.ndarray:
-    rows, cols = np.triu_indices(11)
-    keep = ~((rows == 0) & ((cols == 0) | (cols == 6)))
-    return np.ravel_multi_index((rows[keep], cols[keep]), (11, 11))
-
-
-MOMENT_INDEX = _moment_index()  # into the raveled Gram
-MOMENT_SIZE = len(MOMENT_INDEX)
-# A posterior variance over the prior's below this reads as this (no log of 0 from a failed inverse).
-STEP_VARIANCE_FLOOR = 1e-30
 # Fixed per-channel scales bringing each channel to order 1 on hand-held rig data:
 # PMD of ~10 px, {C0} coordinates of ~100 mm, inverse depth of ~1/500 mm^-1.
 DEFAULT_SCALE = {"dx": 0.1, "dy": 0.1, "X": 0.01, "Y": 0.01, "inv_z": 500.0}
@@ -148,11 +100,12 @@ class FeatureSpec:
     @property
     def grid_size(self) -> int:
         """The grid's inputs: channels x cells, first in the feature."""
-        return len(self.channels) * self.grid.n_cells
+        return grid.size(self)
 
     @property
     def size(self) -> int:
-        return self.grid_size + (STEP_SIZE if self.data_step else 0) + (MOMENT_SIZE if self.moments else 0)
+        """The feature's inputs: every encoder's (``rectify.encoders``)."""
+        return sum(encoder.size(self) for encoder in ENCODERS.values())
 
     def to_dict(self) -> dict:
         d = {"grid": str(self.grid), "variant": self.variant, "scale": dict(self.scale)}
@@ -280,13 +233,6 @@ def _point_features_into(out, points_2d, points_3d, K_c, rvec, tvec, mask=None, 
     return sums
 
 
-def _depth_factors(z_sums: np.ndarray, counts, depth_mm: float) -> np.ndarray:
-    """(F,) the scale-free depth factor depth_mm / Z_mean of each frame from the sums (F,) of
-    its inference points' depths and their counts; 1 where Z_mean <= 0 (a frame with points
-    behind the camera keeps its signs, and the rectifier refuses it)."""
-    return np.divide(depth_mm * np.asarray(counts, np.float64), z_sums, out=np.ones(len(z_sums)), where=z_sums > 0)
-
-
 def grid_features(
     points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, *, poses=None, return_points: bool = False
 ):
@@ -302,110 +248,52 @@ def grid_features(
     own unit also when ``spec.depth_mm`` is set), arbitrary on unmasked points; rows 0-1 (the
     PMD) are each point's reprojection residual under K_c at the C0 pose.
     """
+    points_2d, points_3d, mask, (rvec, tvec) = _prepared(points_2d, points_3d, mask, K_c, poses)
     if native.core is not None:  # the compiled core (runtime/native); the numpy below is its reference
-        return _native_grid_features(points_2d, points_3d, mask, K_c, image_size, spec, poses, return_points)
-    points_2d = np.asarray(points_2d, dtype=np.float64)
-    points_3d = np.asarray(points_3d, dtype=np.float64)
+        return _native_grid_features(points_2d, points_3d, mask, rvec, tvec, K_c, image_size, spec, return_points)
     F, N = points_2d.shape[:2]
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.all():
-            mask = None
-    rvec, tvec = poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
     if mask is not None:
         points_2d = np.where(mask[..., None], points_2d, 0.0)
         points_3d = np.where(mask[..., None], points_3d, 0.0)
     # Channel-major point rows [dx, dy, X, Y, 1/Z, 1] (F, 6, N); the last one counts points.
-    rows = np.empty((F, len(CHANNELS) + 1, N))
-    relative = spec.depth_mm is not None
-    z_sums = _point_features_into(rows, points_2d, points_3d, K_c, rvec, tvec, mask, relative)
-    rows[:, -1] = 1.0
-    points = rows
-    channels = spec.channels
-    if channels != CHANNELS:
-        rows = rows[:, [CHANNELS.index(c) for c in channels] + [len(CHANNELS)]]
-    width = rows.shape[1]
-    bins = F * spec.grid.n_cells  # cell bins of all frames; one block of them per channel
-    if spec.grid.n_cells == 1:  # one cell holds every point: no cell index
-        sums = (rows.sum(2) if mask is None else np.sum(rows, axis=2, where=mask[:, None, :])).T
-    else:
-        sums = _cell_sums(rows, points_2d, mask, image_size, spec.grid)
-    means = sums[:-1] / np.maximum(sums[-1], 1.0)
-    if not relative:
-        means *= spec.channel_scale[:, None]
-    else:  # X, Y times the frame's depth factor, 1/Z over it: cell means scale alike
-        # One frame (the rectifier's hot path): float arithmetic, 1 µs against _depth_factors's 12 µs of
-        # tiny array calls; tests/rectify/test_features.py holds the two equal.
-        if F == 1 and mask is None:
-            z_sum = float(z_sums[0])
-            factor = spec.depth_mm * N / z_sum if z_sum > 0 else 1.0
-            means *= (spec.channel_scale * factor**spec.depth_exponents)[:, None]
-        else:
-            factor = _depth_factors(z_sums, N if mask is None else mask.sum(1), spec.depth_mm)
-            scale = spec.channel_scale[:, None, None] * factor[None, :, None] ** spec.depth_exponents[:, None, None]
-            means.reshape(width - 1, F, -1)[...] *= scale
-    feats = means.T.reshape(F, bins // F * (width - 1))
-    if spec.data_step or spec.moments:
+    points = np.empty((F, len(CHANNELS) + 1, N))
+    z_sums = _point_features_into(points, points_2d, points_3d, K_c, rvec, tvec, mask, spec.depth_mm is not None)
+    points[:, -1] = 1.0
+    feats = grid.encode(points, points_2d, mask, z_sums, image_size, spec)
+    if spec.size > spec.grid_size:
         feats = np.concatenate([feats, gram_inputs(points, mask, K_c, spec)], 1)
     return (feats, points) if return_points else feats
 
 
-def _cell_sums(rows: np.ndarray, points_2d: np.ndarray, mask, image_size, grid: Grid) -> np.ndarray:
-    """(W, F * cells): per channel of the point rows (F, W, N) and per cell of each of the F frames,
-    the sum of its ``mask`` (F, N) points' values (None: all) in point order."""
-    F, width = rows.shape[:2]
-    bins = F * grid.n_cells
-    cells = grid.cell_index(points_2d, image_size)
-    if F > 1:
-        cells += grid.n_cells * np.arange(F)[:, None]
-    index = cells[:, None, :] + np.arange(0, width * bins, bins)[:, None]
-    if mask is None:
-        index, weights = index.ravel(), rows.ravel()
-    else:
-        index, weights = np.swapaxes(index, 1, 2)[mask], np.swapaxes(rows, 1, 2)[mask]
-    return np.bincount(index.ravel(), weights=weights.ravel(), minlength=width * bins).reshape(width, bins)
+def _prepared(points_2d, points_3d, mask, K_c, poses) -> tuple:
+    """``grid_features``' inputs as both its paths take them: points_2d, points_3d float64 C-contiguous, mask
+    bool C-contiguous or None when it holds every point, and the C0 poses (rvec, tvec), solved when not given."""
+    points_2d = np.ascontiguousarray(points_2d, dtype=np.float64)
+    points_3d = np.ascontiguousarray(points_3d, dtype=np.float64)
+    if mask is not None:
+        mask = np.ascontiguousarray(mask, dtype=bool)
+        if mask.all():
+            mask = None
+    return points_2d, points_3d, mask, poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
 
 
 def gram_inputs(points: np.ndarray, mask, K_c, spec: FeatureSpec) -> np.ndarray:
-    """(F, D) the inputs after the grid of F frames: the data step's STEP_SIZE with
-    ``spec.data_step``, then the MOMENT_SIZE moments with ``spec.moments`` (module docstring),
-    both from each frame's ``monomial_gram``. points (F, 6, N) the raw point rows
-    (``grid_features``'s: the PMD in rows 0-1, X, Y, 1/Z in {C0} in rows 2-4), mask (F, N) bool
+    """(F, D) the inputs after the grid of F frames: each encoder after the grid that the spec uses, in the
+    registry's order (``rectify.encoders``), from each frame's ``monomial_gram``. points (F, 6, N) the raw
+    point rows (``grid_features``'s: the PMD in rows 0-1, X, Y, 1/Z in {C0} in rows 2-4), mask (F, N) bool
     their inference points (None: all), K_c (3, 3) px."""
-    fx_c, fy_c = float(K_c[0, 0]), float(K_c[1, 1])
-    prior_var, clip_px = (STEP_PRIOR_REL * fx_c) ** 2, STEP_CLIP_REL * fx_c
-    precision = np.eye(4) / prior_var
-    pmd_scale = spec.scale["dx"]
+    used = [encoder for encoder in ENCODERS.values() if encoder is not grid and encoder.size(spec)]
     out = np.empty((len(points), spec.size - spec.grid_size))
     for b in range(len(points)):
         rows = points[b] if mask is None else points[b][:, mask[b]]
         n = rows.shape[1]
         G = monomial_gram(rows[2:5], rows[:2])
-        if spec.data_step:
-            JJ, Jr, rss = gram_normal_equations(G, fx_c, fy_c)
-            step, cov, _ = prior_step(JJ, Jr, rss, 2 * n, precision, noise_floor_px=STEP_NOISE_FLOOR_PX)
-            out[b, :STEP_SIZE] = _step_inputs(
-                step[6:].tolist(), cov.diagonal()[6:].tolist(), prior_var, clip_px, pmd_scale
-            )
-        if spec.moments:
-            out[b, -MOMENT_SIZE:] = _moment_inputs(G, n, pmd_scale)
+        start = 0
+        for encoder in used:
+            stop = start + encoder.size(spec)
+            out[b, start:stop] = encoder.encode(G, n, K_c, spec)
+            start = stop
     return out
-
-
-def _step_inputs(step_px: list, variance_px2: list, prior_var: float, clip_px: float, pmd_scale: float) -> list:
-    """The data step's STEP_SIZE inputs from its step (4,) px and posterior variances (4,) px^2 of
-    (fx, fy, cx, cy), its prior's variance (px^2) and clip (px): the clipped step times the PMD's
-    scale, then the log sigma ratios (floats: 3 against 9 µs for numpy's calls on 4 values)."""
-    shown = [min(max(d, -clip_px), clip_px) * pmd_scale for d in step_px]
-    return shown + [0.5 * math.log(max(v / prior_var, STEP_VARIANCE_FLOOR)) for v in variance_px2]
-
-
-def _moment_inputs(G: np.ndarray, n: int, pmd_scale: float) -> np.ndarray:
-    """(MOMENT_SIZE,) the moments of one frame of n points from its monomial Gram G (11, 11): each
-    monomial's scale s (1, z's n / sum(1/Z), the PMD's scale), then s_i s_j G_ij / n."""
-    z_scale = n / G[0, 6] if G[0, 6] > 0 else 1.0
-    s = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, z_scale, z_scale, z_scale, pmd_scale, pmd_scale])
-    return (G * np.outer(s, s / n)).ravel()[MOMENT_INDEX]
 
 
 def native_frame_features(points_2d, points_3d, K_c, image_size, spec: FeatureSpec, rvec, tvec) -> tuple:
@@ -426,17 +314,10 @@ def native_frame_features(points_2d, points_3d, K_c, image_size, spec: FeatureSp
     return feats, e_c
 
 
-def _native_grid_features(points_2d, points_3d, mask, K_c, image_size, spec: FeatureSpec, poses, return_points: bool):
-    """``grid_features`` through the compiled core (``native.core``): the same inputs, outputs and
-    InputErrors, one kernel call for the F frames (tests/native/ hold the two equal)."""
-    points_2d = np.ascontiguousarray(points_2d, dtype=np.float64)
-    points_3d = np.ascontiguousarray(points_3d, dtype=np.float64)
+def _native_grid_features(points_2d, points_3d, mask, rvec, tvec, K_c, image_size, spec: FeatureSpec, return_points):
+    """``grid_features`` through the compiled core (``native.core``) on ``_prepared``'s inputs: the same
+    outputs and InputErrors, one kernel call for the F frames (tests/native/ hold the two equal)."""
     F, N = points_2d.shape[:2]
-    if mask is not None:
-        mask = np.ascontiguousarray(mask, dtype=bool)
-        if mask.all():
-            mask = None
-    rvec, tvec = poses if poses is not None else poses_c0(points_2d, points_3d, mask, K_c)
     feats = np.empty((F, spec.size))
     points = np.empty((F, len(CHANNELS) + 1, N)) if return_points else None
     native.core.grid_features(

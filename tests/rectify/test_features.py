@@ -5,15 +5,10 @@ from helpers import K_TEST, random_frames
 from dimenet.runtime import geometry as g
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.json_text import JsonProblem
-from dimenet.runtime.rectify.features import (
-    CHANNELS,
-    DEFAULT_SCALE,
-    MOMENT_SIZE,
-    STEP_PRIOR_REL,
-    STEP_SIZE,
-    FeatureSpec,
-    grid_features,
-)
+from dimenet.runtime.rectify.encoders.data_step import STEP_PRIOR_REL, STEP_SIZE
+from dimenet.runtime.rectify.encoders.grid import CHANNELS
+from dimenet.runtime.rectify.encoders.moments import MOMENT_SIZE
+from dimenet.runtime.rectify.features import DEFAULT_SCALE, FeatureSpec, grid_features
 from dimenet.runtime.rectify.grid import Grid
 
 IMAGE = (4032, 3024)

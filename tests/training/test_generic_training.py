@@ -17,7 +17,8 @@ from dimenet.runtime.evaluation.methods import evaluate
 from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
-from dimenet.runtime.rectify.features import MOMENT_SIZE, STEP_SIZE
+from dimenet.runtime.rectify.encoders.data_step import STEP_SIZE
+from dimenet.runtime.rectify.encoders.moments import MOMENT_SIZE
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.config import TrainConfig
