@@ -5,9 +5,9 @@ Methods: ``fixed`` K_c (rho 0 by construction), ``per_frame`` (``Rectifier.recti
 (``Rectifier.stream()``) and ``gyro`` (``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
 the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
 reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
-does not stream), pose by PnP under K (``metrics.reprojection_error_under_k``); e* is K_true's. ``coverage``: the
-share of frames whose K_true lies within the method's 1 sigma in every parameter; ``within_2_sigma``: the share
-whose |K - K_c| is within 2 sigma (what OIS off must keep).
+does not stream), pose by PnP under K (``metrics.reprojection_error_under_k``); e* is K_true's. A frame the
+rectifier refuses keeps K_c in every method. ``coverage``: the share of frames whose K_true lies within the method's
+1 sigma in every parameter; ``within_2_sigma``: the share whose |K - K_c| is within 2 sigma (what OIS off must keep).
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from typing import Optional
 
 import numpy as np
 
+from dimenet.runtime.errors import InputError
 from dimenet.runtime.evaluation.metrics import reduction_ratio, reprojection_error_under_k
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.rectifier import Rectifier
@@ -74,7 +75,12 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
     for i in range(ds.n_frames):
         m = ds.infer_mask[i]
         p2, p3, t = ds.points_2d[i, m], ds.points_3d[i, m], int(recording.t_ns[i])
-        results = {name: s.update(p2, p3, t) for name, s in streams.items()}
+        try:
+            results = {name: s.update(p2, p3, t) for name, s in streams.items()}
+        except InputError:  # a frame the rectifier refuses: the app keeps K_c (no sigma)
+            for name in METHODS:
+                K[name][i] = rectifier.K_c
+            continue
         outs = {"per_frame": results["temporal"].per_frame, **{n: r.result for n, r in results.items()}}
         for name, res in outs.items():
             K[name][i] = res.K

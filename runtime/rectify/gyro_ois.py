@@ -27,8 +27,8 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import frame_error_and_depth, k_matrix
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 
-CUTOFFS_HZ = (0.25, 0.4, 0.6, 0.8, 1.0, 1.3, 1.7, 2.2)
-GAINS = (0.8, 0.9, 1.0, 1.1)
+CUTOFFS_HZ = (0.3, 0.5, 0.8, 1.1, 1.5, 2.0)
+GAINS = (0.0, 0.8, 0.9, 1.0, 1.1)  # 0: no OIS (off, or a camera without it): c stays K_c's
 BIAS_TAU_S = 5.0  # the gyroscope bias's running mean
 SCORE_EVERY = 3  # frames between two scorings of the bank (each scoring: one PnP per pair)
 SCORE_MEMORY = 0.99  # forgetting factor of the scores, per scoring
@@ -88,6 +88,9 @@ class GyroOis:
         errors = np.empty_like(self._scores)
         for i, shift in enumerate(shifts):
             for j, gain in enumerate(GAINS):
+                if gain == 0.0 and i:  # no OIS: the same K at every cutoff
+                    errors[i, j] = errors[0, j]
+                    continue
                 K = k_matrix(np.r_[k[:2], self.k_c[2:] + gain * shift])
                 try:
                     errors[i, j] = frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]

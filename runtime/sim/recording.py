@@ -17,8 +17,9 @@ looking at a random room, street or table (``natural.random_natural``) or at its
   white noise, at ``gyro_hz``.
 
 The frames are a ``dimenet-dataset/1`` Dataset in time order: ``infer_mask`` the points an app would stream (the
-natural labels, with their 2D noise and 3D model error; a rig's corners), ``valid & ~infer_mask`` held-out points
-for scoring (the scene's board corners and half of the features, at their true 3D with corner noise); meta
+natural labels, with their 2D noise and 3D model error; half of a rig's corners), ``valid & ~infer_mask`` held-out
+points for scoring (the scene's board corners and the other features, or corners, at their true 3D with corner
+noise); a noisy point off the image is not seen; meta
 ``recording`` holds t_ns, cuts, refocus frames and the trace. A frame the hand turns the scene out of is dropped
 (a gap in t_ns). ``held_out=True`` draws from the held-out trace model (other spectra, cutoffs, gains, strokes
 and frame rates), which training never draws from.
@@ -69,7 +70,7 @@ PANS_PER_MINUTE = 6.0  # Poisson rate of pans
 PAN_SECONDS = (1.0, 2.5)  # one pan's duration, uniform
 REFOCUS_PER_MINUTE = 4.0  # Poisson rate of refocus events (besides the one at each cut)
 REFOCUS_DISTANCE = (0.5, 1.8)  # a refocus focuses at this factor of the scene distance, uniform
-LABEL_SHARE = 0.5  # share of the scene's features streamed as labels; the rest are held out for scoring
+LABEL_SHARE = 0.5  # share of the features (a rig's corners) streamed; the rest are held out for scoring
 
 
 @dataclass(frozen=True)
@@ -216,7 +217,7 @@ def simulate_recording(
         model_points = scene.points + labels[:, None] * g_nat.normal(0.0, model_mm, scene.points.shape)
     else:
         scene, usable, label_px = rig_scene(rig), rig_view_ok, profile.corner_sigma_px
-        labels, model_points = np.ones(len(scene.points), bool), scene.points
+        labels, model_points = g_nat.uniform(size=len(scene.points)) < LABEL_SHARE, scene.points
     dt_s = 1.0 / trace.gyro_hz
     t_gyro = np.arange(0.0, seconds + dt_s, dt_s)
     angles = hand_angles_rad(trace, t_gyro, g_hand)
@@ -265,7 +266,10 @@ def simulate_recording(
             continue
         i = len(kept)
         sigma = np.where(labels, label_px, profile.corner_sigma_px)[:, None]
-        p2[i][seen] = (px + g_run.normal(0.0, 1.0, px.shape) * sigma)[seen]
+        noisy = px + g_run.normal(0.0, 1.0, px.shape) * sigma
+        w, h = profile.image_size_px
+        seen &= np.all((noisy >= 0.0) & (noisy <= (w - 1, h - 1)), 1)  # no detector reports a point off the image
+        p2[i][seen] = noisy[seen]
         p3[i][seen] = model_points[seen]
         valid[i], infer[i], K_true[i] = seen, seen & labels, K
         kept.append(k)
