@@ -60,14 +60,18 @@ def drop_inference_points(ds: Dataset, n, rng: np.random.Generator) -> Dataset:
 def add_noise(ds: Dataset, sigma_2d_px, sigma_3d_mm, rng: np.random.Generator) -> Dataset:
     """Zero-mean Gaussian noise on every valid point: std sigma_2d_px per image axis (px) and
     sigma_3d_mm per 3D axis (mm) (paper Table 4, lower half). Invalid points stay as they are.
-    Each sigma is one number or one per frame."""
+    Each sigma is one number or one per frame. The frames' label noise (``label_noise_px``) grows by the 2D
+    noise; with 3D noise it is no longer known (it projects by each point's depth) and is dropped."""
     _check_generator(rng)
     s2 = np.array([_check_sigma(s, "sigma_2d_px", "px") for s in _per_frame(sigma_2d_px, ds)])[:, None, None]
     s3 = np.array([_check_sigma(s, "sigma_3d_mm", "mm") for s in _per_frame(sigma_3d_mm, ds)])[:, None, None]
     v = ds.valid[..., None]
     p2 = np.where(v, ds.points_2d + rng.normal(0.0, 1.0, ds.points_2d.shape) * s2, ds.points_2d)
     p3 = np.where(v, ds.points_3d + rng.normal(0.0, 1.0, ds.points_3d.shape) * s3, ds.points_3d)
-    return replace(ds, points_2d=p2, points_3d=p3)
+    noise = ds.label_noise_px
+    if noise is not None:
+        noise = None if np.any(s3 > 0) else np.sqrt(noise**2 + s2[:, 0, 0] ** 2)
+    return replace(ds, points_2d=p2, points_3d=p3, label_noise_px=noise)
 
 
 def _occupied_cells(ds: Dataset, grid: Grid) -> tuple[np.ndarray, list[np.ndarray]]:

@@ -10,8 +10,10 @@ Methods compared side by side (``ALL_METHODS``; ``METHODS``: those every dataset
 (``evaluation.self_calibration``); ``dimenet`` the network; ``map`` the network's prior fused
 with the frame's points (``rectify.map_fit``); ``map+platform`` the same from the product of the
 network's Gaussian and the platform's (K_platform with its stated 1 sigma, meta
-``platform_k.sigma_px``); ``oracle`` K*; and the product as `dimenet rectify` runs it
-(``RUNTIME_METHODS``: ``rectify``, ``rectify-map``), every runtime fallback rule applied. A
+``platform_k.sigma_px``); ``oracle`` K*; ``prior-oracle`` the per-frame MAP fit under the true population
+prior of K with the true label noise (``evaluation.prior_oracle``: what one frame allows; its rows come with
+each method's rho over its own, a 90 % bootstrap interval each, ``ratios``); and the product as `dimenet rectify`
+runs it (``RUNTIME_METHODS``: ``rectify``, ``rectify-map``), every runtime fallback rule applied. A
 dataset with lens distortion is evaluated on its undistorted points (``Dataset.undistorted``, as
 ``dimenet evaluate`` does). For methods with a covariance (dimenet: the network's; map: the
 posterior; platform: its stated sigma), the 1-sigma coverage is the share of frames with |K -
@@ -33,11 +35,13 @@ from dimenet.runtime.errors import DatasetError, ModelError
 from dimenet.runtime.evaluation.calibration import oracle_fit
 from dimenet.runtime.evaluation.metrics import (
     average_noise,
+    ratio_interval,
     reduction_ratio,
     reprojection_error_and_variance,
     reprojection_error_under_k,
 )
 from dimenet.runtime.evaluation.predictor import KPrediction, Predictor
+from dimenet.runtime.evaluation.prior_oracle import PRIOR_ORACLE, missing_inputs, prior_oracle
 from dimenet.runtime.evaluation.self_calibration import self_calibrate
 from dimenet.runtime.evaluation.uncertainty_fit import coverage
 from dimenet.runtime.formats.dataset import Dataset
@@ -49,7 +53,8 @@ from dimenet.runtime.rectify.rectifier import Rectifier
 KPredictor = Callable[[Dataset], np.ndarray]
 METHODS = ("kc", "self", "dimenet", "map", "oracle")  # the methods of every dataset (reproduce's tables)
 PLATFORM_METHODS = ("platform", "map+platform")  # those that need the dataset's K_platform
-ALL_METHODS = ("kc", "platform", "self", "dimenet", "map", "map+platform", "oracle")
+ALL_METHODS = ("kc", "platform", "self", "dimenet", "map", "map+platform", "oracle", PRIOR_ORACLE)
+NATURAL = "natural"  # the scene whose modes the prior oracle goes beside (``with_prior_oracle``)
 # The product's rectifier (``Rectifier.rectify_batch``, modes dimenet and map) with every fallback
 # rule of the runtime, where dimenet and map are the paper's protocol (the network's K on every
 # frame, the K-bounds rule only): training/METHOD.md, "Metric and protocol".
@@ -117,6 +122,9 @@ class Evaluation:
     fallbacks: dict = field(default_factory=dict)  # method -> frames it could not estimate
     # Frames that give no K* (a planar view), measured against their homography floor: reason -> count.
     floor_reasons: dict = field(default_factory=dict)
+    # With the prior oracle among the methods: method -> scene name -> metrics.RatioInterval of its rho over the
+    # prior oracle's.
+    ratios: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         d = {
@@ -133,6 +141,10 @@ class Evaluation:
             if self.coverage_true:
                 d["coverage_true"] = self.coverage_true
             d["fallbacks"] = self.fallbacks
+        if self.ratios:
+            d["ratios_to_prior_oracle"] = {
+                m: {name: asdict(r) for name, r in scenes.items()} for m, scenes in self.ratios.items()
+            }
         return d
 
 
@@ -276,6 +288,9 @@ def method_estimate(
         return MethodEstimate(K=frames.K_platform, K_cov=K_cov, fallbacks=0)
     if method == "oracle":
         return MethodEstimate(K=K_star, K_cov=None, fallbacks=0)
+    if method == PRIOR_ORACLE:
+        po = prior_oracle(frames)
+        return MethodEstimate(K=po.K, K_cov=po.K_cov, fallbacks=po.fallbacks)
     if method == "self":
         sc = self_calibrate(frames, K_c)
         return MethodEstimate(K=sc.K, K_cov=None, fallbacks=sum(r is not None for r in sc.fallback))
@@ -322,7 +337,7 @@ def evaluate(
     # Overall: the frames with K* (the paper's rho), unless every frame is of one plane.
     whole = ~errors.floor if not errors.floor.all() else np.ones(frames.n_frames, bool)
     overall = _summary(whole, errors)
-    rows, covered, covered_true, fallbacks = {}, {}, {}, {}
+    rows, covered, covered_true, fallbacks, per_frame = {}, {}, {}, {}, {}
     for method in dict.fromkeys(methods):
         est = method_estimate(method, frames, K_c, errors.K_star, model, prediction)
         e = (
@@ -330,7 +345,7 @@ def evaluate(
             if method == "oracle"
             else reprojection_error_under_k(frames.points_2d, frames.points_3d, frames.valid, est.K)
         )
-        mine = replace(errors, e=e)
+        mine, per_frame[method] = replace(errors, e=e), e
         rows[method] = {name: _summary(groups == name, mine) for name in names}
         rows[method]["overall"] = _summary(whole, mine)
         fallbacks[method] = est.fallbacks
@@ -341,6 +356,14 @@ def evaluate(
             covered[method] = coverage(k_params(est.K[ok]), k_params(errors.K_star[ok]), est.K_cov[ok])
             if frames.K_true is not None:
                 covered_true[method] = coverage(k_params(est.K[ok]), k_params(frames.K_true[ok]), est.K_cov[ok])
+    ratios = {}
+    if PRIOR_ORACLE in per_frame:
+        masks = {**{name: groups == name for name in names}, "overall": whole}
+        ratios = {
+            m: {name: ratio_interval(errors.e_c[k], e[k], per_frame[PRIOR_ORACLE][k]) for name, k in masks.items()}
+            for m, e in per_frame.items()
+            if m != PRIOR_ORACLE
+        }
     return Evaluation(
         split=split,
         K_c=np.asarray(K_c),
@@ -352,6 +375,7 @@ def evaluate(
         coverage_true=covered_true,
         fallbacks=fallbacks,
         floor_reasons=floor_reasons,
+        ratios=ratios,
     )
 
 
@@ -397,7 +421,36 @@ def format_table(ev: Evaluation) -> str:
                     )
                 )
         text += ["", _aligned(rows)]
+    if ev.ratios:
+        text += ["", _ratio_table(ev.ratios)]
     return "\n".join(text)
+
+
+def _ratio_table(ratios: dict) -> str:
+    """rho / rho(prior-oracle) per method and scene with its interval (``metrics.ratio_interval``)."""
+    level = next(iter(next(iter(ratios.values())).values())).level
+    rows = [("method", "scene", "frames", f"rho / rho({PRIOR_ORACLE})", f"{100 * level:.0f}% interval")]
+    for method, scenes in ratios.items():
+        for name, r in scenes.items():
+            ratio = "n/a" if r.ratio is None else f"{r.ratio:.3f}"
+            interval = "-" if r.low is None else f"[{r.low:.3f}, {r.high:.3f}]"
+            rows.append((method, name, str(r.n_frames), ratio, interval))
+    note = (
+        f"{PRIOR_ORACLE}: per frame, the MAP (K, pose) under the true population prior of K (its scene's K_true) "
+        "with the true label noise, what one frame allows; intervals: bootstrap over the frames"
+    )
+    return _aligned(rows) + "\n" + note
+
+
+def with_prior_oracle(frames: Dataset, methods: Sequence[str]) -> tuple[tuple, Optional[str]]:
+    """``methods`` with the prior oracle added where it goes: beside the modes (MODEL_METHODS) on natural frames.
+    (methods, None), or (methods unchanged, why not) when the frames lack what it needs (``prior_oracle``)."""
+    methods = tuple(methods)
+    wanted = PRIOR_ORACLE not in methods and any(m in MODEL_METHODS for m in methods) and NATURAL in frames.scene
+    if not wanted:
+        return methods, None
+    why = missing_inputs(frames)
+    return (methods, f"{PRIOR_ORACLE} n/a on the natural frames: {why}") if why else ((*methods, PRIOR_ORACLE), None)
 
 
 def _aligned(rows: list) -> str:

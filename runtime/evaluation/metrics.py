@@ -15,6 +15,7 @@ sqrt(N_f); Avg over F frames has sqrt(sum s_f^2) / F. ``reduction_ratio`` is Non
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -57,3 +58,50 @@ def reduction_ratio(avg_e_c: float, avg_e: float, avg_e_star: float, noise_px: f
     if not np.isfinite(gap) or gap <= max(RHO_NOISE * noise_px, 1e-12):
         return None
     return float((avg_e_c - avg_e) / gap)
+
+
+# The interval of a ratio of rhos: its level, its bootstrap draws and their fixed seed (same frames, same interval).
+RATIO_LEVEL = 0.9
+RATIO_DRAWS = 2000
+RATIO_SEED = 0
+
+
+@dataclass(frozen=True)
+class RatioInterval:
+    """rho_method / rho_reference over a set of frames and its bootstrap interval (low, high) at ``level``; None
+    where the reference does not improve on K_c (its rho is 0 or less there: no ratio), or the interval where more
+    than the interval's tail share of the draws has no ratio."""
+
+    ratio: Optional[float]
+    low: Optional[float]
+    high: Optional[float]
+    level: float
+    n_frames: int
+
+
+def ratio_interval(
+    e_c: np.ndarray,
+    e: np.ndarray,
+    e_reference: np.ndarray,
+    *,
+    level: float = RATIO_LEVEL,
+    draws: int = RATIO_DRAWS,
+    seed: int = RATIO_SEED,
+) -> RatioInterval:
+    """rho / rho_reference of a method of per-frame errors e (F,) px against a reference's e_reference (F,), both
+    measured with e_c (F,): (Avg(e_c) - Avg(e)) / (Avg(e_c) - Avg(e_reference)) (e* cancels), and its percentile
+    bootstrap interval at ``level`` over ``draws`` resamplings of the frames (the same frames for both: paired)."""
+    e_c, e, e_ref = (np.asarray(a, dtype=np.float64) for a in (e_c, e, e_reference))
+    n = len(e_c)
+    if n == 0 or e.shape != (n,) or e_ref.shape != (n,) or e_c.shape != (n,):
+        raise ValueError(f"ratio_interval: e_c, e and e_reference must be (F,) of one F >= 1, got {len(e_c)} frames")
+    gain, room = float(np.mean(e_c - e)), float(np.mean(e_c - e_ref))
+    ratio = gain / room if room > 0 else None
+    idx = np.random.default_rng(seed).integers(0, n, (draws, n))
+    gains, rooms = (e_c - e)[idx].mean(1), (e_c - e_ref)[idx].mean(1)
+    tail = (1.0 - level) / 2.0
+    if ratio is None or np.mean(rooms <= 0) > tail:
+        return RatioInterval(ratio, None, None, level, n)
+    ok = rooms > 0  # the draws where the reference improves on K_c (a ratio exists)
+    low, high = np.quantile(gains[ok] / rooms[ok], [tail, 1.0 - tail])
+    return RatioInterval(ratio, float(low), float(high), level, n)

@@ -31,7 +31,7 @@ FORMAT = "dimenet-dataset/1"
 SPLITS = ("train", "val", "test")
 REQUIRED_KEYS = ("format", "image_size", "points_2d", "points_3d", "valid", "infer_mask", "split", "scene", "meta")
 LENS_KEYS = ("dist_coeffs", "dist_K")  # a lens in a dataset, calibration or render truth file: both or neither
-OPTIONAL_KEYS = ("K_true", "frame_id", "K_platform", *LENS_KEYS)
+OPTIONAL_KEYS = ("K_true", "frame_id", "K_platform", "label_noise_px", *LENS_KEYS)
 MAX_IMAGE_SIDE_PX = 1_000_000  # image_size: no camera image is wider (it also keeps int64 maths exact)
 MAX_META_CHARS = 4 << 20  # meta: 4 Mi characters of JSON (the simulator's is ~5 k, ingest's grows with OBJECT.csv)
 
@@ -53,6 +53,8 @@ class Dataset:
     K_platform: Optional[np.ndarray] = None  # (F, 3, 3) float64 px: the K the phone's SDK reported per frame
     dist_coeffs: Optional[np.ndarray] = None  # (n,) float64: OpenCV's lens distortion (n in DIST_COEFF_COUNTS) ...
     dist_K: Optional[np.ndarray] = None  # (3, 3) float64 px: ... stated about this fixed pinhole K
+    # (F,) float64 px: the std per image axis of each frame's inference points' errors (the simulator's truth)
+    label_noise_px: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         validate_arrays(self.to_arrays())
@@ -82,6 +84,7 @@ class Dataset:
             K_true=take(self.K_true),
             frame_id=take(self.frame_id),
             K_platform=take(self.K_platform),
+            label_noise_px=take(self.label_noise_px),
         )
 
     def undistorted(self) -> Dataset:
@@ -118,7 +121,7 @@ class Dataset:
             arrays["K_true"] = self.K_true
         if self.frame_id is not None:
             arrays["frame_id"] = np.asarray(self.frame_id)
-        for key in ("K_platform", "dist_coeffs", "dist_K"):
+        for key in ("K_platform", "label_noise_px", "dist_coeffs", "dist_K"):
             if getattr(self, key) is not None:
                 arrays[key] = getattr(self, key)
         return arrays
@@ -283,6 +286,10 @@ def validate_arrays(arrays: Mapping[str, Any]) -> dict[str, Any]:
         out["frame_id"] = _string_array(arrays, "frame_id", (F,))
     if "K_platform" in arrays:
         out["K_platform"] = _pinhole_matrices(arrays, "K_platform", (F, 3, 3))
+    if "label_noise_px" in arrays:
+        noise = _float_array(arrays, "label_noise_px", (F,))
+        _require(bool(np.all(np.isfinite(noise) & (noise >= 0))), "label_noise_px", "must be finite and >= 0 px")
+        out["label_noise_px"] = noise
     out.update(_distortion(arrays))
     return out
 

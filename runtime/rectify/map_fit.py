@@ -75,13 +75,16 @@ def map_fit(
     iterations: int = ITERATIONS,
     K_start: np.ndarray | None = None,
     uncertainty: Uncertainty | None = None,
+    noise_px: float | None = None,
 ) -> MapFit:
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; K_cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
     {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
     to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
     own); iterations >= 1 Gauss-Newton steps at most; uncertainty: the network's, whose
-    ``map_covariance`` widens K_cov (None: the independent-errors posterior)."""
+    ``map_covariance`` widens K_cov (None: the independent-errors posterior); noise_px: the frame's
+    2D noise std when it is known (the evaluation's prior oracle), else (None) estimated from the
+    frame's residuals by ``prior_step``."""
     precision = cv2.invert(K_cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
     R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
@@ -89,7 +92,11 @@ def map_fit(
     if K_start is not None:
         R, tvec = turned_to_principal_point(R, tvec, K_start, k_net)
     JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
-    _, cov, weight = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=NOISE_FLOOR_PX)
+    if noise_px is None:
+        _, cov, weight = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=NOISE_FLOOR_PX)
+    else:
+        weight = 1.0 / max(float(noise_px), NOISE_FLOOR_PX) ** 2
+        cov = prior_posterior(JJ, precision, weight)
     cost, residuals, steps = weight * rss, None, 0
     for it in range(iterations):
         g = Jr * weight

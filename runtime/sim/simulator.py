@@ -210,6 +210,16 @@ def _observed(px, seen, noise, scene: Scene, usable, profile: DeviceProfile, err
     return (kept, np.where(kept[:, None], out, np.nan)) if usable(scene, kept) else (seen, out)
 
 
+def label_noise_px(points_camera_mm: np.ndarray, K: np.ndarray, label_sigma_px: float, model_sigma_mm: float) -> float:
+    """The std per image axis (px) of labels of 2D noise ``label_sigma_px`` on 3D points (N, 3) mm in {C} that
+    are off by ``model_sigma_mm`` per axis, RMS over the points: a point's 3D error moves its pixel by f / Z (dX - x
+    dZ) per axis (x = X / Z), of variance (f sigma / Z)^2 (1 + x^2)."""
+    x = points_camera_mm[:, :2] / points_camera_mm[:, 2:]
+    f = np.array([K[0, 0], K[1, 1]])
+    moved = (f * model_sigma_mm / points_camera_mm[:, 2:]) ** 2 * (1.0 + x**2)
+    return float(np.sqrt(label_sigma_px**2 + moved.mean())) if len(x) else float(label_sigma_px)
+
+
 def checked_dist_coeffs(dist_coeffs: Optional[Sequence[float]]) -> Optional[np.ndarray]:
     """OpenCV distortion coefficients -> (n,) float64, n in DIST_COEFF_COUNTS, finite, of magnitude
     <= MAX_DIST_COEFF; None stays None. InputError otherwise."""
@@ -292,6 +302,7 @@ def simulate(
     p2, p3 = np.full((F, P, 2), np.nan), np.full((F, P, 3), np.nan)
     valid, infer = np.zeros((F, P), bool), np.zeros((F, P), bool)
     K_true = np.zeros((F, 3, 3))
+    label_noise = np.full(F, float(profile.corner_sigma_px))  # rig and planar frames: the corners' noise
     for k in range(n_rig):
         K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, **lens_and_boards)
         px = px if built is None else project(built, K_true[k], rvec, tvec)
@@ -304,12 +315,14 @@ def simulate(
     model_points = nature.points + building[:, None] * rng.normal(0.0, model_sigma_mm, nature.points.shape)
     noise_px = np.where(building, label_sigma_px, profile.corner_sigma_px)[:, None]
     for k in range(n_rig, n_shot):
-        K_true[k], _, _, px, seen = shoot(nature, profile, rng, usable, **lens_and_boards)
+        K_true[k], rvec, tvec, px, seen = shoot(nature, profile, rng, usable, **lens_and_boards)
         n = len(px)
         noise = (rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
         seen, p2[k, :n] = _observed(px, seen, noise, nature, usable, profile, errors, erng)
         p3[k, :n][seen] = model_points[seen]
         valid[k, :n], infer[k, :n] = seen, seen & building
+        labelled = to_camera(nature.points[seen & building], rvec, tvec)
+        label_noise[k] = label_noise_px(labelled, K_true[k], label_sigma_px, model_sigma_mm)
     for k in range(n_shot, F):
         K_true[k], rvec, tvec, px, seen = shoot(rig_set, profile, rng, rig_view_ok, **lens_and_boards)
         px = px if built is None else project(built, K_true[k], rvec, tvec)
@@ -356,6 +369,7 @@ def simulate(
         K_true=K_true,
         frame_id=np.array([f"{profile.name}-{k:04d}" for k in range(F)]),
         K_platform=platform_matrices(K_true, profile, platform_rng(seed)) if platform_k else None,
+        label_noise_px=label_noise,
         dist_coeffs=dist,
         dist_K=None if dist is None else profile.nominal_K,
     )

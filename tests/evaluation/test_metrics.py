@@ -61,3 +61,26 @@ def test_the_variance_of_a_frame_error_is_that_of_its_mean():
     # norms of 2D Gaussian noise of sigma 1: mean sqrt(pi / 2), variance 2 - pi / 2; the mean of 63 of them
     assert abs(e[0] - math.sqrt(math.pi / 2)) < 0.25
     assert 0.3 * (2 - math.pi / 2) / 63 < var[0] < 2.0 * (2 - math.pi / 2) / 63
+
+
+def test_ratio_of_rhos_by_hand():
+    from dimenet.runtime.evaluation.metrics import ratio_interval
+
+    r = ratio_interval(np.array([2.0, 4.0]), np.array([1.0, 3.0]), np.array([0.0, 2.0]), draws=50)
+    assert r.ratio == 0.5 and r.low == r.high == 0.5  # (3 - 2) / (3 - 1), the same on every resampling
+    none = ratio_interval(np.array([1.0, 1.0]), np.array([0.5, 0.5]), np.array([1.0, 1.2]))
+    assert none.ratio is None and none.low is None  # the reference is no better than K_c
+
+
+def test_ratio_interval_covers_the_true_ratio_nine_times_in_ten():
+    from dimenet.runtime.evaluation.metrics import ratio_interval
+
+    rng = np.random.default_rng(0)
+    true_ratio, hits, trials = 0.7, 0, 300
+    for t in range(trials):
+        e_c = rng.gamma(4.0, 0.75, 200)  # mean 3 px
+        e_ref = e_c - rng.normal(1.0, 0.6, 200)  # the reference gains 1 px on average
+        e = e_c - rng.normal(true_ratio, 0.8, 200)  # the method 0.7 px
+        r = ratio_interval(e_c, e, e_ref, draws=400, seed=t)
+        hits += r.low <= true_ratio <= r.high
+    assert 0.84 <= hits / trials <= 0.95

@@ -232,3 +232,21 @@ def test_undistorted_names_a_lens_that_sends_points_out_of_the_image():
     arrays["dist_coeffs"] = np.array([3.298, -4.9, -1.35, -4.214, 1.526])  # no phone lens
     with pytest.raises(DatasetError, match="^undistorted: points_2d/points_3d: valid point 0 of frame 1"):
         Dataset(**validate_arrays(arrays)).undistorted()
+
+
+def test_label_noise_round_trips_with_and_without_the_key(tmp_path):
+    noise = np.array([0.5, 1.3, 2.6])
+    ds = Dataset(**validate_arrays({**make_arrays(), "label_noise_px": noise}))
+    back = read_dataset(write_dataset(ds, tmp_path / "noise.npz"))
+    np.testing.assert_array_equal(back.label_noise_px, noise)
+    np.testing.assert_array_equal(back.select(back.frames_in("test")).label_noise_px, noise[1:])
+    without = read_dataset(write_dataset(Dataset(**validate_arrays(make_arrays())), tmp_path / "plain.npz"))
+    assert without.label_noise_px is None and "label_noise_px" not in without.to_arrays()
+
+
+@pytest.mark.parametrize(
+    "value, words", [(np.ones(2), "shape"), (np.array([1.0, np.nan, 1.0]), "finite"), (-np.ones(3), ">= 0")]
+)
+def test_bad_label_noise_is_rejected_by_name(value, words):
+    with pytest.raises(DatasetError, match=f"^label_noise_px:.*{words}"):
+        validate_arrays({**make_arrays(), "label_noise_px": value})

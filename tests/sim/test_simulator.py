@@ -172,3 +172,21 @@ def test_planar_frames_infer_from_one_board_and_leave_the_other_frames_alone():
         X = ds.points_3d[f][ds.infer_mask[f]]
         assert np.linalg.svd(X - X.mean(0), compute_uv=False)[2] < 1e-6  # one board: coplanar
         assert ds.valid[f].sum() > ds.infer_mask[f].sum() >= 6
+
+
+def test_label_noise_by_hand_and_as_the_dataset_records_it():
+    from dimenet.runtime.sim.simulator import label_noise_px
+
+    # f = 1000 px, Z = 1000 mm, a 1 mm error per axis: 1 px per axis on the axis (x = 0), sqrt(2) px at x = 1
+    K = np.diag([1000.0, 1000.0, 1.0])
+    assert label_noise_px(np.array([[0.0, 0.0, 1000.0]]), K, 2.0, 1.0) == pytest.approx(np.sqrt(5.0))
+    assert label_noise_px(np.array([[1000.0, 0.0, 1000.0]]), K, 0.0, 1.0) == pytest.approx(np.sqrt(1.5))
+    assert label_noise_px(np.array([[1000.0, 0.0, 1000.0]]), K, 0.7, 0.0) == pytest.approx(0.7)
+    ds = simulate("galaxy-s8", seed=3, natural_frames=3)
+    profile = get_profile("galaxy-s8")
+    natural = ds.scene == "natural"
+    np.testing.assert_array_equal(ds.label_noise_px[~natural], profile.corner_sigma_px)
+    # the labels' noise and the 3D model's error as it projects: f sigma / Z px, Z about the camera's distances
+    moved = profile.focal_px * profile.model_sigma_mm / np.array(profile.distance_mm)  # (near, far)
+    low, high = np.hypot(profile.label_sigma_px, [moved[1] / 2.0, moved[0] * 2.0])
+    assert np.all((ds.label_noise_px[natural] > low) & (ds.label_noise_px[natural] < high))
