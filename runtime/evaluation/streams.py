@@ -1,7 +1,8 @@
 """Streams scored (issue 51): a simulated recording (``sim.recording``) through the methods side by side, rho
 (``metrics.reduction_ratio``) over its settled frames on the points the methods never see.
 
-Methods: ``fixed`` K_c (rho 0 by construction), ``per_frame`` (``Rectifier.rectify``), ``temporal``
+Methods: ``fixed`` K_c (rho 0 by construction), ``platform`` (the SDK's K alone, where the recording has one: rho
+only), ``per_frame`` (``Rectifier.rectify``), ``temporal``
 (``Rectifier.stream()``) and ``gyro`` (``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
 the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
 reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
@@ -93,6 +94,9 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
     settled, after = _masks(recording)
     k_true, k_c = k_params(ds.K_true), k_params(rectifier.K_c)
     rho, rho_after, coverage, within = {}, {}, {}, {}
+    if ds.K_platform is not None:  # the platform's K alone
+        e = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, ds.K_platform)
+        rho["platform"], rho_after["platform"] = _rho(e_c, e, e_star, settled), _rho(e_c, e, e_star, after)
     for name in METHODS:
         e = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, K[name])
         rho[name], rho_after[name] = _rho(e_c, e, e_star, settled), _rho(e_c, e, e_star, after)

@@ -67,3 +67,39 @@ def platform_meta(profile: DeviceProfile) -> dict:
         "lens_position_sigma_um": LENS_POSITION_SIGMA_UM,
         "sigma_px": [float(v) for v in platform_sigma_px(profile)],
     }
+
+
+# The SDK's K as users report it (issue 51): a second setting beside the Hall-sensor readout above. Android's
+# LENS_INTRINSIC_CALIBRATION and ARKit's ARCamera.intrinsics are reported biased: f off by a per-camera bias, the
+# principal point following the lens's true shift only in part and one frame late, the values quantised.
+REPORTED_MODEL = "reported/1"
+REPORTED_F_BIAS_REL = (0.005, 0.02)  # |f bias| / f, uniform, either sign, one per camera
+REPORTED_C_GAIN = (0.7, 1.0)  # share of the true OIS shift the reported c follows, uniform, one per camera
+REPORTED_LAG_FRAMES = 1  # the reported c is the previous frame's shift
+REPORTED_QUANTUM_PX = 0.5  # the reported values are rounded to this
+
+
+def reported_matrices(K_true: np.ndarray, K_rest: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """(F, 3, 3) px the SDK's K as users report it for frames in time order whose true K is ``K_true`` (F, 3, 3) px,
+    K_rest (3, 3) px the factory K (OIS at rest): f = f_true (1 + bias), c = c_rest + gain (c_true - c_rest) of the
+    frame REPORTED_LAG_FRAMES before (the first frames: c_rest), each rounded to REPORTED_QUANTUM_PX; and the
+    drawn bias and gain."""
+    bias = float(rng.uniform(*REPORTED_F_BIAS_REL) * rng.choice((-1.0, 1.0)))
+    gain = float(rng.uniform(*REPORTED_C_GAIN))
+    K_true = np.asarray(K_true, dtype=np.float64)
+    rest = np.asarray(K_rest, dtype=np.float64)[:2, 2]
+    shift = K_true[:, :2, 2] - rest
+    lagged = np.zeros_like(shift)
+    lagged[REPORTED_LAG_FRAMES:] = shift[: len(shift) - REPORTED_LAG_FRAMES]
+    K = K_true.copy()
+    K[:, 0, 0] *= 1.0 + bias
+    K[:, 1, 1] *= 1.0 + bias
+    K[:, :2, 2] = rest + gain * lagged
+    K[:, :2, :] = np.round(K[:, :2, :] / REPORTED_QUANTUM_PX) * REPORTED_QUANTUM_PX
+    return K, {
+        "model": REPORTED_MODEL,
+        "f_bias_rel": bias,
+        "c_gain": gain,
+        "lag_frames": REPORTED_LAG_FRAMES,
+        "quantum_px": REPORTED_QUANTUM_PX,
+    }

@@ -19,9 +19,10 @@ looking at a random room, street or table (``natural.random_natural``) or at its
 The frames are a ``dimenet-dataset/1`` Dataset in time order: ``infer_mask`` the points an app would stream (the
 natural labels, with their 2D noise and 3D model error; half of a rig's corners), ``valid & ~infer_mask`` held-out
 points for scoring (the scene's board corners and the other features, or corners, at their true 3D with corner
-noise); a noisy point off the image is not seen; meta
-``recording`` holds t_ns, cuts, refocus frames and the trace. A frame the hand turns the scene out of is dropped
-(a gap in t_ns). ``held_out=True`` draws from the held-out trace model (other spectra, cutoffs, gains, strokes
+noise); a noisy point off the image is not seen; meta ``recording`` holds t_ns, cuts, refocus frames and the
+trace. A frame the hand turns the scene out of is dropped (a gap in t_ns). ``K_platform``: the SDK's K as users
+report it (``platform.reported_matrices``: f biased, c following the shift in part and a frame late, quantised;
+its own stream). ``held_out=True`` draws from the held-out trace model (other spectra, cutoffs, gains, strokes
 and frame rates), which training never draws from.
 """
 
@@ -42,6 +43,7 @@ from dimenet.runtime.geometry import matrix_to_rvec, rvec_to_matrix, to_camera
 from dimenet.runtime.rectify.user_camera import checked_camera
 from dimenet.runtime.sim.family import family_profile
 from dimenet.runtime.sim.natural import random_natural
+from dimenet.runtime.sim.platform import reported_matrices
 from dimenet.runtime.sim.scene_geometry import rig_scene
 from dimenet.runtime.sim.scenes import extent_mm, framed, random_rig
 from dimenet.runtime.sim.simulator import MAX_POSE_ATTEMPTS, focus_breathing_focal_px, rig_view_ok, sample_pose, visible
@@ -203,7 +205,7 @@ def simulate_recording(
     if not (0.0 < seconds <= MAX_SECONDS) or not (0 <= cuts <= 100):
         raise InputError(f"seconds must be in (0, {MAX_SECONDS:g}] and cuts in [0, 100], got {seconds!r}, {cuts!r}")
     root = np.random.SeedSequence(int(seed), spawn_key=(51,))
-    g_cam, g_rig, g_nat, g_trace, g_hand, g_run = (np.random.default_rng(s) for s in root.spawn(6))
+    g_cam, g_rig, g_nat, g_trace, g_hand, g_run, g_sdk = (np.random.default_rng(s) for s in root.spawn(7))
     rig = random_rig(g_rig)
     trace = draw_trace(g_trace, held_out, ois)
     profile = framed(family_profile(g_cam, f"recording-s{seed}", image_size_px, (1, 0)), rig)
@@ -296,6 +298,8 @@ def simulate_recording(
         "device": asdict(profile),
         "units": {"2d": "px", "3d": "mm"},
     }
+    K_platform, platform = reported_matrices(K_true[:F], profile.nominal_K, g_sdk)
+    meta["platform_k"] = {"simulated": True, **platform}
     dataset = Dataset(
         image_size=np.array(profile.image_size_px, np.int64),
         points_2d=p2[:F],
@@ -307,6 +311,7 @@ def simulate_recording(
         meta=meta,
         K_true=K_true[:F],
         frame_id=np.array([f"f{k:05d}" for k in kept]),
+        K_platform=K_platform,
     )
     return Recording(dataset, np.asarray(t_ns, np.int64), gyro, cut_frames, refocus_frames)
 

@@ -105,3 +105,16 @@ def test_bad_arguments():
         simulate_recording(0, kind="video")
     with pytest.raises(InputError, match="seconds"):
         simulate_recording(0, seconds=0)
+
+
+def test_platform_k_as_users_report_it(recording):
+    """K_platform: f off by the drawn bias, c following the true shift with the gain one frame late, quantised."""
+    ds = recording.dataset
+    sdk = ds.meta["platform_k"]
+    assert sdk["model"] == "reported/1" and 0.005 <= abs(sdk["f_bias_rel"]) <= 0.02 and 0.7 <= sdk["c_gain"] <= 1.0
+    f_true, f_sdk = ds.K_true[:, 0, 0], ds.K_platform[:, 0, 0]
+    np.testing.assert_allclose(f_sdk, f_true * (1 + sdk["f_bias_rel"]), atol=0.25)
+    rest = np.array(ds.meta["device"]["centre_offset_px"]) + (np.array(ds.meta["device"]["image_size_px"]) - 1) / 2
+    expected = rest + sdk["c_gain"] * (ds.K_true[:-1, :2, 2] - rest)
+    np.testing.assert_allclose(ds.K_platform[1:, :2, 2], expected, atol=0.25)
+    np.testing.assert_array_equal(ds.K_platform[:, :2, :] * 2, np.round(ds.K_platform[:, :2, :] * 2))
