@@ -20,6 +20,7 @@ import numpy as np
 
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry.normal_equations import gram_normal_equations, monomial_gram
+from dimenet.runtime.geometry.projection import camera_rows, frame_error_and_depth, k_matrix, pinhole_residuals
 
 # Gauss-Newton steps from the start pose: after 2, e(K) is within 3e-5 px of the converged least-squares
 # pose's on the bench's frames (a third moves it by 1e-7 px for 9 us more; BENCHMARKS.md).
@@ -101,32 +102,17 @@ def pose_steps(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> 
     """The pose {W}->{C} after ``steps`` Gauss-Newton steps of the reprojection error under the pinhole
     k = (fx, fy, cx, cy) px from the pose rvec (3,) rad, tvec (3,) mm: one frame's (N, 2) px and
     (N, 3) mm points (float64). -> rvec, tvec (3,); InputError when a step has no solution or the pose
-    is not finite."""
-    fx, fy, cx, cy = (float(v) for v in k)
-    X, Y, Z = points_3d[:, 0], points_3d[:, 1], points_3d[:, 2]
-    x, y = points_2d[:, 0], points_2d[:, 1]
+    it reaches is not finite (no step: the start pose as it is). The residuals are
+    ``frame_error_and_depth``'s (``camera_rows``, ``pinhole_residuals``)."""
+    fx, fy = float(k[0]), float(k[1])
+    K = k_matrix(k)
     q = quaternion([float(v) for v in rvec])
     t = [float(v) for v in tvec]
     r_now = np.asarray(rvec, dtype=np.float64).ravel()
     for _ in range(steps):
-        R = cv2.Rodrigues(r_now)[0].tolist()
-        rows = np.empty((3, len(X)))
-        for i in range(3):  # ((R_i0 X + R_i1 Y) + R_i2 Z) + t_i
-            row = np.multiply(X, R[i][0], out=rows[i])
-            row += Y * R[i][1]
-            row += Z * R[i][2]
-            row += t[i]
+        rows = camera_rows(points_3d, cv2.Rodrigues(r_now)[0].tolist(), t)
         np.divide(1.0, rows[2], out=rows[2])
-        r = np.empty((2, len(X)))
-        np.multiply(rows[0], rows[2], out=r[0])  # a = X / Z, then fx a + cx - x
-        np.multiply(rows[1], rows[2], out=r[1])
-        r[0] *= fx
-        r[1] *= fy
-        r[0] += cx
-        r[1] += cy
-        r[0] -= x
-        r[1] -= y
-        JJ, Jr, _ = gram_normal_equations(monomial_gram(rows, r), fx, fy)
+        JJ, Jr, _ = gram_normal_equations(monomial_gram(rows, pinhole_residuals(rows, points_2d, K)), fx, fy)
         step = solve_pose_step(JJ, Jr)
         w = step[:3]
         dR = cv2.Rodrigues(np.array(w))[0].tolist()
@@ -134,6 +120,13 @@ def pose_steps(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> 
         q = compose(quaternion(w), q)
         r_now = np.array(axis_angle(q))
     t = np.array(t)
-    if not (np.isfinite(r_now).all() and np.isfinite(t).all()):
+    if steps and not (np.isfinite(r_now).all() and np.isfinite(t).all()):
         raise InputError(NO_POSE_STEP)
     return r_now, t
+
+
+def pose_under_k(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> tuple:
+    """``pose_steps`` and ``frame_error_and_depth`` at the pose it reaches under K = k_matrix(k):
+    (rvec, tvec, e px, smallest depth mm) (the compiled core's ``dimenet_pose_steps`` in one call)."""
+    rvec, tvec = pose_steps(points_2d, points_3d, k, rvec, tvec, steps)
+    return (rvec, tvec, *frame_error_and_depth(points_2d, points_3d, k_matrix(k), rvec, tvec))

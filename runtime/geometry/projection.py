@@ -189,9 +189,38 @@ def frame_mean_norm(residuals: np.ndarray) -> float:
 
 def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, float]:
     """One frame's mean Euclidean reprojection error (px) of its (N, 2) px / (N, 3) mm points under
-    K (3, 3) at the pose rvec, tvec (3,), and the smallest depth Z_C of its points (mm, <= 0:
-    a point behind the camera): OpenCV's transform gives z (u, v, 1), z = Z_C for a pinhole K."""
-    h = _homogeneous_pixels(points_3d, K, cv2.Rodrigues(rvec)[0], tvec)
-    d = cv2.convertPointsFromHomogeneous(h).reshape(-1, 2)
-    d -= points_2d
-    return frame_mean_norm(d.T), cv2.minMaxLoc(h[:, 0, 2])[0]
+    the pinhole K (3, 3) px (fx, skew, cx; fy, cy) at the pose rvec, tvec (3,), and the smallest depth
+    Z_C of its points (mm, <= 0: a point behind the camera; NaN when one is NaN).
+
+    In an order fixed here (``camera_rows``, ``pinhole_residuals``, then ``frame_mean_norm``), which the
+    compiled core follows to the bit (``native.frame_error_and_depth``, the check stage's)."""
+    rows = camera_rows(points_3d, cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], tvec)
+    depth = float(np.min(rows[2])) if rows.shape[1] else np.inf
+    np.divide(1.0, rows[2], out=rows[2])
+    return frame_mean_norm(pinhole_residuals(rows, points_2d, K)), depth
+
+
+def camera_rows(points_3d: np.ndarray, R, t) -> np.ndarray:
+    """(3, N) X_C, Y_C, Z_C (mm) of one frame's (N, 3) {W} points at the pose R (3, 3), t (3,):
+    ((R_i0 X + R_i1 Y) + R_i2 Z) + t_i, elementwise (the compiled core's order)."""
+    R, P = np.asarray(R, dtype=np.float64), points_3d.T
+    rows, products = np.multiply(R[:, :1], P[0]), np.empty((3, len(points_3d)))
+    rows += np.multiply(R[:, 1:2], P[1], out=products)
+    rows += np.multiply(R[:, 2:], P[2], out=products)
+    rows += np.reshape(t, (3, 1))
+    return rows
+
+
+def pinhole_residuals(rows: np.ndarray, points_2d: np.ndarray, K) -> np.ndarray:
+    """(2, N) residuals (a fx (+ b skew) + cx) - x and (b fy + cy) - y (px) of ``camera_rows`` whose
+    last row holds 1 / Z_C already, a = X_C / Z_C, b = Y_C / Z_C, under the pinhole K (3, 3) px (the
+    skew's term only where it is not 0)."""
+    r = np.multiply(rows[:2], rows[2])
+    skew = float(K[0][1])
+    b_skew = r[1] * skew if skew else None
+    r *= ((float(K[0][0]),), (float(K[1][1]),))
+    if skew:
+        r[0] += b_skew
+    r += ((float(K[0][2]),), (float(K[1][2]),))
+    r -= points_2d.T
+    return r

@@ -2,8 +2,9 @@
 
 The compiled core (``dimenet.runtime.native._core``, built from dimenet_core.c and _module.c beside
 this file by ``pip install .``) computes the feature stage of every encoder
-(``rectify.features.grid_features``) and the pose under the candidate K (``pose_steps`` below:
-``geometry.pose_step``); the numpy code stays the reference and the fallback. The choice
+(``rectify.features.grid_features``), the check stage's error and depth (``frame_error_and_depth``
+below) and the Gauss-Newton pose under a K (``pose_under_k``: ``geometry.pose_step``, measured against
+SQPnP, not on the hot path); the numpy code stays the reference and the fallback. The choice
 is made once, at import:
 
 - ``DIMENET_IMPLEMENTATION`` unset (or empty): "c" when the extension imports, else "python" (a
@@ -27,8 +28,10 @@ from typing import Optional
 import numpy as np
 
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.geometry import frame_error_and_depth as _frame_error_and_depth_reference
+from dimenet.runtime.geometry import k_matrix
 from dimenet.runtime.geometry.pose_step import POSE_STEPS
-from dimenet.runtime.geometry.pose_step import pose_steps as _pose_steps_reference
+from dimenet.runtime.geometry.pose_step import pose_under_k as _pose_under_k_reference
 
 ENV_VARIABLE = "DIMENET_IMPLEMENTATION"
 IMPLEMENTATIONS = ("c", "python")
@@ -99,17 +102,32 @@ def using(name: str) -> Iterator[None]:
         set_implementation(previous)
 
 
-def pose_steps(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> tuple[np.ndarray, np.ndarray]:
-    """``geometry.pose_step.pose_steps`` (the pose under k (4,) px after ``steps`` Gauss-Newton steps from
-    rvec, tvec (3,)) in the running implementation, the same pose to the bit: points_2d (N, 2) px and
-    points_3d (N, 3) mm float64. InputError when a step has no solution."""
+def pose_under_k(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> tuple:
+    """``geometry.pose_step.pose_under_k`` in the running implementation, the same numbers to the bit: the
+    pose under k (4,) px after ``steps`` Gauss-Newton steps from rvec, tvec (3,), and the mean
+    reprojection error (px) and smallest depth (mm) there -> (rvec, tvec, e, depth). points_2d (N, 2) px
+    and points_3d (N, 3) mm float64. InputError when a step has no solution."""
     if core is None:
-        return _pose_steps_reference(points_2d, points_3d, k, rvec, tvec, steps)
+        return _pose_under_k_reference(points_2d, points_3d, k, rvec, tvec, steps)
     rvec_out, tvec_out = np.empty(3), np.empty(3)
+    e, depth = _core_call(points_2d, points_3d, k_matrix(k), rvec, tvec, steps, rvec_out, tvec_out)
+    return rvec_out, tvec_out, e, depth
+
+
+def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, float]:
+    """``geometry.frame_error_and_depth`` (one frame's mean reprojection error px under K (3, 3) at the pose
+    rvec, tvec (3,), and its smallest depth mm) in the running implementation, to the bit: the core's pose
+    kernel with no step (a K with skew: numpy). The check stage's e(K): BENCHMARKS.md has its us."""
+    if core is None or K[0, 1] != 0.0:
+        return _frame_error_and_depth_reference(points_2d, points_3d, K, rvec, tvec)
+    return _core_call(points_2d, points_3d, K, rvec, tvec, 0, None, None)
+
+
+def _core_call(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out) -> tuple[float, float]:
     try:  # the arrays as they come (validated_frame's are float64, C-contiguous)
-        core.pose_steps(points_2d, points_3d, k, rvec, tvec, steps, rvec_out, tvec_out)
+        return core.pose_steps(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out)
     except TypeError:  # another type or layout: as numpy would take them
         p2, p3 = np.ascontiguousarray(points_2d, np.float64), np.ascontiguousarray(points_3d, np.float64)
-        args = (np.ascontiguousarray(a, np.float64).reshape(-1) for a in (k, rvec, tvec))
-        core.pose_steps(p2, p3, *args, steps, rvec_out, tvec_out)
-    return rvec_out, tvec_out
+        K = np.ascontiguousarray(K, np.float64)
+        r, t = (np.ascontiguousarray(a, np.float64).reshape(-1) for a in (rvec, tvec))
+        return core.pose_steps(p2, p3, K, r, t, steps, rvec_out, tvec_out)

@@ -314,21 +314,25 @@ done:
 }
 
 PyDoc_STRVAR(pose_steps_doc,
-             "pose_steps(points_2d, points_3d, k, rvec, tvec, steps, rvec_out, tvec_out)\n--\n\n"
-             "The pose under the pinhole k (4,) (fx, fy, cx, cy) px after ``steps`` Gauss-Newton steps from the "
-             "pose rvec, tvec (3,) into rvec_out, tvec_out (3,) float64 (geometry.pose_step.pose_steps to the bit), "
-             "the GIL released: points_2d (N, 2) px, points_3d (N, 3) mm in {W}. InputError when a step has no "
-             "solution or the pose is not finite; TypeError or ValueError for arrays of the wrong type or shape.");
+             "pose_steps(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out)\n--\n\n"
+             "The pose under the pinhole K (3, 3) px (no skew) after ``steps`` Gauss-Newton steps from the pose "
+             "rvec, tvec (3,) into rvec_out, tvec_out (3,) float64, the GIL released; returns (e px, smallest depth "
+             "mm) at that pose (geometry.pose_step.pose_under_k to the bit): points_2d (N, 2) px, points_3d (N, 3) "
+             "mm in {W}. With no outputs (rvec_out and tvec_out None) and steps 0: geometry.frame_error_and_depth. "
+             "InputError when a step has no solution or the pose is not finite; TypeError or ValueError for "
+             "arrays of the wrong type or shape, or a K with skew.");
 
 static PyObject *pose_steps(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
-    static const char *const names[] = {"points_2d", "points_3d", "k", "rvec", "tvec", "rvec_out", "tvec_out"};
-    static const char ndims[7] = {2, 2, 1, 1, 1, 1, 1};
+    static const char *const names[] = {"points_2d", "points_3d", "K", "rvec", "tvec", "rvec_out", "tvec_out"};
+    static const char ndims[7] = {2, 2, 2, 1, 1, 1, 1};
     Py_buffer views[7];
-    int n_views = 0, code = DIMENET_OK, i;
+    int n_views = 0, code = DIMENET_OK, i, outputs;
     long steps;
     Py_ssize_t N;
     size_t n_scratch = 0;
+    double e = 0.0, depth = 0.0, k[4], r_out[3], t_out[3];
+    const double *K;
     double *scratch = NULL;
     PyObject *result = NULL;
 
@@ -340,11 +344,13 @@ static PyObject *pose_steps(PyObject *module, PyObject *const *args, Py_ssize_t 
     if (steps == -1 && PyErr_Occurred()) {
         return NULL;
     }
-    if (steps < 0 || steps > DIMENET_MAX_POSE_STEPS) {
-        PyErr_Format(PyExc_ValueError, "pose_steps: steps must be 0 to %d, got %ld", DIMENET_MAX_POSE_STEPS, steps);
+    outputs = !(args[6] == Py_None && args[7] == Py_None);
+    if (steps < 0 || steps > DIMENET_MAX_POSE_STEPS || (!outputs && steps != 0)) {
+        PyErr_Format(PyExc_ValueError, "pose_steps: steps must be 0 to %d (0 without outputs), got %ld",
+                     DIMENET_MAX_POSE_STEPS, steps);
         return NULL;
     }
-    for (i = 0; i < 7; i++) {
+    for (i = 0; i < (outputs ? 7 : 5); i++) {
         Py_ssize_t any[2] = {-1, -1};
         if (get_view(args[i < 5 ? i : i + 1], &views[i], names[i], 'd', ndims[i], any, i >= 5) != 0) {
             goto done;
@@ -352,33 +358,44 @@ static PyObject *pose_steps(PyObject *module, PyObject *const *args, Py_ssize_t 
         n_views++;
     }
     N = views[0].shape[0];
-    if (views[0].shape[1] != 2 || views[1].shape[0] != N || views[1].shape[1] != 3 || views[2].shape[0] != 4
-        || views[3].shape[0] != 3 || views[4].shape[0] != 3 || views[5].shape[0] != 3 || views[6].shape[0] != 3) {
-        PyErr_SetString(PyExc_ValueError, "pose_steps: points_2d (N, 2), points_3d (N, 3), k (4,), rvec, tvec, "
+    if (views[0].shape[1] != 2 || views[1].shape[0] != N || views[1].shape[1] != 3 || views[2].shape[0] != 3
+        || views[2].shape[1] != 3 || views[3].shape[0] != 3 || views[4].shape[0] != 3
+        || (outputs && (views[5].shape[0] != 3 || views[6].shape[0] != 3))) {
+        PyErr_SetString(PyExc_ValueError, "pose_steps: points_2d (N, 2), points_3d (N, 3), K (3, 3), rvec, tvec, "
                                           "rvec_out and tvec_out (3,) expected");
         goto done;
     }
+    K = (const double *)views[2].buf;
+    if (K[1] != 0.0) {
+        PyErr_SetString(PyExc_ValueError, "pose_steps: K must have no skew (K[0, 1] == 0)");
+        goto done;
+    }
+    k[0] = K[0], k[1] = K[4], k[2] = K[2], k[3] = K[5];
     if (dimenet_pose_scratch_doubles((size_t)N, &n_scratch) != DIMENET_OK) {
         PyErr_NoMemory();
         goto done;
     }
-    scratch = (double *)PyMem_RawMalloc(n_scratch * sizeof(double) + 1);
-    if (scratch == NULL) {
-        PyErr_NoMemory();
-        goto done;
+    if (steps > 0) {
+        scratch = (double *)PyMem_RawMalloc(n_scratch * sizeof(double) + 1);
+        if (scratch == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    } else {
+        n_scratch = 0; /* no step reads it */
     }
     Py_BEGIN_ALLOW_THREADS
-    code = dimenet_pose_steps((size_t)N, (const double *)views[0].buf, (const double *)views[1].buf,
-                              (const double *)views[2].buf, (const double *)views[3].buf, (const double *)views[4].buf,
-                              (int)steps, (double *)views[5].buf, (double *)views[6].buf, scratch, n_scratch);
+    code = dimenet_pose_steps((size_t)N, (const double *)views[0].buf, (const double *)views[1].buf, k,
+                              (const double *)views[3].buf, (const double *)views[4].buf, (int)steps,
+                              outputs ? (double *)views[5].buf : r_out, outputs ? (double *)views[6].buf : t_out, &e,
+                              &depth, scratch, n_scratch);
     Py_END_ALLOW_THREADS
     if (code != DIMENET_OK) {
         PyErr_SetString(code == DIMENET_E_NO_POSE_STEP ? state_of(module)->input_error : PyExc_ValueError,
                         dimenet_error_message(code));
         goto done;
     }
-    result = Py_None;
-    Py_INCREF(result);
+    result = Py_BuildValue("(dd)", e, depth);
 done:
     PyMem_RawFree(scratch);
     while (n_views > 0) {

@@ -766,6 +766,38 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
 
 /* -- the pose under K (geometry/pose_step.py) ------------------------------------------------- */
 
+/* geometry.frame_error_and_depth under the pinhole k (skew 0) at the pose (rvec, tvec): the mean norm of
+ * the residuals ((a fx + cx) - x, (b fy + cy) - y), summed in cv::sum's order (four at a time, then one
+ * by one), and the smallest Z_C (np.min: NaN when one is NaN; inf without points). */
+static void pose_error_and_depth(size_t N, const double *p2, const double *p3, const double k[4], const double r[3],
+                                 const double t[3], double *e_px, double *depth_mm)
+{
+    double R[9], norms[4], norm_sum = 0.0, depth = HUGE_VAL;
+    size_t i;
+    int c;
+    rodrigues(r, R);
+    for (i = 0; i < N; i++) {
+        double X = p3[3 * i], Y = p3[3 * i + 1], Z = p3[3 * i + 2];
+        double xc = ((X * R[0] + Y * R[1]) + Z * R[2]) + t[0];
+        double yc = ((X * R[3] + Y * R[4]) + Z * R[5]) + t[1];
+        double zc = ((X * R[6] + Y * R[7]) + Z * R[8]) + t[2];
+        double inv_z = 1.0 / zc, a = xc * inv_z, b = yc * inv_z;
+        double du = (a * k[0] + k[2]) - p2[2 * i], dv = (b * k[1] + k[3]) - p2[2 * i + 1];
+        if (zc < depth || zc != zc) {
+            depth = depth != depth ? depth : zc;
+        }
+        norms[i % 4] = sqrt(du * du + dv * dv);
+        if (i % 4 == 3) {
+            norm_sum += ((norms[0] + norms[1]) + norms[2]) + norms[3];
+        }
+    }
+    for (c = 0; c < (int)(N % 4); c++) {
+        norm_sum += norms[c];
+    }
+    *e_px = norm_sum / (double)N;
+    *depth_mm = depth;
+}
+
 /* pose_step.SMALL_ANGLE: below it, a rotation's quaternion <-> axis-angle use the series. */
 #define POSE_SMALL_ANGLE 1e-8
 
@@ -853,7 +885,8 @@ int dimenet_pose_scratch_doubles(size_t n_points, size_t *n_scratch)
 
 int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double *points_3d_w_mm,
                        const double k_px[4], const double rvec_start_rad[3], const double tvec_start_mm[3], int steps,
-                       double rvec_rad[3], double tvec_mm[3], double *scratch, size_t n_scratch)
+                       double rvec_rad[3], double tvec_mm[3], double *e_px, double *depth_mm, double *scratch,
+                       size_t n_scratch)
 {
     const size_t N = n_points;
     double fx, fy, cx, cy, q[4], qw[4], qn[4], r[3], t[3], R[9], dR[9], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE];
@@ -865,12 +898,15 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
 
     if (dimenet_pose_scratch_doubles(N, &need) != DIMENET_OK || k_px == NULL || rvec_start_rad == NULL
         || tvec_start_mm == NULL || rvec_rad == NULL || tvec_mm == NULL || steps < 0
-        || steps > DIMENET_MAX_POSE_STEPS || (N > 0 && (points_2d_px == NULL || points_3d_w_mm == NULL || scratch == NULL))
-        || n_scratch < need) {
+        || steps > DIMENET_MAX_POSE_STEPS || (N > 0 && (points_2d_px == NULL || points_3d_w_mm == NULL))
+        || (steps > 0 && N > 0 && (scratch == NULL || n_scratch < need))) {
         return DIMENET_E_ARGUMENT;
     }
     fx = k_px[0], fy = k_px[1], cx = k_px[2], cy = k_px[3];
-    xs = scratch, ys = xs + N, inv_zs = ys + N, dus = inv_zs + N, dvs = dus + N;
+    xs = ys = inv_zs = dus = dvs = scratch; /* no step: not read (NULL allowed) */
+    if (steps > 0 && N > 0) {
+        ys = xs + N, inv_zs = ys + N, dus = inv_zs + N, dvs = dus + N;
+    }
     for (c = 0; c < 3; c++) {
         r[c] = rvec_start_rad[c];
         t[c] = tvec_start_mm[c];
@@ -909,7 +945,7 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
         }
         pose_axis_angle(q, r);
     }
-    for (c = 0; c < 3; c++) {
+    for (c = 0; c < 3 && steps > 0; c++) { /* no step: the start pose as it is */
         if (!(r[c] - r[c] == 0.0) || !(t[c] - t[c] == 0.0)) {
             return DIMENET_E_NO_POSE_STEP;
         }
@@ -917,6 +953,9 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
     for (c = 0; c < 3; c++) {
         rvec_rad[c] = r[c];
         tvec_mm[c] = t[c];
+    }
+    if (e_px != NULL && depth_mm != NULL) {
+        pose_error_and_depth(N, points_2d_px, points_3d_w_mm, k_px, r, t, e_px, depth_mm);
     }
     return DIMENET_OK;
 }

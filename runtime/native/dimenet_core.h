@@ -142,11 +142,15 @@ int dimenet_pose_scratch_doubles(size_t n_points, size_t *n_scratch);
  * tau), the step -(J J^T)^-1 J r of the pose block of geometry.gram_normal_equations (the monomial Gram
  * of the points at the current pose, numpy's pairwise sums), solved by Cholesky; the rotation carried
  * as a unit quaternion. points_2d_px (n_points x 2), points_3d_w_mm (n_points x 3); rvec_rad, tvec_mm
- * (3 each) the result (may alias the start). scratch: n_scratch >= dimenet_pose_scratch_doubles's.
- * Returns DIMENET_OK, DIMENET_E_ARGUMENT or DIMENET_E_NO_POSE_STEP. */
+ * (3 each) the result (may alias the start); when e_px and depth_mm are both not NULL, the mean
+ * reprojection error (px) and the smallest Z_C (mm) at that pose (geometry.frame_error_and_depth, to the
+ * bit; with steps 0, that function alone). scratch: n_scratch >= dimenet_pose_scratch_doubles's (not read,
+ * may be NULL, with steps 0). Returns DIMENET_OK, DIMENET_E_ARGUMENT or DIMENET_E_NO_POSE_STEP (the
+ * outputs then untouched). */
 int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double *points_3d_w_mm,
                        const double k_px[4], const double rvec_start_rad[3], const double tvec_start_mm[3], int steps,
-                       double rvec_rad[3], double tvec_mm[3], double *scratch, size_t n_scratch);
+                       double rvec_rad[3], double tvec_mm[3], double *e_px, double *depth_mm, double *scratch,
+                       size_t n_scratch);
 
 /* The text of an error code (the reference's InputError message where it has one); never NULL. */
 const char *dimenet_error_message(int code);

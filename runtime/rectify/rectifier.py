@@ -43,8 +43,9 @@ from typing import Optional
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import CameraError, InputError
-from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params, mean_reprojection_error
+from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify import stages
 from dimenet.runtime.rectify.checks import real_array, validated_batch, validated_frame
@@ -192,7 +193,7 @@ class Rectifier:
             rvec_c0, tvec_c0 = stages.refined(p2, p3, cam.K_c, rvec_c0, tvec_c0)
             if reason is None and cand.from_pnp:
                 cand.rvec, cand.tvec = stages.refined(p2, p3, cand.K, cand.rvec, cand.tvec)
-            e_c = frame_error_and_depth(p2, p3, cam.K_c, rvec_c0, tvec_c0)[0]
+            e_c = native.frame_error_and_depth(p2, p3, cam.K_c, rvec_c0, tvec_c0)[0]
             lap("refine")
         cand, reason = stages.frame_check(cam, p2, p3, cand, reason, e_c, (rvec_c0, tvec_c0), p2_image)
         lap("check")

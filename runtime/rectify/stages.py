@@ -20,7 +20,6 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MIN_POINTS,
     MIN_STRUCTURE_POINTS,
-    frame_error_and_depth,
     frame_mean_norm,
     k_matrix,
     k_params,
@@ -416,7 +415,7 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
     if own:
         cand.e = e_c
     elif reason is None and cand.e is None:
-        cand.e, depth = frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
+        cand.e, depth = native.frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
         if depth <= 0:
             reason = BEHIND_REASON
     if reason is None:

@@ -1,6 +1,8 @@
-"""The pose under the candidate K (stage ``pnp_k``): Gauss-Newton steps from the C0 pose
-(``geometry.pose_step``), the compiled core against the numpy reference to the bit, and both against a
-second SQPnP under K (what the stage ran before) on the bench's frames under each model's own K."""
+"""The compiled core's pose kernel (``dimenet_pose_steps``) against the numpy reference, to the bit: with no
+step, the check stage's e(K) and depth (``native.frame_error_and_depth``, ``geometry.frame_error_and_depth``);
+with steps, the Gauss-Newton pose under a K from the C0 pose (``geometry.pose_step``), and that pose against
+SQPnP's under K on the bench's frames under each model's own K (measured for stage pnp_k, not used there:
+BENCHMARKS.md, "The pose under K")."""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ from dimenet.runtime.bench.latency import bench_frames, bench_rectifier
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params
 from dimenet.runtime.geometry import solve_pnp_start as pnp
-from dimenet.runtime.geometry.pose_step import POSE_STEPS, pose_steps
+from dimenet.runtime.geometry.pose_step import POSE_STEPS, pose_steps, pose_under_k
 from dimenet.runtime.rectify import stages
 from dimenet.runtime.rectify.checks import validated_frame
 from dimenet.runtime.rectify.model import load_model
@@ -30,11 +32,11 @@ BENCH_FRAMES = 2000
 
 
 def both(*args, steps=POSE_STEPS):
-    """native.pose_steps under numpy, then under the compiled core."""
+    """native.pose_under_k (rvec, tvec, e, depth) under numpy, then under the compiled core."""
     out = []
     for name in ("python", "c"):
         with native.using(name):
-            out.append(native.pose_steps(*args, steps))
+            out.append(native.pose_under_k(*args, steps))
     return out
 
 
@@ -60,8 +62,8 @@ def test_the_core_gives_the_references_pose_to_the_bit_on_2000_bench_frames(benc
     rectifiers, p2, p3 = bench_set
     for b in range(BENCH_FRAMES):
         args = frame_k(rectifiers[name], p2[b], p3[b])
-        (r_py, t_py), (r_c, t_c) = both(*args)
-        assert np.array_equal(r_py, r_c) and np.array_equal(t_py, t_c), b
+        (r_py, t_py, e_py, z_py), (r_c, t_c, e_c, z_c) = both(*args)
+        assert np.array_equal(r_py, r_c) and np.array_equal(t_py, t_c) and (e_py, z_py) == (e_c, z_c), b
 
 
 @needs_core
@@ -75,8 +77,9 @@ def test_the_core_gives_the_references_pose_on_the_golden_frames(name):
         except InputError:
             continue  # a frame the input rules refuse
         for steps in (0, 1, POSE_STEPS, 5):
-            (r_py, t_py), (r_c, t_c) = both(*args, steps=steps)
+            (r_py, t_py, e_py, z_py), (r_c, t_c, e_c, z_c) = both(*args, steps=steps)
             assert np.array_equal(r_py, r_c) and np.array_equal(t_py, t_c), (frame["name"], steps)
+            assert (e_py, z_py) == (e_c, z_c), (frame["name"], steps)
 
 
 @needs_core
@@ -91,7 +94,7 @@ def test_both_refuse_the_same_frames_with_the_same_message():
         messages = []
         for name in ("python", "c"):
             with native.using(name), pytest.raises(InputError) as info:
-                native.pose_steps(p2, p3, k, rvec[0], tvec[0])
+                native.pose_under_k(p2, p3, k, rvec[0], tvec[0])
             messages.append(str(info.value))
         assert messages[0] == messages[1] == "no Gauss-Newton step: the points fix no pose under K"
 
@@ -100,9 +103,9 @@ def test_other_layouts_are_taken_as_numpy_takes_them():
     rng = np.random.default_rng(8)
     x, X, _, rvec, tvec = random_frames(rng, frames=1, points=30)
     k = k_params(K_TEST) + 2.0
-    want = pose_steps(x[0], X[0], k, rvec[0], tvec[0])
-    got = native.pose_steps(np.asfortranarray(x[0]), np.asfortranarray(X[0]), list(k), rvec[0], tvec[0])
-    assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
+    want = pose_under_k(x[0], X[0], k, rvec[0], tvec[0])
+    got = native.pose_under_k(np.asfortranarray(x[0]), np.asfortranarray(X[0]), list(k), rvec[0], tvec[0])
+    assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1]) and want[2:] == got[2:]
 
 
 def test_the_steps_reach_the_least_squares_pose_and_stay_near_sqpnps(bench_set):
@@ -115,7 +118,7 @@ def test_the_steps_reach_the_least_squares_pose_and_stay_near_sqpnps(bench_set):
         for b in range(200):
             q2, q3, k, r0, t0 = frame_k(rect, p2[b], p3[b])
             K = k_matrix(k)
-            e_steps = frame_error_and_depth(q2, q3, K, *native.pose_steps(q2, q3, k, r0, t0))[0]
+            e_steps = native.pose_under_k(q2, q3, k, r0, t0)[2]
             e_converged = frame_error_and_depth(q2, q3, K, *pose_steps(q2, q3, k, r0, t0, 8))[0]
             e_sqpnp = frame_error_and_depth(q2, q3, K, *pnp(q2, q3, K))[0]
             e_c = frame_error_and_depth(q2, q3, rect._cam.K_c, r0, t0)[0]
@@ -123,3 +126,44 @@ def test_the_steps_reach_the_least_squares_pose_and_stay_near_sqpnps(bench_set):
             assert (e_steps > e_c) == (e_sqpnp > e_c), (name, b)
             lower += e_steps <= e_sqpnp
         assert lower >= 120, (name, lower)
+
+
+@needs_core
+@pytest.mark.parametrize("name", sorted(GOLDEN))
+def test_the_check_stages_error_and_depth_are_the_references_to_the_bit(bench_set, name):
+    rectifiers, p2, p3 = bench_set
+    for b in range(0, BENCH_FRAMES, 4):
+        q2, q3, k, r0, t0 = frame_k(rectifiers[name], p2[b], p3[b])
+        K = k_matrix(k)
+        pose = pnp(q2, q3, K)
+        reference = frame_error_and_depth(q2, q3, K, *pose)
+        with native.using("c"):
+            assert native.frame_error_and_depth(q2, q3, K, *pose) == reference, b
+
+
+@needs_core
+def test_the_error_and_depth_of_hostile_frames_are_the_references():
+    rng = np.random.default_rng(12)
+    x, X, _, rvec, tvec = random_frames(rng, frames=1, points=33)
+    x, X, r, t = x[0], X[0], rvec[0], tvec[0]
+    K = K_TEST.copy()
+    cases = []
+    nan_point = X.copy()
+    nan_point[4, 1] = np.nan
+    on_the_plane = X.copy()
+    on_the_plane[5] = -(cv2_rotation(r).T @ t)  # the camera's centre: Z_C = 0
+    cases += [(x, nan_point, r, t), (x, on_the_plane, r, t), (x, X, r * np.nan, t), (x, X, r, -t), (x[:1], X[:1], r, t)]
+    skewed = K.copy()
+    skewed[0, 1] = 0.7
+    for q2, q3, rr, tt in cases:
+        for K_case in (K, skewed):
+            reference = frame_error_and_depth(q2, q3, K_case, rr, tt)
+            with native.using("c"):
+                got = native.frame_error_and_depth(q2, q3, K_case, rr, tt)
+            assert np.array_equal(np.array(got), np.array(reference), equal_nan=True), (reference, got)
+
+
+def cv2_rotation(rvec):
+    import cv2
+
+    return cv2.Rodrigues(rvec)[0]

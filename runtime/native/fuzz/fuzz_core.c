@@ -174,7 +174,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     /* the pose under a K near K_c from the input's pose (scratch: 18 n >= the pose's 5 n), 0 to 3 steps;
      * a failed call leaves its outputs as they were, a bad argument is refused */
     {
-        double k[4], r_out[3], t_out[3], before[6];
+        double k[4], r_out[3], t_out[3], before[6], e = -1.0, depth = -1.0;
         size_t P = 0;
         int steps = (int)(take(&b) % 4u);
         k[0] = spec.K_c_px[0] + number(&b, raw, -50.0, 50.0);
@@ -185,19 +185,23 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         for (i = 0; i < 3; i++) {
             r_out[i] = before[i] = -1.0, t_out[i] = before[3 + i] = -2.0;
         }
-        code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, steps, r_out, t_out, scratch, P);
+        code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, steps, r_out, t_out, &e, &depth, scratch, P);
         check(code == DIMENET_OK || code == DIMENET_E_NO_POSE_STEP);
         for (i = 0; i < 3 && code != DIMENET_OK; i++) {
             check(r_out[i] == before[i] && t_out[i] == before[3 + i]);
         }
-        for (i = 0; i < 3 && code == DIMENET_OK; i++) {
+        for (i = 0; i < 3 && code == DIMENET_OK && steps > 0; i++) {
             check(isfinite(r_out[i]) && isfinite(t_out[i]));
         }
-        check(dimenet_pose_steps(n, p2, p3, k, rvec, tvec, DIMENET_MAX_POSE_STEPS + 1, r_out, t_out, scratch, P)
+        check(code == DIMENET_OK || (e == -1.0 && depth == -1.0));
+        check(code != DIMENET_OK || n == 0 || !(e < 0.0));
+        check(dimenet_pose_steps(n, p2, p3, k, rvec, tvec, DIMENET_MAX_POSE_STEPS + 1, r_out, t_out, NULL, NULL, scratch, P)
               == DIMENET_E_ARGUMENT);
-        check(n == 0 || dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 1, r_out, t_out, scratch, P - 1)
+        check(n == 0 || dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 1, r_out, t_out, NULL, NULL, scratch, P - 1)
                             == DIMENET_E_ARGUMENT);
-        check(dimenet_pose_steps(n, p2, p3, NULL, rvec, tvec, 1, r_out, t_out, scratch, P) == DIMENET_E_ARGUMENT);
+        check(dimenet_pose_steps(n, p2, p3, NULL, rvec, tvec, 1, r_out, t_out, NULL, NULL, scratch, P) == DIMENET_E_ARGUMENT);
+        code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 0, r_out, t_out, &e, &depth, NULL, 0);
+        check(code == DIMENET_OK); /* no step cannot fail */
     }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
