@@ -48,6 +48,10 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     assert [len(scenes[name]) for name in ("rig", "far", "natural")] == [2, 1, 4]
     assert all(r["kind"] in ("room", "buildings", "objects") and r["features"] >= 15 for r in scenes["natural"])
     assert any(r["all"]["map"] is not None for r in scenes["natural"])
+    # beside the modes on natural frames, the prior oracle and each mode's rho over it with its interval (issue 50)
+    assert all(set(r["ratio"]) == {"dimenet", "map"} and r["label_noise_px"] > 0 for r in scenes["natural"])
+    assert any(r["prior_oracle"] is not None and r["ratio"]["map"]["level"] == 0.9 for r in scenes["natural"])
+    assert "generic_prior_oracle" in rows["galaxy-s8 natural"] and "generic_ratio" not in rows["galaxy-s8 rig"]
     # the bundled model on random rigs: better than K_c in mode map (the frame's points carry it), every case measured
     assert all(
         r[case]["map"] > 0.3 for rows in (scenes["rig"], scenes["far"]) for r in rows for case in ("all", "small")
@@ -63,6 +67,7 @@ def test_the_generic_rows_are_computed_and_reported(tmp_path, monkeypatch):
     assert "### Held-out scene families" in text and "Cameras without OIS (1 of" in text
     assert "| far | 1 | paper-rig |" in text and "| far | 1 | default |" in text
     assert "| natural | 4 | default |" in text and "- the default model: " in text
+    assert "against the **prior oracle**" in text and "| default | family-s404-003 |" in text
     assert "moves from K_c by at most 2σ" in text and "within 2σ of K_true" in text
     # the default (any-scene) reads the frame's own step: on the held-out rigs it beats K_c in mode dimenet too
     assert all(r["all"]["dimenet"] > 0.5 for r in results["fresh_scenes"]["default"]["rig"])

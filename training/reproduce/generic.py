@@ -6,6 +6,7 @@ each bundled model (the default, any-scene, and the paper's grid model, paper-ri
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
 
@@ -13,8 +14,9 @@ import numpy as np
 
 from dimenet.runtime.evaluation.calibration import dataset_camera
 from dimenet.runtime.evaluation.conditions import drop_inference_points
-from dimenet.runtime.evaluation.methods import evaluate, runtime_estimate
+from dimenet.runtime.evaluation.methods import evaluate, runtime_estimate, with_prior_oracle
 from dimenet.runtime.evaluation.predictor import Predictor, load_predictor
+from dimenet.runtime.evaluation.prior_oracle import PRIOR_ORACLE
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import k_matrix, k_params, rescaled_k, rescaled_px
 from dimenet.runtime.jobs.progress import progress
@@ -39,8 +41,9 @@ FRESH_FAMILY_CAMERAS = 20
 # cameras without OIS of a third (OIS_OFF_FAMILY: seed, cameras; about a fifth of them).
 FRESH_SCENES = {"rig": (101, 12, FILL), "far": (202, 12, (0.2, 1 / 3))}
 # Held-out natural scenes: seed, cameras, natural test frames each (a room, a street or a table of the camera's
-# own around a board; sim.natural), read on the frames' board corners as the paper's LEGO test is.
-FRESH_NATURAL = (404, 12, 10)
+# own around a board; sim.natural), read on the frames' board corners as the paper's LEGO test is; 200 frames a camera
+# so that each mode's rho over the prior oracle's has an interval narrow enough to judge (issue 50).
+FRESH_NATURAL = (404, 12, 200)
 OIS_OFF_FAMILY = (11, 40)
 OIS_OFF_SIGMAS = 2.0  # a frame of a camera without OIS is right when K is within this many sigma of K_true
 FINE_TUNE_FRAMES = 30
@@ -70,13 +73,16 @@ def zero_shot(data: dict, generic: Predictor, device: dict, config: ReproduceCon
             if np.any(data[d].frames_in("test") & (data[d].scene == scene)):
                 cases[scene] = _test(data[d], scene)
         for case, frames in cases.items():
-            ev = evaluate(frames, p.K_c, p, methods=("dimenet", "map"))
-            ev_device = evaluate(frames, device[d].K_c, device[d], methods=("dimenet", "map"))
+            methods = with_prior_oracle(frames, ("dimenet", "map"))[0]  # natural frames: the prior oracle beside
+            ev = evaluate(frames, p.K_c, p, methods=methods)
+            ev_device = evaluate(frames, device[d].K_c, device[d], methods=methods)
             rows[f"{d} {case}"] = {
                 "n_frames": frames.n_frames,
                 "generic": {m: _rho(ev, m) for m in ("dimenet", "map")},
                 "device": {m: _rho(ev_device, m) for m in ("dimenet", "map")},
                 "coverage_true": ev.coverage_true,
+                **{f"generic_{k}": v for k, v in _beside_prior_oracle(ev).items()},
+                **{f"device_{k}": v for k, v in _beside_prior_oracle(ev_device).items()},
             }
     return rows
 
@@ -132,17 +138,29 @@ def fresh_scenes(model: str = GENERIC_MODEL, cameras: Optional[int] = None) -> d
     return out
 
 
+def _beside_prior_oracle(ev) -> dict:
+    """The prior oracle's rho and each mode's rho over it with its interval (``metrics.RatioInterval`` as a dict)
+    on an evaluation's frames (``overall``), or {} when the frames had no prior oracle."""
+    if PRIOR_ORACLE not in ev.methods:
+        return {}
+    return {
+        "prior_oracle": _rho(ev, PRIOR_ORACLE),
+        "ratio": {m: asdict(ev.ratios[m]["overall"]) for m in ("dimenet", "map")},
+    }
+
+
 def natural_scenes(generic: Predictor, cameras: Optional[int] = None) -> list:
-    """Per camera of the FRESH_NATURAL family (or its first ``cameras``): its scene's kind and features, and rho
-    of both modes on its natural test frames (``all``; None where the frames' e_c is within noise of e*: cameras
-    without OIS)."""
+    """Per camera of the FRESH_NATURAL family (or its first ``cameras``): its scene's kind, features and label noise,
+    rho of both modes on its natural test frames (``all``; None where the frames' e_c is within noise of e*: cameras
+    without OIS), and beside them the prior oracle's rho and each mode's rho over it (``_beside_prior_oracle``)."""
     seed, n, frames = FRESH_NATURAL
     n = _first(n, cameras)
     rows = []
     family = simulate_family(n, seed, scenes="random", natural_frames=frames)
     for i, (camera, ds) in enumerate(progress(family, total=n, desc="reproduce: held-out natural scenes")):
         p = generic.for_camera(dataset_camera(ds))
-        ev = evaluate(_test(ds, "natural"), p.K_c, p, methods=("dimenet", "map"))
+        frames = _test(ds, "natural")
+        ev = evaluate(frames, p.K_c, p, methods=with_prior_oracle(frames, ("dimenet", "map"))[0])
         scene = ds.meta["natural_scene"]
         rows.append(
             {
@@ -150,8 +168,10 @@ def natural_scenes(generic: Predictor, cameras: Optional[int] = None) -> list:
                 "ois": has_ois(seed, i),
                 "kind": scene["kind"],
                 "features": scene["features"],
+                "label_noise_px": float(np.median(frames.label_noise_px)),
                 "all": {m: _rho(ev, m) for m in ("dimenet", "map")},
                 "small": {"dimenet": None, "map": None},
+                **_beside_prior_oracle(ev),
             }
         )
     return rows

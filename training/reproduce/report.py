@@ -225,6 +225,37 @@ def _median_worst(rows: list, case: str, method: str) -> str:
     return "–" if not rhos else f"{_pct(float(np.median(rhos)))} / {_pct(min(rhos))}"
 
 
+def _ratio_cell(r: dict) -> str:
+    """'0.83 [0.78, 0.88]' of a ``metrics.RatioInterval`` as a dict, '–' without a ratio."""
+    if r["ratio"] is None:
+        return "–"
+    return f"{r['ratio']:.2f}" + ("" if r["low"] is None else f" [{r['low']:.2f}, {r['high']:.2f}]")
+
+
+def _prior_oracle_report(by_model: dict) -> list:
+    """Per model and camera of the natural family: each mode's rho, the prior oracle's, and their ratio with its
+    90 % interval (issue 50); nothing when the rows have no prior oracle."""
+    rows = [(model, r) for model, sc in by_model.items() for r in sc["natural"] if "prior_oracle" in r]
+    if not rows:
+        return []
+    L = [
+        "",
+        "Natural frames against the **prior oracle** (per frame, the MAP (K, pose) under the true population prior "
+        "of K, the mean and covariance of the camera's own K_true, with the true label noise: what one frame allows "
+        'a method with a Gaussian prior; training/METHOD.md, "The prior oracle"): ρ %, and ρ ÷ the prior oracle\'s '
+        "ρ with its 90 % interval (bootstrap over the camera's frames).",
+        "",
+        "| model | camera | kind, labels, noise px | dimenet | map | prior-oracle | dimenet ÷ oracle | map ÷ oracle |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for model, r in rows:
+        scene = f"{r['kind']}, {r['features']}, {r['label_noise_px']:.1f}"
+        cells = [_pct(r["all"][m]) for m in ("dimenet", "map")] + [_pct(r["prior_oracle"])]
+        cells += [_ratio_cell(r["ratio"][m]) for m in ("dimenet", "map")]
+        L.append(f"| {model} | {r['camera']} | {scene} | " + " | ".join(cells) + " |")
+    return L
+
+
 def _scenes_report(by_model: dict) -> list:
     """The held-out scene families' rows of each bundled model (name -> ``fresh_scenes``)."""
     L = [
@@ -247,6 +278,7 @@ def _scenes_report(by_model: dict) -> list:
             rows = sc[family]
             cells = [_median_worst(rows, case, m) for case in ("all", "small") for m in ("dimenet", "map")]
             L.append(f"| {family} | {len(rows)} | {model} | " + " | ".join(cells) + " |")
+    L += _prior_oracle_report(by_model)
     off = first["ois_off"]
     L += [
         "",
