@@ -12,7 +12,9 @@ of a bank (CUTOFFS_HZ), after subtracting the gyroscope's bias (its running mean
 BIAS_TAU_S, then exponential; what a bias leaves after the high-pass is a small constant). Each (cutoff, gain) pair
 of the bank (x GAINS) is scored by the mean reprojection error its K leaves on the frame's points (pose by PnP),
 every SCORE_EVERY-th frame, with a forgetting factor: the loop is the best-scored pair, learned from the frames,
-not assumed. sigma of c: SIGMA_FLOOR_PX and the spread of the best few pairs' predictions.
+not assumed. The focal length is K_c's or the stream's tracked one, whichever has left less error with the loop's
+c (the network's f is biased on some recordings, and right on others). sigma of c: SIGMA_FLOOR_PX and the spread
+of the best few pairs' predictions.
 
 Memory: a few numbers per cutoff and pair, and an index into the samples.
 """
@@ -53,6 +55,7 @@ class GyroOis:
         self._bias_s = 0.0
         self._hp = np.zeros((len(CUTOFFS_HZ), 2))  # (yaw, pitch) high-passed, rad, per cutoff
         self._scores = np.zeros((len(CUTOFFS_HZ), len(GAINS)))
+        self._f_scores = np.zeros(2)  # K_c's f, the tracked f
         self._frames = 0
 
     def recentre(self) -> None:
@@ -78,12 +81,13 @@ class GyroOis:
         """(cutoffs, 2) px the lens shift of each cutoff at gain 1."""
         return self.k_c[0] * np.stack([np.tan(self._hp[:, 0]), -np.tan(self._hp[:, 1])], 1)
 
-    def score(self, points_2d: np.ndarray, points_3d: np.ndarray, k: np.ndarray) -> None:
-        """Score the bank on one frame's points (px, mm) with K's other parameters from ``k`` (4,) px, every
-        SCORE_EVERY-th call."""
+    def score(self, points_2d: np.ndarray, points_3d: np.ndarray, f_tracked: np.ndarray) -> None:
+        """Score the bank on one frame's points (px, mm), every SCORE_EVERY-th call, with K_c's (fx, fy); then the
+        best pair's c with ``f_tracked`` (2,) px (the stream's filter) against it."""
         self._frames += 1
         if (self._frames - 1) % SCORE_EVERY:
             return
+        k = self.k_c
         shifts = self._shifts()
         errors = np.empty_like(self._scores)
         for i, shift in enumerate(shifts):
@@ -96,8 +100,20 @@ class GyroOis:
                     errors[i, j] = frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
                 except InputError:
                     errors[i, j] = np.nan
-        if np.all(np.isfinite(errors)):
-            self._scores = SCORE_MEMORY * self._scores + errors
+        if not np.all(np.isfinite(errors)):
+            return
+        self._scores = SCORE_MEMORY * self._scores + errors
+        i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
+        K = k_matrix(np.r_[f_tracked, self.k_c[2:] + GAINS[j] * shifts[i]])
+        try:
+            e = frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
+        except InputError:
+            return
+        self._f_scores = SCORE_MEMORY * self._f_scores + (errors[i, j], e)
+
+    def f_tracked_wins(self) -> bool:
+        """Whether the tracked f has left less error on the frames' points than K_c's with the loop's c."""
+        return bool(self._f_scores[1] < self._f_scores[0])
 
     def c(self) -> tuple[np.ndarray, np.ndarray]:
         """(cx, cy) px of the best-scored loop now, and their variances (2,) px^2."""

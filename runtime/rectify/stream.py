@@ -19,9 +19,9 @@ and streams): a Kalman filter over k = (fx, fy, cx, cy) px. Each frame:
 
 With the gyroscope (``motion``, (G, 4) rows t_ns, gx, gy, gz rad/s in {C}: ``formats.motion``), the principal
 point is the OIS loop's prediction from the measured rotation (``rectify.gyro_ois``: the loop's cutoff and gain
-learned from the frames' points) and the focal length K_c's: on natural labels the network's f is biased per
-recording (measured: 5-60 px RMS where K_c's is 3-11), which no filter averages away, and the gyroscope says nothing
-of f. (A refocus is then not tracked.)
+learned from the frames' points) and the focal length the filter's or K_c's, whichever has left less error on the
+frames' points (on natural labels the network's f is biased per recording, measured 5-60 px RMS where K_c's is 3-11,
+which no filter averages away; on a rig it is right).
 
 Constant memory: the state is 4 + 16 numbers, the previous pose and time (and the gyroscope's bank).
 """
@@ -150,9 +150,9 @@ class Stream:
         p3 = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
         if rect.dist_coeffs is not None:
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
-        gyro.score(p2, p3, self.k_c)
+        gyro.score(p2, p3, self.k[:2])
         c, var = gyro.c()
-        self.k = np.r_[self.k_c[:2], c]
+        self.k = np.r_[self.k[:2] if gyro.f_tracked_wins() else self.k_c[:2], c]
         self.P = self.P.copy()
         self.P[2:, :] = self.P[:, 2:] = 0.0
         self.P[2, 2], self.P[3, 3] = var

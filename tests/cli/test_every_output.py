@@ -55,7 +55,8 @@ FLAGS = {
         "--points": IN,
         "--model": IN,
         "--camera": IN,
-        "other": "--example --mode --refine --json",
+        "--motion": IN,
+        "other": "--example --mode --refine --json --temporal",
     },
     "render": {"--out": OUT, "--rig": IN, "other": "--profile --n --seed --format --scale --dist-coeffs"},
     "reproduce": {
@@ -66,7 +67,7 @@ FLAGS = {
     "simulate": {
         "--out": OUT,
         "other": "--profile --family --scenes --seed --natural-frames --planar-frames --dist-coeffs --platform-k "
-        "--address --cpus-per-job",
+        "--address --cpus-per-job --recording --seconds --cuts --held-out --ois-off",
     },
     "train": {
         "--out": OUT,
@@ -141,6 +142,7 @@ def _cases() -> list:
         c("rectify", "--out", "--points", "rectify --points {in} --camera cam.json --out {out}"),
         c("rectify", "--out", "--model", "rectify --points rec.csv --model {in} --out {out}"),
         c("rectify", "--out", "--camera", rectify.replace("cam.json", "{in}")),
+        c("rectify", "--out", "--motion", rectify + " --temporal --motion {in}"),
         c("render", "--out", "--rig", render, written="truth.npz"),
         c("render", "--out", "--rig", render, written="photo-0001.png"),
         c("train", "--out", "data", "train {in} --out {out}", written="spec.json", needs=TORCH),

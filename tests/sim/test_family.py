@@ -180,7 +180,7 @@ def test_cli_help_ends_with_a_family_example(capsys):
     "argv, words",
     [
         (["--profile", "galaxy-s8", "--family", "3"], "not allowed with"),
-        ([], "one of the arguments --profile --family is required"),
+        ([], "one of the arguments --profile --family --recording is required"),
         (["--family", "0"], "--family"),
         (["--family", "1001"], "--family"),
         (["--family", "abc"], "--family"),
