@@ -11,6 +11,8 @@ from pathlib import Path
 from dimenet.runtime.cli.arguments import grid_size, nonempty_path, seed
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
+from dimenet.runtime.rectify.features import FeatureSpec
+from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.model import BUNDLED_HELP
 from dimenet.runtime.rectify.spec import HEADS
 
@@ -69,14 +71,18 @@ def _add_train(p: argparse.ArgumentParser) -> None:
         "the model learns nothing)",
     )
     p.add_argument(
-        "--grid", type=grid_size, default=d.grid, action=_Noted, help=f"grid, columns x rows (default {d.grid})"
+        "--grid",
+        type=grid_size,
+        default=str(d.features.grid),
+        action=_Noted,
+        help=f"grid, columns x rows (default {d.features.grid})",
     )
     p.add_argument(
         "--features",
-        default=d.variant,
+        default=d.features.variant,
         action=_Noted,
         choices=FEATURE_VARIANTS,
-        help=f"feature variant of paper Table 3 (default {d.variant})",
+        help=f"feature variant of paper Table 3 (default {d.features.variant})",
     )
     p.add_argument(
         "--data-step",
@@ -149,7 +155,7 @@ def _add_train(p: argparse.ArgumentParser) -> None:
 
 
 # The flags whose settings an --init model fixes (its features and head are kept): the argparse dest, the
-# flag, the TrainConfig field.
+# flag, the FeatureSpec field (TrainConfig's for the head).
 INIT_FIXES = (
     ("grid", "--grid", "grid"),
     ("features", "--features", "variant"),
@@ -160,10 +166,12 @@ INIT_FIXES = (
 
 
 def _network_settings(args: argparse.Namespace, init) -> dict:
-    """The TrainConfig fields of INIT_FIXES: the flags' (or their defaults) without an init; the init's
-    with one, and a warning line on stderr for each of those flags given another value."""
+    """TrainConfig's features and head: the flags' (or their defaults) without an init; the init's with one, and
+    a warning line on stderr for each flag of INIT_FIXES given another value."""
     if init is None:
-        return {field: getattr(args, dest) for dest, _, field in INIT_FIXES}
+        f = {field: getattr(args, dest) for dest, _, field in INIT_FIXES}
+        head = f.pop("head")
+        return {"features": FeatureSpec(**{**f, "grid": Grid.parse(f["grid"])}), "head": head}
     f = init.spec.features
     kept = {"grid": str(f.grid), "variant": f.variant, "data_step": f.data_step, "moments": f.moments}
     kept["head"] = init.spec.head
@@ -184,7 +192,7 @@ def _network_settings(args: argparse.Namespace, init) -> dict:
                 f"dimenet train: warning: {flag}{shown} is ignored: --init {args.init} keeps its own {its[field]}",
                 file=sys.stderr,
             )
-    return kept
+    return {"features": f, "head": kept["head"]}
 
 
 def _run_train(args: argparse.Namespace) -> int:
@@ -266,8 +274,7 @@ def _resume(args: argparse.Namespace) -> int:
         print(f"{args.resume}: its training finished ({HISTORY} holds every epoch): nothing to resume")
         return 0
     _, state = read_checkpoint(args.resume)
-    tuples = {f.name for f in dataclasses.fields(TrainConfig) if isinstance(f.default, tuple)}
-    config = TrainConfig(**{k: tuple(v) if k in tuples else v for k, v in state["config"].items()})
+    config = TrainConfig.from_dict(state["config"])
     origin = state["origin"]
     print(f"resuming {args.resume} after epoch {state['epoch']} of {config.epochs} ({state['command']})")
     datasets, sha256 = read_training_data(origin["data"])

@@ -6,12 +6,14 @@ The command line reads its defaults from these dataclasses (training/commands.py
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Optional
 
 from dimenet.runtime.cli.arguments import finite_float_in, integer_in
 from dimenet.runtime.errors import InputError
+from dimenet.runtime.rectify.encoders.grid import VARIANTS
+from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.spec import head_problem
 
 # The flags are range-checked by their argparse types, so a bad value is refused before torch is imported;
@@ -19,7 +21,7 @@ from dimenet.runtime.rectify.spec import head_problem
 MAX_EPOCHS = 100_000  # the paper's models train 600; 2**40 would run for ever
 MAX_FOCAL_WEIGHT = 1000.0  # 1e300 overflows the loss (NaN poses)
 MAX_TRAIN_FRAMES = 1_000_000
-FEATURE_VARIANTS = tuple("ABCDE")  # paper Table 3 (rectify.features.VARIANTS)
+FEATURE_VARIANTS = tuple(VARIANTS)  # paper Table 3
 epochs = integer_in(1, MAX_EPOCHS)
 focal_weight = finite_float_in(0.0, MAX_FOCAL_WEIGHT)
 train_frames = integer_in(2, MAX_TRAIN_FRAMES)
@@ -33,10 +35,9 @@ QUICK_CAMERAS = 2  # and the cameras of each of reproduce's held-out families
 
 @dataclass(frozen=True)
 class TrainConfig:
-    grid: str = "8x6"
-    variant: str = "A"
-    data_step: bool = False  # the frame's own Gauss-Newton step on K after the grid (rectify.features)
-    moments: bool = False  # the point set's moments after the grid and step (rectify.features)
+    # What the network reads (grid, variant, data_step, moments; rectify.features); its depth_mm is the data's: the
+    # trainer sets it for a generic model and clears it for a device model.
+    features: FeatureSpec = field(default_factory=FeatureSpec)
     head: str = "mlp"  # "gated_step": Delta K = MLP + a learned gate times the data step (training.model)
     epochs: int = 600
     batch_size: int = 32
@@ -67,9 +68,21 @@ class TrainConfig:
     fine_tune_lr: float = 2e-4
 
     def __post_init__(self) -> None:
-        problem = head_problem(self.head, self.data_step, "--data-step (data_step in a fleet manifest)")
+        problem = head_problem(self.head, self.features.data_step, "--data-step (data_step in a fleet manifest)")
         if problem:
             raise InputError(problem)
+
+    def to_dict(self) -> dict:
+        """The settings as JSON values (checkpoints, provenance, fleet records): the features as a spec's."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        return {**d, "features": self.features.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        """``to_dict``'s settings again (JSON's lists back to tuples)."""
+        tuples = {f.name for f in fields(cls) if isinstance(f.default, tuple)}
+        settings = {k: tuple(v) if k in tuples else v for k, v in d.items()}
+        return cls(**{**settings, "features": FeatureSpec.from_dict(d["features"])})
 
 
 @dataclass(frozen=True)

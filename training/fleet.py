@@ -23,7 +23,6 @@ jobs with ``--address`` (``runtime.jobs.engine``).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import re
 import shutil
@@ -36,6 +35,7 @@ from dimenet.runtime.errors import DimenetError, InputError
 from dimenet.runtime.formats.atomic import atomic_write_text
 from dimenet.runtime.formats.text import read_text
 from dimenet.runtime.json_text import JsonProblem, an_object, parse_json, required, shown
+from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.model import BUNDLED_MODELS
 from dimenet.runtime.rectify.spec import HEADS
 
@@ -64,15 +64,18 @@ def _head(text: str) -> str:
 _OPTIONS = {
     "seed": ("seed", int, seed),
     "epochs": ("epochs", int, epochs),
-    "grid": ("grid", str, grid_size),
-    "features": ("variant", str, _features),
     "focal_weight": ("focal_weight", float, focal_weight),
     "train_frames": ("train_frames", int, train_frames),
-    "data_step": ("data_step", bool, None),  # `dimenet train --data-step`: a switch, no argparse type
-    "moments": ("moments", bool, None),  # `dimenet train --moments`
     "k_c_error": ("k_c_error", float, k_c_error),
     "plane_share": ("plane_share", float, plane_share),
     "head": ("head", str, _head),
+}
+# Manifest key -> (FeatureSpec field of TrainConfig.features, JSON type, the flag's argparse type).
+_FEATURE_OPTIONS = {
+    "grid": ("grid", str, lambda text: Grid.parse(grid_size(text))),
+    "features": ("variant", str, _features),
+    "data_step": ("data_step", bool, None),  # `dimenet train --data-step`: a switch, no argparse type
+    "moments": ("moments", bool, None),  # `dimenet train --moments`
 }
 _KEYS = {attr: key for key, (attr, _, _) in _OPTIONS.items()}  # TrainConfig field -> manifest key
 
@@ -93,7 +96,7 @@ class FleetJob:
 
 def _option(key: str, value):
     """A manifest value through the argparse type of `dimenet train`'s flag (JsonProblem naming the key)."""
-    _, kind, parse = _OPTIONS[key]
+    _, kind, parse = {**_OPTIONS, **_FEATURE_OPTIONS}[key]
     if kind is str and not isinstance(value, str):
         raise JsonProblem(f"{key} must be a string, got {shown(value)}")
     if kind is int and not (isinstance(value, int) and not isinstance(value, bool)):
@@ -119,9 +122,10 @@ def _job(d, base: Path, names: set) -> FleetJob:
         raise JsonProblem(f"name {name!r} is a file the fleet writes into its folder ({', '.join(RESERVED)})")
     if name.casefold() in names:
         raise JsonProblem(f"name {name!r} is used twice, in any case (each job has its own run dir)")
-    unknown = sorted(set(d) - {"name", "dataset", "init", *_OPTIONS})
+    known = {**_OPTIONS, **_FEATURE_OPTIONS}
+    unknown = sorted(set(d) - {"name", "dataset", "init", *known})
     if unknown:
-        raise JsonProblem(f"{unknown[0]!r} is not a job field (known: name, dataset, init, {', '.join(_OPTIONS)})")
+        raise JsonProblem(f"{unknown[0]!r} is not a job field (known: name, dataset, init, {', '.join(known)})")
     dataset = required(d, "dataset")
     if not (isinstance(dataset, str) and dataset.strip()):
         raise JsonProblem(f"dataset must be a path, got {shown(dataset)}")
@@ -132,8 +136,9 @@ def _job(d, base: Path, names: set) -> FleetJob:
     if init is not None and init not in BUNDLED_MODELS:
         init = str(base / init)
     options = {_OPTIONS[key][0]: _option(key, d[key]) for key in _OPTIONS if key in d}
+    features = {_FEATURE_OPTIONS[key][0]: _option(key, d[key]) for key in _FEATURE_OPTIONS if key in d}
     try:
-        config = replace(TrainConfig(), **options)
+        config = replace(TrainConfig(), **options, features=replace(TrainConfig().features, **features))
     except InputError as exc:  # a pairing of fields TrainConfig refuses (head gated_step without data_step)
         raise JsonProblem(str(exc)) from None
     return FleetJob(name=name, dataset=str(base / dataset), init=init, config=config)
@@ -164,8 +169,16 @@ def read_manifest(path: str | Path) -> list:
 
 def _job_config(job: FleetJob) -> dict:
     """What a finished job was trained with, as its fleet.json records it (JSON values): every
-    TrainConfig field and the init."""
-    return json.loads(json.dumps({**dataclasses.asdict(job.config), "init": job.init}))
+    TrainConfig field (``TrainConfig.to_dict``) and the init."""
+    return json.loads(json.dumps({**job.config.to_dict(), "init": job.init}))
+
+
+def _flat(config: dict) -> dict:
+    """A job's config with the features' fields as their own keys (features.grid, ...), so a change names them."""
+    features = config.get("features")
+    if not isinstance(features, dict):
+        return config
+    return {**{k: v for k, v in config.items() if k != "features"}, **{f"features.{k}": v for k, v in features.items()}}
 
 
 def _changed(record: dict, config: dict, dataset_sha256: str) -> Optional[str]:
@@ -173,7 +186,7 @@ def _changed(record: dict, config: dict, dataset_sha256: str) -> Optional[str]:
     does: "config changed: epochs 10 -> 20, ...", "dataset changed", or no record of either."""
     if not isinstance(record.get("config"), dict) or "dataset_sha256" not in record:
         return "finished without a record of its configuration and dataset (an older release)"
-    old = record["config"]
+    old, config = _flat(record["config"]), _flat(config)
     edits = [
         f"{_KEYS.get(key, key)} {shown(old.get(key))} -> {shown(config.get(key))}"
         for key in sorted(set(old) | set(config))

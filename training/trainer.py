@@ -26,7 +26,7 @@ import json
 import time
 from collections.abc import Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional, Union
 
@@ -40,7 +40,6 @@ from dimenet.runtime.formats.dataset import Dataset, read_dataset
 from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.jobs.progress import progress
 from dimenet.runtime.rectify.features import FeatureSpec, c0_poses, grid_features
-from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.spec import GenericCamera, ModelSpec
 from dimenet.runtime.rectify.user_camera import Camera
 
@@ -148,13 +147,7 @@ def train(
 def _feature_spec(config: TrainConfig, generic: bool, init: Optional[InitialWeights]) -> FeatureSpec:
     if init is not None:
         return init.spec.features
-    return FeatureSpec(
-        grid=Grid.parse(config.grid),
-        variant=config.variant,
-        depth_mm=GENERIC_DEPTH_MM if generic else None,
-        data_step=config.data_step,
-        moments=config.moments,
-    )
+    return replace(config.features, depth_mm=GENERIC_DEPTH_MM if generic else None)
 
 
 def _units(datasets: list, config: TrainConfig, focal_px: Optional[float]) -> list:
@@ -213,7 +206,7 @@ def _has_step(features, frame: Dataset, rvec: np.ndarray, tvec: np.ndarray) -> b
 def _identity(config: TrainConfig, dataset_sha256: str, init: Optional[InitialWeights]) -> dict:
     """What a checkpoint must share with the training that resumes it (JSON's own values: tuples as lists)."""
     return json.loads(
-        json.dumps({"config": asdict(config), "dataset_sha256": dataset_sha256, "init": init and init.source})
+        json.dumps({"config": config.to_dict(), "dataset_sha256": dataset_sha256, "init": init and init.source})
     )
 
 
@@ -363,7 +356,7 @@ def _train(
         "seed": config.seed,
         "dimenet_version": __version__,
         "torch_version": torch.__version__,
-        "config": asdict(config),
+        "config": config.to_dict(),
         "command": command,
         "best_epoch": best[1],
         "best_val_e_px": best[0],

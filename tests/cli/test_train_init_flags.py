@@ -12,6 +12,7 @@ pytest.importorskip("torch")
 
 from dimenet.runtime.cli.main import main  # noqa: E402
 from dimenet.runtime.formats.dataset import write_dataset  # noqa: E402
+from dimenet.runtime.rectify.model import load_model  # noqa: E402
 
 
 @pytest.fixture
@@ -44,13 +45,15 @@ def test_flags_an_init_fixes_are_named_when_it_overrides_them(trained, capsys):
         "dimenet train: warning: --data-step is ignored: --init paper-rig keeps its own feature, without the data step",
         "dimenet train: warning: --moments is ignored: --init paper-rig keeps its own feature, without the moments",
     ]
-    assert (config.grid, config.data_step, config.moments, config.head) == ("8x6", False, False, "mlp")
+    f = config.features
+    assert (str(f.grid), f.data_step, f.moments, config.head) == ("8x6", False, False, "mlp")
+    assert f == load_model("paper-rig").spec.features  # the init's whole feature, recorded
 
 
 def test_flags_that_agree_with_the_init_or_are_left_out_give_no_warning(trained, capsys):
     code, config, err = trained(capsys, "--init", "any-scene", "--data-step", "--head", "gated_step")
     assert code == 0 and err == []
-    assert (config.data_step, config.moments, config.head) == (True, True, "gated_step")  # the init's, recorded
+    assert (config.features.data_step, config.features.moments, config.head) == (True, True, "gated_step")
     code, config, err = trained(capsys, "--init", "any-scene", "--features", "B", "--head", "mlp")
     assert err == [
         "dimenet train: warning: --features B is ignored: --init any-scene keeps its own feature variant, A",
@@ -61,7 +64,8 @@ def test_flags_that_agree_with_the_init_or_are_left_out_give_no_warning(trained,
 def test_without_init_the_flags_and_defaults_hold(trained, capsys):
     code, config, err = trained(capsys)
     assert code == 0 and err == []
-    assert (config.grid, config.variant, config.data_step, config.moments, config.head) == (
+    f = config.features
+    assert (str(f.grid), f.variant, f.data_step, f.moments, config.head) == (
         "8x6",
         "A",
         False,
@@ -70,4 +74,5 @@ def test_without_init_the_flags_and_defaults_hold(trained, capsys):
     )
     code, config, err = trained(capsys, "--grid", "4x3", "--features", "B", "--data-step", "--head", "gated_step")
     assert code == 0 and err == []
-    assert (config.grid, config.variant, config.data_step, config.head) == ("4x3", "B", True, "gated_step")
+    f = config.features
+    assert (str(f.grid), f.variant, f.data_step, config.head) == ("4x3", "B", True, "gated_step")

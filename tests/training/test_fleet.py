@@ -16,6 +16,8 @@ pytest.importorskip("torch")
 
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.formats.dataset import write_dataset
+from dimenet.runtime.rectify.features import FeatureSpec
+from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.fleet import FLEET_FILE, ManifestError, fleet_train, read_manifest
 
@@ -124,15 +126,14 @@ def test_manifest_values_within_the_caps_are_the_command_line_s(tmp_path):
     scene_options = {"data_step": True, "moments": True, "k_c_error": 1, "plane_share": 0.05}
     path.write_text(json.dumps({"jobs": [{**job, **scene_options}]}))
     (scenes,) = [j.config for j in read_manifest(path)]
-    assert (scenes.data_step, scenes.moments, scenes.k_c_error, scenes.plane_share) == (True, True, 1.0, 0.05)
-    assert (config.epochs, config.seed, config.focal_weight, config.grid, config.variant, config.train_frames) == (
-        100000,
-        2**32 - 1,
-        1000.0,
-        "64x64",
-        "E",
-        2,
+    assert (scenes.features.data_step, scenes.features.moments, scenes.k_c_error, scenes.plane_share) == (
+        True,
+        True,
+        1.0,
+        0.05,
     )
+    assert (config.epochs, config.seed, config.focal_weight, config.train_frames) == (100000, 2**32 - 1, 1000.0, 2)
+    assert config.features == FeatureSpec(Grid(64, 64), "E")
 
 
 @pytest.mark.parametrize("name", ["summary.json", "summary.md", "SUMMARY.JSON", "Summary.Md"])

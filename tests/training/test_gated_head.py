@@ -95,5 +95,5 @@ def test_a_training_config_states_the_head_rule_in_the_command_s_words():
     with pytest.raises(InputError, match=r"head gated_step needs --data-step \(data_step in a fleet manifest\)"):
         TrainConfig(head="gated_step")
     with pytest.raises(InputError, match="head must be one of mlp, gated_step, got 'wide'"):
-        TrainConfig(head="wide", data_step=True)
-    assert TrainConfig(head="gated_step", data_step=True).head == "gated_step"
+        TrainConfig(head="wide", features=FeatureSpec(data_step=True))
+    assert TrainConfig(head="gated_step", features=FeatureSpec(data_step=True)).head == "gated_step"

@@ -19,6 +19,7 @@ from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.rectify.encoders.data_step import STEP_SIZE
 from dimenet.runtime.rectify.encoders.moments import MOMENT_SIZE
+from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.user_camera import Camera
 from dimenet.runtime.sim.family import simulate_family
 from dimenet.training.config import TrainConfig
@@ -61,7 +62,9 @@ def test_a_scene_encoder_trains_with_the_data_step_moments_and_factory_k_c(famil
     """--data-step, --moments, --plane-share and --k-c-error 1 (every camera, every epoch, under a factory-like
     K_c): the spec says so, the plausible Delta K widens by the factory span either way, and the model serves an
     unseen camera."""
-    config = TrainConfig(epochs=2, seed=1, data_step=True, moments=True, k_c_error=1.0, plane_share=0.2)
+    config = TrainConfig(
+        epochs=2, seed=1, features=FeatureSpec(data_step=True, moments=True), k_c_error=1.0, plane_share=0.2
+    )
     run = train(family[:2], config, tmp_path / "run")
     _, spec = load_run(run.run_dir)
     assert spec.features.data_step and spec.features.moments

@@ -18,6 +18,8 @@ from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.dataset import write_dataset
 from dimenet.runtime.formats.rig import paper_rig
 from dimenet.runtime.geometry import k_params
+from dimenet.runtime.rectify.features import FeatureSpec
+from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.sim.profiles import PROFILES
 from dimenet.runtime.sim.simulator import simulate
 from dimenet.training.model import DimeNet
@@ -222,9 +224,9 @@ def test_other_sensor_other_point_count_and_no_val_split_train_and_evaluate(tmp_
     fit_idx, val_idx = split_train_val(ds, TrainConfig())
     assert len(val_idx) > 0 and not set(fit_idx) & set(val_idx)
     path = write_dataset(ds, tmp_path / "hd.npz")
-    result = train(ds, TrainConfig(epochs=3, grid="4x3"), tmp_path / "run")
+    result = train(ds, TrainConfig(epochs=3, features=FeatureSpec(Grid(4, 3))), tmp_path / "run")
     # With patience, a run whose val error cannot improve (lr 0) stops after that many epochs.
-    stuck = train(ds, TrainConfig(epochs=6, grid="4x3", lr=0.0, patience=1), tmp_path / "stuck")
+    stuck = train(ds, TrainConfig(epochs=6, features=FeatureSpec(Grid(4, 3)), lr=0.0, patience=1), tmp_path / "stuck")
     assert stuck.best_epoch == 1 and len(stuck.history) == 2
     pred = load_predictor(result.run_dir)
     assert pred.spec.image_size == (1920, 1080) and pred.spec.features.size == 5 * 12
@@ -350,7 +352,6 @@ def test_uncertainty_residuals_are_taken_against_the_true_k(fitting, monkeypatch
 def test_the_structure_limit_is_measured_on_frames_without_their_build_errors(small):
     """A smooth field added to every fitting frame's residuals (a sagging sheet) leaves the
     limit where it was: it is what OIS and the augmentation's noise make, not the rig's bends."""
-    from dimenet.runtime.rectify.grid import Grid
     from dimenet.training.scene_limits import structure_limit
 
     cfg = TrainConfig()
@@ -358,7 +359,7 @@ def test_the_structure_limit_is_measured_on_frames_without_their_build_errors(sm
     x = unit.fit.points_2d / unit.fit.image_size - 0.5
     field = 40.0 * np.nan_to_num(x**2)  # px, up to 10 px at the corners
     bent = dataclasses.replace(unit, truth=dataclasses.replace(unit.truth, residual=unit.truth.residual + field))
-    limits = [structure_limit([u], cfg, Grid.parse(cfg.grid), np.random.default_rng(4)) for u in (unit, bent)]
+    limits = [structure_limit([u], cfg, cfg.features.grid, np.random.default_rng(4)) for u in (unit, bent)]
     assert limits[0] == limits[1]
 
 
@@ -367,12 +368,11 @@ def test_the_structure_limit_does_not_read_the_chance_fits_of_a_few_noisy_labels
     field by chance, which set the limit by the draw's luck (0.5 to 4.4 px across seeds here); the
     limit reads frames of at least STRUCTURE_LIMIT_POINTS points, so these leave it at its floor."""
     from dimenet.runtime.rectify.checks import STRUCTURE_PX
-    from dimenet.runtime.rectify.grid import Grid
     from dimenet.training import scene_limits
 
     cfg = TrainConfig(cluster_share=1.0, cluster_points=(30, 40), max_label_noise_px=6.0, full_share=0.0)
     unit = training_unit(small, cfg, None, "small")
-    limit = lambda: scene_limits.structure_limit([unit], cfg, Grid.parse(cfg.grid), np.random.default_rng(0))  # noqa: E731
+    limit = lambda: scene_limits.structure_limit([unit], cfg, cfg.features.grid, np.random.default_rng(0))  # noqa: E731
     assert limit() == STRUCTURE_PX
     monkeypatch.setattr(scene_limits, "STRUCTURE_LIMIT_POINTS", 0)
     assert limit() > 2 * STRUCTURE_PX  # what they gave before

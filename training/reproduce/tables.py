@@ -17,6 +17,7 @@ from dimenet.runtime.evaluation.predictor import load_predictor
 from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.jobs.engine import Engine
+from dimenet.runtime.rectify.features import FeatureSpec
 from dimenet.runtime.rectify.grid import Grid
 from dimenet.runtime.rectify.model import MODEL_NAMES, load_model
 from dimenet.runtime.sim.simulator import simulate
@@ -148,7 +149,7 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
         f"{device}-{grid}-{variant}": (
             "train",
             data[device],
-            TrainConfig(grid=grid, variant=variant, epochs=epochs, seed=config.seed),
+            TrainConfig(features=FeatureSpec(Grid.parse(grid), variant), epochs=epochs, seed=config.seed),
             runs / f"{device}-{grid}-{variant}",
             None,
         )
