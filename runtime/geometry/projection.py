@@ -195,7 +195,7 @@ def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, f
     In an order fixed here (``camera_rows``, ``pinhole_residuals``, then ``frame_mean_norm``), which the
     compiled core follows to the bit (``native.frame_error_and_depth``, the check stage's)."""
     rows = camera_rows(points_3d, cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], tvec)
-    depth = float(np.min(rows[2])) if rows.shape[1] else np.inf
+    depth = float(rows[2].min()) if rows.shape[1] else np.inf
     np.divide(1.0, rows[2], out=rows[2])
     return frame_mean_norm(pinhole_residuals(rows, points_2d, K)), depth
 
@@ -203,9 +203,10 @@ def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, f
 def camera_rows(points_3d: np.ndarray, R, t) -> np.ndarray:
     """(3, N) X_C, Y_C, Z_C (mm) of one frame's (N, 3) {W} points at the pose R (3, 3), t (3,):
     ((R_i0 X + R_i1 Y) + R_i2 Z) + t_i, elementwise (the compiled core's order)."""
-    R, P = np.asarray(R, dtype=np.float64), points_3d.T
-    rows, products = np.multiply(R[:, :1], P[0]), np.empty((3, len(points_3d)))
-    rows += np.multiply(R[:, 1:2], P[1], out=products)
+    R, P = np.asarray(R, dtype=np.float64), np.array(points_3d.T, dtype=np.float64)  # coordinate rows
+    rows = np.multiply(R[:, :1], P[0])
+    products = np.multiply(R[:, 1:2], P[1])
+    rows += products
     rows += np.multiply(R[:, 2:], P[2], out=products)
     rows += np.reshape(t, (3, 1))
     return rows
@@ -218,9 +219,10 @@ def pinhole_residuals(rows: np.ndarray, points_2d: np.ndarray, K) -> np.ndarray:
     r = np.multiply(rows[:2], rows[2])
     skew = float(K[0][1])
     b_skew = r[1] * skew if skew else None
-    r *= ((float(K[0][0]),), (float(K[1][1]),))
+    K = np.asarray(K, dtype=np.float64)
+    r *= K[(0, 1), (0, 1), None]
     if skew:
         r[0] += b_skew
-    r += ((float(K[0][2]),), (float(K[1][2]),))
+    r += K[:2, 2:]
     r -= points_2d.T
     return r
