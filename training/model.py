@@ -18,6 +18,8 @@ from typing import Optional
 import torch
 from torch import nn
 
+from dimenet.runtime.rectify.encoders import spans
+
 # The network works in units of OUTPUT_SCALE_PX pixels, keeping weights of order 1.
 OUTPUT_SCALE_PX = 10.0
 # The gate's starting bias: sigmoid(2) = 0.88 of the step at the first epoch.
@@ -56,5 +58,5 @@ class DimeNet(nn.Module):
 def dime_net(features, hidden: tuple, head: str) -> DimeNet:
     """The DimeNet of a feature (``rectify.features.FeatureSpec``), hidden widths and head (a
     ModelSpec's ``features``, ``hidden``, ``head``)."""
-    step = (features.grid_size, features.scale["dx"]) if head == "gated_step" else None
+    step = (spans(features)["data_step"].start, features.scale["dx"]) if head == "gated_step" else None
     return DimeNet(features.size, hidden, step)
