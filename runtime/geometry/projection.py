@@ -20,6 +20,9 @@ def k_params(K: np.ndarray) -> np.ndarray:
 def k_matrix(params: np.ndarray) -> np.ndarray:
     """(..., 4) (fx, fy, cx, cy) in pixels -> (..., 3, 3) zero-skew intrinsic matrices."""
     params = np.asarray(params, dtype=np.float64)
+    if params.shape == (4,):  # one K (the rectifier's hot path): 1.5 against 5 us
+        fx, fy, cx, cy = params.tolist()
+        return np.array(((fx, 0.0, cx), (0.0, fy, cy), (0.0, 0.0, 1.0)))
     K = np.zeros(params.shape[:-1] + (3, 3))
     K[..., 0, 0] = params[..., 0]
     K[..., 1, 1] = params[..., 1]
