@@ -404,10 +404,67 @@ done:
     return result;
 }
 
+PyDoc_STRVAR(frame_checks_doc,
+             "frame_checks(points_2d_image, points_2d, points_3d, width_px, height_px, max_coordinate, spread_ratio, "
+             "spread_absolute)\n--\n\n"
+             "The input rules' fast tests on one frame (dimenet_frame_checks), the GIL released: points_2d_image "
+             "and points_2d (N, 2) px (as given; in the model's pixels), points_3d (N, 3) mm, N >= 1. Returns 0, "
+             "or 1 (a point not finite or outside the image or the coordinate range), or 2 (not clearly spread).");
+
+static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[] = {"points_2d_image", "points_2d", "points_3d"};
+    Py_buffer views[3];
+    int n_views = 0, code, i;
+    double numbers[5];
+    unsigned flags = 0u;
+    PyObject *result = NULL;
+    (void)module;
+    if (nargs != 8) {
+        PyErr_Format(PyExc_TypeError, "frame_checks takes 8 arguments, got %zd", nargs);
+        return NULL;
+    }
+    for (i = 0; i < 5; i++) {
+        numbers[i] = PyFloat_AsDouble(args[3 + i]);
+        if (numbers[i] == -1.0 && PyErr_Occurred()) {
+            return NULL;
+        }
+    }
+    for (i = 0; i < 3; i++) {
+        Py_ssize_t any[2] = {-1, -1};
+        if (get_view(args[i], &views[i], names[i], 'd', 2, any, 0) != 0) {
+            goto done;
+        }
+        n_views++;
+    }
+    if (views[0].shape[1] != 2 || views[1].shape[1] != 2 || views[2].shape[1] != 3 || views[0].shape[0] < 1
+        || views[1].shape[0] != views[0].shape[0] || views[2].shape[0] != views[0].shape[0]) {
+        PyErr_SetString(PyExc_ValueError, "frame_checks: points_2d_image and points_2d (N, 2), points_3d (N, 3), "
+                                          "N >= 1 expected");
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    code = dimenet_frame_checks((size_t)views[0].shape[0], (const double *)views[0].buf,
+                                (const double *)views[1].buf, (const double *)views[2].buf, numbers[0], numbers[1],
+                                numbers[2], numbers[3], numbers[4], &flags);
+    Py_END_ALLOW_THREADS
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, dimenet_error_message(code));
+        goto done;
+    }
+    result = PyLong_FromUnsignedLong(flags);
+done:
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"grid_features", grid_features, METH_VARARGS, grid_features_doc},
     {"frame_features", (PyCFunction)(void (*)(void))frame_features, METH_FASTCALL, frame_features_doc},
     {"pose_steps", (PyCFunction)(void (*)(void))pose_steps, METH_FASTCALL, pose_steps_doc},
+    {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -152,6 +152,24 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
                        double rvec_rad[3], double tvec_mm[3], double *e_px, double *depth_mm, double *scratch,
                        size_t n_scratch);
 
+/* Bits of dimenet_frame_checks' result. */
+#define DIMENET_CHECK_OUTSIDE 1u     /* a value not finite, a 2D point outside the image or a 3D coordinate
+                                        outside [-max_coordinate, max_coordinate) */
+#define DIMENET_CHECK_NOT_SPREAD 2u  /* the 2D or the 3D points are not clearly spread (the caller then
+                                        decides with its exact test, rectify.checks.check_spread) */
+
+/* The input rules' fast tests on one frame (rectify.checks.validated_frame's all_inside and clearly_spread):
+ * points_2d_image_px (n_points x 2) the points as given, inside the image when each lies in [-0.5,
+ * width_px - 0.5] x [-0.5, height_px - 0.5]; points_3d_w_mm (n_points x 3) each coordinate in
+ * [-max_coordinate, max_coordinate); points_2d_px (n_points x 2, the model's pixels) and points_3d_w_mm
+ * clearly spread: with T the trace and S the sum of principal 2 x 2 minors of their sample covariance
+ * (1 / n), S > 3 spread_ratio T^2 and T > D spread_absolute scale^2, scale = max(|coordinate|, 1)
+ * (a sufficient test, taken in point order: not OpenCV's covariance to the bit). *result: 0 or the
+ * DIMENET_CHECK_* bits. DIMENET_E_ARGUMENT for a NULL pointer or n_points < 1. */
+int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, const double *points_2d_px,
+                         const double *points_3d_w_mm, double width_px, double height_px, double max_coordinate,
+                         double spread_ratio, double spread_absolute, unsigned *result);
+
 /* The text of an error code (the reference's InputError message where it has one); never NULL. */
 const char *dimenet_error_message(int code);
 

@@ -35,6 +35,7 @@ from typing import Callable, Optional
 import cv2
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MAX_COORDINATE,
@@ -321,11 +322,14 @@ def in_frame(b: int, call, *args):
 
 
 def validated_frame(
-    image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+    image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d, *, exact_map: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, Optional[tuple]]:
     """The input rules on one frame: its points as float64 (N, 2) px as given, the same mapped by
     ``to_model`` (the user's pixels -> the model's pinhole pixels) before the spread rule, and (N, 3)
-    mm, with the ``covariance_invariants`` of the 3D points; or InputError naming the problem."""
+    mm, with the ``covariance_invariants`` of the 3D points (None: not computed, the caller's to
+    compute when it needs them); or InputError naming the problem. ``exact_map``: ``to_model`` raises
+    nothing (no lens), so the compiled core may test the image, the range and the spread in one call
+    after it (``native.core.frame_checks``; the exact rules decide and word what it refuses)."""
     p2 = real_array(points_2d, "points_2d", "(N, 2) or (N, 1, 2)", 2, 2, opencv=True)
     p3 = real_array(points_3d, "points_3d", "(N, 3) or (N, 1, 3)", 2, 3, opencv=True)
     n = len(p2)
@@ -333,6 +337,19 @@ def validated_frame(
         raise InputError(f"points_2d has {n} points and points_3d {len(p3)}: they must correspond one to one")
     if n < MIN_POINTS:
         raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
+    if exact_map and native.core is not None:
+        p2_model = to_model(p2)
+        failed = native.core.frame_checks(
+            p2, p2_model, p3, image.width, image.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE
+        )
+        if failed == 1:
+            image.raise_bad_values(p2, p3, True, "")
+        if failed == 2:
+            check_not_degenerate(p2_model, p3)
+        distinct = too_few_distinct(p2_model, p3, MIN_POINTS)
+        if distinct is not None:
+            raise InputError(f"{distinct} distinct points of {n}: rectification needs at least {MIN_POINTS}")
+        return p2, p2_model, p3, None
     if not all_inside(image, p2, p3):
         image.raise_bad_values(p2, p3, True, "")
     p2_image, p2 = p2, to_model(p2)

@@ -174,7 +174,10 @@ class Rectifier:
         rules.
         """
         lap, cam = Lap(), self._cam
-        p2_image, p2, p3, invariants_3d = validated_frame(cam.image, cam.to_model, points_2d, points_3d)
+        exact_map = cam.dist_coeffs is None
+        p2_image, p2, p3, invariants_3d = validated_frame(
+            cam.image, cam.to_model, points_2d, points_3d, exact_map=exact_map
+        )
         lap("validate")
         rvec_c0, tvec_c0 = pnp(p2, p3, cam.K_c)
         lap("pnp_kc")
@@ -182,7 +185,7 @@ class Rectifier:
         lap("features")
         delta_k = self.model.frame_delta_k(feats)
         lap("model")
-        cand, reason = stages.frame_candidate(cam, delta_k, feats, len(p2), e_c, invariants_3d)
+        cand, reason = stages.frame_candidate(cam, delta_k, feats, p3, e_c, invariants_3d)
         if reason is None and self.mode == "map":
             cand = stages.frame_map(cam, p2, p3, cand, rvec_c0, tvec_c0)
             lap("map")
@@ -223,7 +226,7 @@ class Rectifier:
         k = cam.k_c + delta_k
         sigma = None
         if cam.spec.uncertainty is not None:
-            cov = stages.frame_covariance(cam.spec, feats, len(p2), e_c, invariants_3d)
+            cov = stages.frame_covariance(cam.spec, feats, p3, e_c, invariants_3d)
             sigma = np.sqrt(np.diagonal(cov))
         if cam.pixels is not None:
             k = cam.pixels.k_to_user(k)

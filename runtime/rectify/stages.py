@@ -21,6 +21,7 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import (
     MIN_POINTS,
     MIN_STRUCTURE_POINTS,
+    covariance_invariants,
     frame_mean_norm,
     k_matrix,
     mean_reprojection_error,
@@ -161,7 +162,7 @@ def frame_features(cam: ModelCamera, p2, p3, rvec_c0, tvec_c0) -> tuple[np.ndarr
 # -- model's end: the range rule, the K-bounds rule and the network's covariance ----------------
 
 
-def frame_candidate(cam: ModelCamera, delta_k, feats, n_points: int, e_c: float, invariants_3d: tuple):
+def frame_candidate(cam: ModelCamera, delta_k, feats, points_3d, e_c: float, invariants_3d: Optional[tuple]):
     """(candidate, None), or (None, why) when e_c is beyond the model's range or K = K_c + Delta K
     breaks the K-bounds rule."""
     if out_of_range(e_c, cam.fx_c):
@@ -171,15 +172,16 @@ def frame_candidate(cam: ModelCamera, delta_k, feats, n_points: int, e_c: float,
         return None, implausible_reason(delta_k, cam.user_k(k))
     covariance = None
     if cam.spec.uncertainty is not None:  # computed when K_cov is first asked for: the hot path does not pay
-        covariance = partial(frame_covariance, cam.spec, feats, n_points, e_c, invariants_3d)
+        covariance = partial(frame_covariance, cam.spec, feats, points_3d, e_c, invariants_3d)
     return Candidate(K=k_matrix(k), delta_k=delta_k, covariance=covariance), None
 
 
-def frame_covariance(spec: ModelSpec, feats: np.ndarray, n_points: int, pmd_px: float, invariants_3d: tuple):
-    """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, point count, mean
-    PMD (px) and the ``covariance_invariants`` of its 3D points."""
+def frame_covariance(spec: ModelSpec, feats: np.ndarray, points_3d, pmd_px: float, invariants_3d=None):
+    """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, its (N, 3) points, mean
+    PMD (px) and the ``covariance_invariants`` of its 3D points (None: computed here)."""
     cells = occupied_cells(feats[:, : spec.features.grid_size], len(spec.features.channels))[0]
-    return spec.uncertainty.frame_covariance(n_points, cells, pmd_px, thickness(*invariants_3d))
+    invariants_3d = covariance_invariants(points_3d) if invariants_3d is None else invariants_3d
+    return spec.uncertainty.frame_covariance(len(points_3d), cells, pmd_px, thickness(*invariants_3d))
 
 
 def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_c0, e_c0, reasons: list):

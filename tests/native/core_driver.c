@@ -390,9 +390,50 @@ static void test_pose_steps(void)
           "the message is the reference's");
 }
 
+/* The input rules' fast tests: a frame inside and spread; a pixel outside, a NaN, a coordinate at the
+ * range's end; collinear points; bad arguments. */
+static void test_frame_checks(void)
+{
+    enum { N = 64 };
+    static double p2[2 * N], p3[3 * N];
+    static const double rvec[3] = {0.12, -0.31, 0.05}, tvec[3] = {12.0, -25.0, 610.0};
+    dimenet_feature_spec s = model_spec(0);
+    unsigned r = 99u;
+    size_t i;
+    make_frame(&s, N, rvec, tvec, 0.0, p2, p3);
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK && r == 0u,
+          "an ordinary frame passes");
+    p2[6] = -0.5;
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK && r == 0u,
+          "on the image's edge: inside");
+    p2[6] = -0.51;
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+              && r == DIMENET_CHECK_OUTSIDE,
+          "beyond the edge: outside");
+    p2[6] = NAN;
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+              && r == DIMENET_CHECK_OUTSIDE,
+          "a NaN pixel: outside");
+    p2[6] = 100.0, p3[4] = 1e12;
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+              && r == DIMENET_CHECK_OUTSIDE,
+          "a coordinate at the range's end: outside");
+    for (i = 0; i < N; i++) {
+        p3[3 * i + 1] = 0.0, p3[3 * i + 2] = 0.0;
+    }
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+              && r == DIMENET_CHECK_NOT_SPREAD,
+          "collinear 3D points: not clearly spread");
+    CHECK(dimenet_frame_checks(0, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_E_ARGUMENT,
+          "no points are refused");
+    CHECK(dimenet_frame_checks(N, p2, NULL, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_E_ARGUMENT,
+          "a NULL buffer is refused");
+}
+
 int main(void)
 {
     test_pose_steps();
+    test_frame_checks();
     test_sizes();
     test_exact_frame(0);
     test_exact_frame(1);

@@ -98,8 +98,9 @@ def test_the_hot_path_and_grid_features_run_the_compiled_core(monkeypatch):
         x, X, _, rvec, tvec = random_frames(np.random.default_rng(1), frames=2, points=60, noise_px=0.5)
         rect.rectify(x[0], X[0])
         grid_features(x, X, None, K_TEST, IMAGE, FeatureSpec(), poses=(rvec, tvec))
-        assert spy.calls[0] == "frame_features" and spy.calls[-1] == "grid_features"
-        assert set(spy.calls[1:-1]) <= {"pose_steps"}  # the check stage's e(K) (when the frame keeps its K)
+        # validation's fast tests, the feature, the check stage's e(K) when the frame keeps its K
+        assert spy.calls[:2] == ["frame_checks", "frame_features"] and spy.calls[-1] == "grid_features"
+        assert set(spy.calls[2:-1]) <= {"pose_steps"}
 
 
 @compiled

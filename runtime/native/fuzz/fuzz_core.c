@@ -203,6 +203,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 0, r_out, t_out, &e, &depth, NULL, 0);
         check(code == DIMENET_OK); /* no step cannot fail */
     }
+    /* the input rules' fast tests: a verdict for any values, a refusal of no points */
+    {
+        unsigned verdict = 99u;
+        code = dimenet_frame_checks(n, p2, p2, p3, spec.image_width_px, spec.image_height_px, 1e12, 1e-4, 1e-10,
+                                    &verdict);
+        check(n == 0 ? code == DIMENET_E_ARGUMENT : (code == DIMENET_OK && verdict <= DIMENET_CHECK_NOT_SPREAD));
+    }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
 }
