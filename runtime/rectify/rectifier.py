@@ -1,8 +1,9 @@
 """Per-frame K rectification at run time: 2D-3D correspondences -> K, pose {W}->{C}.
 
-numpy, OpenCV and ONNX Runtime only. ``Rectifier.rectify`` runs one frame through named
-stages (``rectify.stages``, each beside its batch twin; validation in ``rectify.checks``), each
-timed into ``timings_us`` under its name:
+numpy, OpenCV and ONNX Runtime, and the optional compiled core (``runtime.native``: parts of validate,
+the feature and the check stage's e(K); models_spec/BENCHMARKS.md). ``Rectifier.rectify`` runs one
+frame through named stages (``rectify.stages``, each beside its batch twin; validation in
+``rectify.checks``), each timed into ``timings_us`` under its name:
 
 1. ``validate``: the input rules of ``rectify.checks`` (shapes, >= MIN_POINTS points, finite,
    inside the camera's image, not degenerate);
