@@ -1,11 +1,11 @@
-"""evaluation.streams: the methods side by side on a recording, rho over settled frames on held-out points."""
+"""bench.streams: the methods side by side on a recording, rho over settled frames on held-out points."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from dimenet.runtime.evaluation.streams import METHODS, SETTLE, _masks, score_recording
+from dimenet.runtime.bench.streams import METHODS, SETTLE, _masks, score_recording
 from dimenet.runtime.sim.recording import simulate_recording
 
 
