@@ -1,11 +1,13 @@
 """The optional compiled core (runtime/native, issue 49): everything else is in pyproject.toml.
 
-``pip install .`` compiles runtime/native/dimenet_core.c and _module.c into dimenet.runtime.native._core.
+``pip install .`` compiles the core's C files (runtime/native/dimenet_*.c) and the binding (_module*.c)
+into dimenet.runtime.native._core.
 Where no C compiler works, the build prints one warning and installs the pure-numpy package, which
 runs the same stages (dimenet.runtime.native says which one runs; ``dimenet --version`` prints it).
 """
 
 import sys
+from glob import glob
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
@@ -49,8 +51,8 @@ setup(
     ext_modules=[
         Extension(
             "dimenet.runtime.native._core",
-            sources=["runtime/native/dimenet_core.c", "runtime/native/_module.c"],
-            depends=["runtime/native/dimenet_core.h"],
+            sources=[*sorted(glob("runtime/native/dimenet_*.c")), *sorted(glob("runtime/native/_module*.c"))],
+            depends=sorted(glob("runtime/native/*.h")),
             include_dirs=["runtime/native"],
         )
     ],

@@ -10,7 +10,8 @@ The products the feature's data step reads (``monomial_gram``, ``gram_normal_equ
 a contiguous row, or a sum over an outer axis, first to last), not BLAS products, whose summation
 order and fused multiply-adds depend on the machine's kernel: the data step's Hessian can have a
 condition number near 1e9 (a single plane), so one last-bit change anywhere moves its inputs by 1e-7.
-In this order the compiled core (runtime/native/dimenet_core.c) computes the same numbers to the bit."""
+In this order the compiled core (runtime/native/dimenet_core.c, the Gram and its normal equations)
+computes the same numbers to the bit."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Which implementation runs the per-frame kernels: the compiled core or numpy.
 
-The compiled core (``dimenet.runtime.native._core``, built from dimenet_core.c and _module.c beside
+The compiled core (``dimenet.runtime.native._core``, built from dimenet_*.c and _module*.c beside
 this file by ``pip install .``) computes the feature stage of every encoder
 (``rectify.features.grid_features``), the check stage's error and depth (``frame_error_and_depth``
 below) and the Gauss-Newton pose under a K (``pose_under_k``: ``geometry.pose_step``, measured against

@@ -1,14 +1,14 @@
 /* dimenet_core: the compiled core of the DIME-Net runtime's per-frame feature stage.
  *
- * A plain C99 library (libc and libm only): a mobile app compiles dimenet_core.c beside ONNX Runtime
+ * A plain C99 library (libc and libm only): a mobile app compiles dimenet_*.c beside ONNX Runtime
  * Mobile and feeds the feature it writes to the model, as the Python runtime does through its thin
- * CPython binding (_module.c). The numpy code is the reference (runtime/rectify/features.py,
+ * CPython binding (_module*.c). The numpy code is the reference (runtime/rectify/features.py,
  * runtime/geometry/normal_equations.py); this library computes the same numbers, in the same
  * operation order where it can (sums in point order, numpy's pairwise sums where numpy sums an axis,
  * OpenCV's Rodrigues formula and Cholesky inverse), within 1e-12 of the scaled features
  * (tests/native/): bit for bit where the reference fixes its order (its data step, whose Hessian
- * can have a condition number near 1e9, must be). Compile it with floating-point contraction off (gcc/clang: -ffp-contract=off) so
- * that a * b + c is not fused into one rounding: the reference does not fuse.
+ * can have a condition number near 1e9, must be). Compile it with floating-point contraction off
+ * (gcc/clang: -ffp-contract=off) so that a * b + c is not fused into one rounding: the reference does not fuse.
  *
  * Units and frames: pixels (px) in the image the prior K_c describes, OpenCV's convention (the
  * centre of the top-left pixel at (0, 0)); points in the world frame {W} in the scene's unit (mm in

@@ -6,7 +6,7 @@
  * line per failed check and exits 1 when one failed.
  *
  *   gcc -std=c99 -Wall -Wextra -pedantic -Werror -ffp-contract=off -I runtime/native \
- *       tests/native/core_driver.c runtime/native/dimenet_core.c -lm -o core_driver && ./core_driver */
+ *       tests/native/core_driver.c runtime/native/dimenet_*.c -lm -o core_driver && ./core_driver */
 #include "dimenet_core.h"
 
 #include <math.h>

@@ -15,7 +15,17 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-CORE_SOURCES = ("dimenet_core.c", "dimenet_core.h", "_module.c")
+CORE_SOURCES = (
+    "dimenet_core.c",
+    "dimenet_features.c",
+    "dimenet_pose.c",
+    "dimenet_checks.c",
+    "dimenet_core.h",
+    "dimenet_internal.h",
+    "_binding.h",
+    "_module.c",
+    "_module_pose.c",
+)
 BUILD = "import sys; from setuptools import build_meta as b; print(getattr(b, sys.argv[1])(sys.argv[2]))"
 
 

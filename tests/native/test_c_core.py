@@ -15,11 +15,11 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 NATIVE = ROOT / "runtime" / "native"
-CORE = NATIVE / "dimenet_core.c"
+CORE = sorted(NATIVE.glob("dimenet_*.c"))  # the core's C files
 STRICT = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-Werror", "-ffp-contract=off"]
 SANITIZE = ["-g", "-O1", "-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer"]
 REPLAY_CASES = 20_000
-C_FILES = [CORE, NATIVE / "fuzz" / "fuzz_core.c", NATIVE / "fuzz" / "replay.c", ROOT / "tests/native/core_driver.c"]
+C_FILES = [*CORE, NATIVE / "fuzz" / "fuzz_core.c", NATIVE / "fuzz" / "replay.c", ROOT / "tests/native/core_driver.c"]
 
 needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc is not installed")
 
@@ -68,25 +68,28 @@ def test_the_binding_compiles_warning_free_beside_python_s_headers(tmp_path):
     include = sysconfig.get_paths()["include"]
     if not (Path(include) / "Python.h").is_file():
         pytest.skip("the Python headers are not installed")
-    done = subprocess.run(
-        ["gcc", *STRICT, "-O2", "-fPIC", "-I", str(NATIVE), "-I", include, "-c", str(NATIVE / "_module.c")],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=tmp_path,
-    )
-    assert done.returncode == 0 and not done.stderr.strip(), done.stderr
+    binding = sorted(NATIVE.glob("_module*.c"))
+    assert len(binding) == 2, binding
+    for source in binding:
+        done = subprocess.run(
+            ["gcc", *STRICT, "-O2", "-fPIC", "-I", str(NATIVE), "-I", include, "-c", str(source)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=tmp_path,
+        )
+        assert done.returncode == 0 and not done.stderr.strip(), (source.name, done.stderr)
 
 
 @needs_gcc
 def test_the_driver_runs_every_entry_point_clean_under_the_sanitizers(tmp_path):
-    driver = _build(tmp_path, "core_driver", [ROOT / "tests/native/core_driver.c", CORE], [*STRICT, *SANITIZE])
+    driver = _build(tmp_path, "core_driver", [ROOT / "tests/native/core_driver.c", *CORE], [*STRICT, *SANITIZE])
     assert "all checks passed" in _run_clean(driver)
 
 
 @needs_gcc
 def test_the_fuzz_target_replays_pseudo_random_inputs_clean_under_the_sanitizers(tmp_path):
-    sources = [NATIVE / "fuzz" / "replay.c", NATIVE / "fuzz" / "fuzz_core.c", CORE]
+    sources = [NATIVE / "fuzz" / "replay.c", NATIVE / "fuzz" / "fuzz_core.c", *CORE]
     replay = _build(tmp_path, "replay", sources, [*STRICT, *SANITIZE])
     assert f"{REPLAY_CASES} cases" in _run_clean(replay, str(REPLAY_CASES), "49")
 
@@ -100,7 +103,7 @@ def test_libfuzzer_finds_nothing_in_a_short_run(tmp_path):
                            capture_output=True, timeout=60)  # fmt: skip
     if "LLVMFuzzerTestOneInput" not in probe.stderr:
         pytest.skip("this clang has no libFuzzer runtime")
-    fuzzer = _build(tmp_path, "fuzz_core", [NATIVE / "fuzz" / "fuzz_core.c", CORE], flags, compiler="clang")
+    fuzzer = _build(tmp_path, "fuzz_core", [NATIVE / "fuzz" / "fuzz_core.c", *CORE], flags, compiler="clang")
     done = subprocess.run(
         [str(fuzzer), "-runs=5000", "-seed=49", str(tmp_path)], capture_output=True, text=True, timeout=120
     )

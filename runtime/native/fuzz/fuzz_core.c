@@ -9,7 +9,7 @@
  *
  * With clang (libFuzzer):
  *   clang -std=c99 -g -O1 -fsanitize=fuzzer,address,undefined -I runtime/native \
- *       runtime/native/fuzz/fuzz_core.c runtime/native/dimenet_core.c -lm -o fuzz_core
+ *       runtime/native/fuzz/fuzz_core.c runtime/native/dimenet_*.c -lm -o fuzz_core
  *   ./fuzz_core -max_total_time=60
  * With gcc only, replay.c drives it with pseudo-random inputs (tests/native/test_c_core.py). */
 #include <math.h>

@@ -3,7 +3,7 @@
  * AddressSanitizer and UndefinedBehaviorSanitizer; any report or abort fails the test.
  *
  *   gcc -std=c99 -g -O1 -fsanitize=address,undefined -fno-sanitize-recover=all -I runtime/native \
- *       runtime/native/fuzz/replay.c runtime/native/fuzz/fuzz_core.c runtime/native/dimenet_core.c -lm
+ *       runtime/native/fuzz/replay.c runtime/native/fuzz/fuzz_core.c runtime/native/dimenet_*.c -lm
  *   ./a.out 20000 1    (cases, seed) */
 #include <stdint.h>
 #include <stdio.h>

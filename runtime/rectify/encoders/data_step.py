@@ -4,7 +4,7 @@ One Gauss-Newton step over (pose, K) from the C0 pose and K_c (``geometry.prior_
 (1 sigma STEP_PRIOR_REL * fx_c px per parameter): its Delta K (fx, fy, cx, cy) px clipped to +- STEP_CLIP_REL * fx_c
 times the PMD's scale, then the log of each parameter's posterior sigma over the prior's (0 where the points do not
 fix it, e.g. f and c on one plane). Read from the frame's monomial Gram (``geometry.monomial_gram``). Compiled: the
-``size`` values after the grid in ``dimenet_frame_features``' output (runtime/native/dimenet_core.c).
+``size`` values after the grid in ``dimenet_frame_features``' output (runtime/native/dimenet_features.c).
 """
 
 from __future__ import annotations

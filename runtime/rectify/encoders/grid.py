@@ -4,7 +4,7 @@ Each cell of the u x v grid (``rectify.grid``) holds the mean of its points' [dx
 (``rectify.features``), empty cells zero, flattened cell by cell in (row, column) order with the spec's
 channels inside, each channel times its fixed scale (with ``depth_mm``, X and Y times the frame's depth
 factor and 1/Z over it). Compiled: the first ``size`` values of ``dimenet_frame_features``' output
-(runtime/native/dimenet_core.c).
+(runtime/native/dimenet_features.c).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ The mean over its points of every product of two of [1, a, b, ab, a^2, b^2, z, a
 b = Y/Z in {C0}, z the point's inverse depth over the frame's mean inverse depth and s the PMD's scale (the upper
 triangle in row order, less the two that are always 1): how the points spread over the image and in depth, and how
 the PMD varies over them. They are the normal equations' own statistics (``geometry.monomial_gram``). Compiled: the
-last ``size`` values of ``dimenet_frame_features``' output (runtime/native/dimenet_core.c).
+last ``size`` values of ``dimenet_frame_features``' output (runtime/native/dimenet_features.c).
 """
 
 from __future__ import annotations

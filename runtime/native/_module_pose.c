@@ -1,0 +1,160 @@
+/* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
+ * feature stage): pose_steps (dimenet_pose_steps) and frame_checks (dimenet_frame_checks), under the same
+ * rules as _module.c's (buffers checked, the GIL released in the kernel, no static mutable state). */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include "_binding.h"
+
+PyDoc_STRVAR(pose_steps_doc,
+             "pose_steps(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out)\n--\n\n"
+             "The pose under the pinhole K (3, 3) px (no skew) after ``steps`` Gauss-Newton steps from the pose "
+             "rvec, tvec (3,) into rvec_out, tvec_out (3,) float64, the GIL released; returns (e px, smallest depth "
+             "mm) at that pose (geometry.pose_step.pose_under_k to the bit): points_2d (N, 2) px, points_3d (N, 3) "
+             "mm in {W}. With no outputs (rvec_out and tvec_out None) and steps 0: geometry.frame_error_and_depth. "
+             "InputError when a step has no solution or the pose is not finite; TypeError or ValueError for "
+             "arrays of the wrong type or shape, or a K with skew.");
+
+static PyObject *pose_steps(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[] = {"points_2d", "points_3d", "K", "rvec", "tvec", "rvec_out", "tvec_out"};
+    static const char ndims[7] = {2, 2, 2, 1, 1, 1, 1};
+    Py_buffer views[7];
+    int n_views = 0, code = DIMENET_OK, i, outputs;
+    long steps;
+    Py_ssize_t N;
+    size_t n_scratch = 0;
+    double e = 0.0, depth = 0.0, k[4], r_out[3], t_out[3];
+    const double *K;
+    double *scratch = NULL;
+    PyObject *result = NULL;
+
+    if (nargs != 8) {
+        PyErr_Format(PyExc_TypeError, "pose_steps takes 8 arguments, got %zd", nargs);
+        return NULL;
+    }
+    steps = PyLong_AsLong(args[5]);
+    if (steps == -1 && PyErr_Occurred()) {
+        return NULL;
+    }
+    outputs = !(args[6] == Py_None && args[7] == Py_None);
+    if (steps < 0 || steps > DIMENET_MAX_POSE_STEPS || (!outputs && steps != 0)) {
+        PyErr_Format(PyExc_ValueError, "pose_steps: steps must be 0 to %d (0 without outputs), got %ld",
+                     DIMENET_MAX_POSE_STEPS, steps);
+        return NULL;
+    }
+    for (i = 0; i < (outputs ? 7 : 5); i++) {
+        Py_ssize_t any[2] = {-1, -1};
+        if (dimenet_py_get_view(args[i < 5 ? i : i + 1], &views[i], names[i], 'd', ndims[i], any, i >= 5) != 0) {
+            goto done;
+        }
+        n_views++;
+    }
+    N = views[0].shape[0];
+    if (views[0].shape[1] != 2 || views[1].shape[0] != N || views[1].shape[1] != 3 || views[2].shape[0] != 3
+        || views[2].shape[1] != 3 || views[3].shape[0] != 3 || views[4].shape[0] != 3
+        || (outputs && (views[5].shape[0] != 3 || views[6].shape[0] != 3))) {
+        PyErr_SetString(PyExc_ValueError, "pose_steps: points_2d (N, 2), points_3d (N, 3), K (3, 3), rvec, tvec, "
+                                          "rvec_out and tvec_out (3,) expected");
+        goto done;
+    }
+    K = (const double *)views[2].buf;
+    if (K[1] != 0.0) {
+        PyErr_SetString(PyExc_ValueError, "pose_steps: K must have no skew (K[0, 1] == 0)");
+        goto done;
+    }
+    k[0] = K[0], k[1] = K[4], k[2] = K[2], k[3] = K[5];
+    if (dimenet_pose_scratch_doubles((size_t)N, &n_scratch) != DIMENET_OK) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    if (steps > 0) {
+        scratch = (double *)PyMem_RawMalloc(n_scratch * sizeof(double) + 1);
+        if (scratch == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+    } else {
+        n_scratch = 0; /* no step reads it */
+    }
+    Py_BEGIN_ALLOW_THREADS
+    code = dimenet_pose_steps((size_t)N, (const double *)views[0].buf, (const double *)views[1].buf, k,
+                              (const double *)views[3].buf, (const double *)views[4].buf, (int)steps,
+                              outputs ? (double *)views[5].buf : r_out, outputs ? (double *)views[6].buf : t_out, &e,
+                              &depth, scratch, n_scratch);
+    Py_END_ALLOW_THREADS
+    if (code != DIMENET_OK) {
+        PyErr_SetString(code == DIMENET_E_NO_POSE_STEP ? dimenet_py_state_of(module)->input_error : PyExc_ValueError,
+                        dimenet_error_message(code));
+        goto done;
+    }
+    result = Py_BuildValue("(dd)", e, depth);
+done:
+    PyMem_RawFree(scratch);
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
+PyDoc_STRVAR(frame_checks_doc,
+             "frame_checks(points_2d_image, points_2d, points_3d, width_px, height_px, max_coordinate, spread_ratio, "
+             "spread_absolute)\n--\n\n"
+             "The input rules' fast tests on one frame (dimenet_frame_checks), the GIL released: points_2d_image "
+             "and points_2d (N, 2) px (as given; in the model's pixels), points_3d (N, 3) mm, N >= 1. Returns 0, "
+             "or 1 (a point not finite or outside the image or the coordinate range), or 2 (not clearly spread).");
+
+static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[] = {"points_2d_image", "points_2d", "points_3d"};
+    Py_buffer views[3];
+    int n_views = 0, code, i;
+    double numbers[5];
+    unsigned flags = 0u;
+    PyObject *result = NULL;
+    (void)module;
+    if (nargs != 8) {
+        PyErr_Format(PyExc_TypeError, "frame_checks takes 8 arguments, got %zd", nargs);
+        return NULL;
+    }
+    for (i = 0; i < 5; i++) {
+        numbers[i] = PyFloat_AsDouble(args[3 + i]);
+        if (numbers[i] == -1.0 && PyErr_Occurred()) {
+            return NULL;
+        }
+    }
+    for (i = 0; i < 3; i++) {
+        Py_ssize_t any[2] = {-1, -1};
+        if (dimenet_py_get_view(args[i], &views[i], names[i], 'd', 2, any, 0) != 0) {
+            goto done;
+        }
+        n_views++;
+    }
+    if (views[0].shape[1] != 2 || views[1].shape[1] != 2 || views[2].shape[1] != 3 || views[0].shape[0] < 1
+        || views[1].shape[0] != views[0].shape[0] || views[2].shape[0] != views[0].shape[0]) {
+        PyErr_SetString(PyExc_ValueError, "frame_checks: points_2d_image and points_2d (N, 2), points_3d (N, 3), "
+                                          "N >= 1 expected");
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    code = dimenet_frame_checks((size_t)views[0].shape[0], (const double *)views[0].buf,
+                                (const double *)views[1].buf, (const double *)views[2].buf, numbers[0], numbers[1],
+                                numbers[2], numbers[3], numbers[4], &flags);
+    Py_END_ALLOW_THREADS
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, dimenet_error_message(code));
+        goto done;
+    }
+    result = PyLong_FromUnsignedLong(flags);
+done:
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
+PyMethodDef dimenet_py_pose_methods[] = {
+    {"pose_steps", (PyCFunction)(void (*)(void))pose_steps, METH_FASTCALL, pose_steps_doc},
+    {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
+    {NULL, NULL, 0, NULL},
+};
