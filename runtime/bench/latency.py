@@ -5,12 +5,15 @@ Frames: one ``simulate(BENCH_PROFILE, seed)`` dataset; each benchmark frame is o
 frames with at least ``points`` valid points (drawn with replacement) and a random subset of
 exactly ``points`` of them. Times are wall-clock microseconds per call (time.perf_counter_ns);
 the baseline, then ``rectify``, then (with ``batch`` > 1) ``rectify_batch`` each run over all
-frames in their own loop, after one untimed warm-up call of ``rectify``.
+frames in their own loop, after one untimed warm-up call of ``rectify``; with ``callers`` > 1, that many
+Python threads then share the one Rectifier, each calling ``rectify`` on its share of the frames, and
+their frames/s over the one-by-one loop's is ``callers_speedup``.
 """
 
 from __future__ import annotations
 
 import platform
+import threading
 import time
 from pathlib import Path
 from typing import Optional
@@ -117,6 +120,24 @@ def _batch_rate(rectifier: Rectifier, p2, p3, batch: int, refine: bool) -> float
     return len(p2) / ((time.perf_counter_ns() - start) / 1e9)
 
 
+def _callers_rate(rectifier: Rectifier, p2, p3, callers: int, refine: bool) -> float:
+    """Frames per second of ``callers`` Python threads calling ``rectify`` on one shared Rectifier, the
+    frames dealt out in turn (thread j takes frames j, j + callers, ...), from the first start to the last
+    end."""
+
+    def work(j: int) -> None:
+        for i in range(j, len(p2), callers):
+            rectifier.rectify(p2[i], p3[i], refine=refine)
+
+    threads = [threading.Thread(target=work, args=(j,)) for j in range(callers)]
+    start = time.perf_counter_ns()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return len(p2) / ((time.perf_counter_ns() - start) / 1e9)
+
+
 def run_bench(
     model: Optional[str] = None,
     *,
@@ -124,12 +145,13 @@ def run_bench(
     points: int = 320,
     threads: int = 1,
     batch: int = 1,
+    callers: int = 1,
     refine: bool = False,
     seed: int = 0,
     mode: str = "dimenet",
 ) -> dict:
     """Benchmark a model (default: the bundled one) and return the report as a JSON-able dict."""
-    for name, value in (("threads", threads), ("batch", batch)):
+    for name, value in (("threads", threads), ("batch", batch), ("callers", callers)):
         if value < 1:
             raise InputError(f"--{name} must be >= 1, got {value}")
     cv2.setNumThreads(threads)
@@ -170,6 +192,10 @@ def run_bench(
     if batch > 1:
         report["batch_frames_per_s"] = _batch_rate(rectifier, p2, p3, batch, refine)
         report["batch_speedup"] = report["batch_frames_per_s"] / report["single_frames_per_s"]
+    if callers > 1:
+        report["callers"] = callers
+        report["callers_frames_per_s"] = _callers_rate(rectifier, p2, p3, callers, refine)
+        report["callers_speedup"] = report["callers_frames_per_s"] / report["single_frames_per_s"]
     return report
 
 
@@ -192,4 +218,9 @@ def format_report(r: dict) -> str:
     ]
     if "batch_frames_per_s" in r:
         lines.append(f"batches of {r['batch']}: {r['batch_frames_per_s']:.0f} frames/s ({r['batch_speedup']:.2f}x)")
+    if "callers_frames_per_s" in r:
+        lines.append(
+            f"{r['callers']} caller threads on one Rectifier: {r['callers_frames_per_s']:.0f} frames/s "
+            f"({r['callers_speedup']:.2f}x one caller)"
+        )
     return "\n".join(lines)

@@ -9,8 +9,10 @@ from dimenet.runtime.cli.main import main
 
 def test_bench_json_reports_every_key(model_path, capsys):
     model = [] if model_path is None else ["--model", str(model_path)]
-    assert main(["bench", *model, "--frames", "12", "--points", "64", "--batch", "4", "--json"]) == 0
+    assert main(["bench", *model, "--frames", "12", "--points", "64", "--batch", "4", "--callers", "2", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
+    assert report["callers"] == 2 and report["callers_frames_per_s"] > 0
+    assert report["callers_speedup"] == report["callers_frames_per_s"] / report["single_frames_per_s"]
     for key in ("end_to_end_us", "baseline_solvepnp_us"):
         assert set(report[key]) == {"p50", "p90", "p99", "max"}
     assert set(report["stages_us"]) == {"validate", "pnp_kc", "features", "model", "pnp_k", "check"}

@@ -79,6 +79,7 @@ FLAGS = {
         "--frames": counts(1),
         "--threads": PARALLEL,
         "--batch": counts(1),
+        "--callers": PARALLEL,
         "--budget-ms": FLOAT + ["0"],
         "--model": OUT,
     },

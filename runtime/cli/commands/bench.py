@@ -31,6 +31,7 @@ LATENCY = {
     "frames": 2000,
     "threads": 1,
     "batch": 1,
+    "callers": 1,
     "budget_ms": None,
     "refine": False,
 }
@@ -81,6 +82,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     latency.add_argument("--threads", type=parallelism, help=f"ONNX Runtime and OpenCV threads ({_default('threads')})")
     latency.add_argument(
         "--batch", type=integer_in(1, MAX_FRAMES), help="also time rectify_batch on batches of B frames"
+    )
+    latency.add_argument(
+        "--callers",
+        type=parallelism,
+        metavar="C",
+        help="also time C Python threads calling rectify on one shared Rectifier (with --threads 1: issue 49's "
+        "two-caller figure)",
     )
     latency.add_argument(
         "--budget-ms",
@@ -256,6 +264,7 @@ def _run_latency(args: argparse.Namespace) -> int:
         points=o["points"],
         threads=o["threads"],
         batch=o["batch"],
+        callers=o["callers"],
         refine=o["refine"],
         mode=o["mode"],
     )
