@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 
-from dimenet.runtime.errors import InputError
+from dimenet.runtime.errors import InputError, PointsError
 from dimenet.runtime.formats.points import PointsFrame
 from dimenet.runtime.formats.rectified_points import error_record, frame_record
 from dimenet.runtime.rectify.rectifier import Rectifier
@@ -15,10 +15,11 @@ from dimenet.runtime.rectify.stream import Stream
 
 def rectified_records(rectifier: Rectifier, frames: Iterable[PointsFrame], *, refine: bool) -> Iterator[dict]:
     """``frame_record`` of each frame (``Rectifier.rectify``, the single-frame path), or its
-    ``error_record`` when the rectifier refuses it (InputError); the run goes on."""
+    ``error_record`` when the rectifier refuses it (InputError); the run goes on. A frame with its own K_c
+    (points format 2) is rectified about it."""
     for frame in frames:
         try:
-            res = rectifier.rectify(frame.points_2d, frame.points_3d, refine=refine)
+            res = rectifier.rectify(frame.points_2d, frame.points_3d, refine=refine, K_c=frame.K_c)
         except InputError as exc:
             yield error_record(frame, exc)
         else:
@@ -27,8 +28,14 @@ def rectified_records(rectifier: Rectifier, frames: Iterable[PointsFrame], *, re
 
 def streamed_records(stream: Stream, frames: Iterable[PointsFrame]) -> Iterator[dict]:
     """``frame_record`` of each frame's fused result (``Stream.update``) with its ``event`` and whether K is the
-    filter's (``fused``), or its ``error_record`` when the rectifier refuses the frame; the run goes on."""
+    filter's (``fused``), or its ``error_record`` when the rectifier refuses the frame; the run goes on. A frame
+    with its own K_c (points format 2) is a PointsError: the filter tracks K about the camera's one K_c."""
     for frame in frames:
+        if frame.K_c is not None:
+            raise PointsError(
+                f"frame {frame.frame_id!r} (line {frame.line}) gives its own K_c (fx_px..cy_px): the temporal mode "
+                "tracks K about the camera's one K_c and does not use it yet; rectify the file without --temporal"
+            )
         try:
             out = stream.update(frame.points_2d, frame.points_3d, frame.t_ns)
         except InputError as exc:

@@ -4,7 +4,10 @@
 Specified in ``models_spec/points-csv.md``. Input: one row (CSV) or one JSON object (JSON
 Lines) per point, with ``frame_id``, optional ``t_ns``, ``x_px``, ``y_px`` (px, OpenCV's pixel
 convention) and ``X_mm``, ``Y_mm``, ``Z_mm`` (or ``X_m``, ``Y_m``, ``Z_m``) in the frame's world
-frame {W}; other columns and keys are ignored. The rows of a frame are consecutive.
+frame {W}; other columns and keys are ignored. The rows of a frame are consecutive. A file of format 2 declares
+it on its first non-blank line (CSV: ``#dimenet-points/2``; JSON Lines: ``{"format": "dimenet-points/2"}``) and may give
+each frame its own K_c in ``fx_px``, ``fy_px``, ``cx_px``, ``cy_px`` (all four or none, the same on every row of
+a frame); a file without the line is format 1, whose such columns are ignored as any other.
 ``read_points`` reads the file lazily, one frame at a time (memory: one frame and 8 bytes per
 frame id seen), and yields each frame's points with the 3D points in mm. Every problem of the
 file is a PointsError naming the file and line. The output, the JSON lines of their rectification, is
@@ -36,13 +39,17 @@ MAX_T_NS = 2**63 - 1  # |t_ns|: a signed 64-bit nanosecond clock
 UNITS = {"mm": 1.0, "m": 1000.0}  # 3D columns X_<unit>, Y_<unit>, Z_<unit> -> mm
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 _SEEN_BUFFER = 4096  # frame-id hashes held in a set before they join the sorted arrays
+FORMAT_NAME = "dimenet-points"
+FORMATS = (1, 2)  # format 2: the declaration line and a frame's own K_c
+K_COLUMNS = ("fx_px", "fy_px", "cx_px", "cy_px")  # format 2: the frame's K_c (px)
 
 
 @dataclass(frozen=True)
 class PointsFrame:
     """One frame of a points file: ``points_2d`` (N, 2) float64 px and ``points_3d`` (N, 3)
     float64 mm in the frame's {W}, row by row; ``t_ns`` int ns or None; ``line``: the line of
-    its first row; ``bytes_read``: the bytes of the file read when the frame was complete."""
+    its first row; ``bytes_read``: the bytes of the file read when the frame was complete; ``K_c`` (3, 3)
+    float64 px the frame's own prior (format 2's fx_px..cy_px) or None."""
 
     frame_id: str
     t_ns: Optional[int]
@@ -50,6 +57,7 @@ class PointsFrame:
     points_3d: np.ndarray
     line: int
     bytes_read: int
+    K_c: Optional[np.ndarray] = None
 
 
 def _unreadable(path: Path, exc: OSError) -> PointsError:
@@ -156,6 +164,28 @@ def _columns(names: list[str], lines: _Lines) -> tuple[int, Optional[int], list[
     return names.index("frame_id"), t_ns, [names.index(n) for n in coords], scale
 
 
+def _k_names(has, lines: _Lines, what: str) -> bool:
+    """Whether a format-2 header or object (``has(name)``) gives the frame's K_c: all of K_COLUMNS, or none."""
+    given = [n for n in K_COLUMNS if has(n)]
+    if given and len(given) != len(K_COLUMNS):
+        missing = ", ".join(n for n in K_COLUMNS if n not in given)
+        raise lines.error(f"{what} gives {', '.join(given)} but not {missing}: a frame's K_c needs all four or none")
+    return bool(given)
+
+
+def _declared_format(text: str, lines: _Lines) -> int:
+    """The format a declaration names (``dimenet-points/N``), or PointsError for another name or version."""
+    name, _, version = text.strip().partition("/")
+    if name.strip() != FORMAT_NAME or not version.strip().isdigit():
+        raise lines.error(f"the first line declares {shown(text.strip())}; expected {FORMAT_NAME}/N")
+    if int(version) not in FORMATS:
+        raise lines.error(
+            f"{FORMAT_NAME}/{int(version)} is not a format this release reads "
+            f"({', '.join(f'{FORMAT_NAME}/{v}' for v in FORMATS)}): update dimenet-runtime"
+        )
+    return int(version)
+
+
 def _t_ns(text: str, lines: _Lines, line: int) -> int:
     """t_ns: an integer (ns) of magnitude at most MAX_T_NS (ASCII digits; its length is checked
     before int() reads it, which refuses more than 4300 digits)."""
@@ -167,20 +197,25 @@ def _t_ns(text: str, lines: _Lines, line: int) -> int:
 
 
 def _csv_points(lines: _Lines) -> Iterator[tuple]:
-    """(line, frame_id, t_ns text or None, [x, y, X, Y, Z] px and mm) of every non-blank CSV row
-    after the header."""
+    """(line, frame_id, t_ns text or None, [x, y, X, Y, Z] px and mm, [fx, fy, cx, cy] px or None) of every
+    non-blank CSV row after the header (and the format's declaration before it)."""
     reader = csv.reader(lines)
     names: Optional[list[str]] = None
-    start = 1
+    start, version, k_of, declared = 1, 1, None, False
     try:
         for row in reader:
             line, start = start, lines.number + 1  # a quoted field may span lines: a row is named by its first line
             if not "".join(row).strip():
                 continue
+            if names is None and not declared and row[0].lstrip().startswith("#"):
+                version, declared = _declared_format(",".join(row).lstrip()[1:], lines), True
+                continue
             if names is None:
                 names = [c.strip() for c in row]
                 i_id, i_t, coords, scale = _columns(names, lines)
                 coordinates = itemgetter(*coords)
+                if version >= 2 and _k_names(names.__contains__, lines, "the header"):
+                    k_of = itemgetter(*(names.index(n) for n in K_COLUMNS))
                 continue
             if len(row) != len(names):
                 raise lines.error(f"expected {len(names)} fields as the header has, got {len(row)}", line)
@@ -190,7 +225,13 @@ def _csv_points(lines: _Lines) -> Iterator[tuple]:
                 raise lines.error(f"{names[bad]} must be a number, got {shown(row[bad])}", line)
             if scale != 1.0:
                 values[2:] = [v * scale for v in values[2:]]
-            yield line, row[i_id].strip(), None if i_t is None else row[i_t], values
+            k = None
+            if k_of is not None:
+                k = _decimals(k_of(row))
+                if k is None:
+                    bad = next(n for n in K_COLUMNS if decimal(row[names.index(n)]) is None)
+                    raise lines.error(f"{bad} must be a number, got {shown(row[names.index(bad)])}", line)
+            yield line, row[i_id].strip(), None if i_t is None else row[i_t], values, k
     except csv.Error as exc:
         raise lines.error(f"not a readable CSV row ({exc})", start) from None
     if names is None:
@@ -216,8 +257,8 @@ def _json_number(d: dict, key: str, lines: _Lines) -> float:
     return float(value)
 
 
-def _json_point(d: Any, lines: _Lines) -> tuple:
-    """One JSON Lines object -> (frame_id, t_ns, [x, y, X, Y, Z] px and mm)."""
+def _json_point(d: Any, lines: _Lines, version: int) -> tuple:
+    """One JSON Lines object -> (frame_id, t_ns, [x, y, X, Y, Z] px and mm, [fx, fy, cx, cy] px or None)."""
     if not isinstance(d, dict):
         raise lines.error(f"expected a JSON object (one point), got {shown(d)}")
     names, scale = _point_names(d.__contains__, lines, "a point")
@@ -229,33 +270,47 @@ def _json_point(d: Any, lines: _Lines) -> tuple:
         raise lines.error(f"t_ns must be an integer of nanoseconds (|t_ns| <= 2**63 - 1) or null, got {shown(t_ns)}")
     values = [_json_number(d, n, lines) for n in names]
     values[2:] = [v * scale for v in values[2:]]
-    return str(frame_id).strip(), t_ns, values
+    k = (
+        [_json_number(d, n, lines) for n in K_COLUMNS]
+        if version >= 2 and _k_names(d.__contains__, lines, "a point")
+        else None
+    )
+    return str(frame_id).strip(), t_ns, values, k
 
 
 def _jsonl_points(lines: _Lines) -> Iterator[tuple]:
-    """(line, frame_id, t_ns, [x, y, X, Y, Z] px and mm) of every non-blank JSON line."""
+    """(line, frame_id, t_ns, [x, y, X, Y, Z] px and mm, [fx, fy, cx, cy] px or None) of every non-blank JSON
+    line (after the format's declaration, an object with ``format`` and no ``frame_id``, when it is first)."""
+    version, first = 1, True
     for text in lines:
         if text.strip():
             try:
                 d = parse_json(text, max_chars=MAX_LINE_BYTES)
             except JsonProblem as exc:
                 raise lines.error(f"not valid JSON ({exc.problem})") from None
-            yield (lines.number, *_json_point(d, lines))
+            if first and isinstance(d, dict) and "format" in d and "frame_id" not in d:
+                if not isinstance(d["format"], str):
+                    raise lines.error(f"format must be a string, got {shown(d['format'])}")
+                version, first = _declared_format(d["format"], lines), False
+                continue
+            first = False
+            yield (lines.number, *_json_point(d, lines, version))
 
 
-def _frame(frame_id: str, t_ns, values: list, line: int, bytes_read: int) -> PointsFrame:
+def _frame(frame_id: str, t_ns, values: list, line: int, bytes_read: int, k: Optional[list]) -> PointsFrame:
     a = np.array(values, dtype=np.float64).reshape(-1, 5)
-    return PointsFrame(frame_id, t_ns, a[:, :2].copy(), a[:, 2:].copy(), line, bytes_read)
+    K_c = None if k is None else np.array([[k[0], 0.0, k[2]], [0.0, k[1], k[3]], [0.0, 0.0, 1.0]])
+    return PointsFrame(frame_id, t_ns, a[:, :2].copy(), a[:, 2:].copy(), line, bytes_read, K_c)
 
 
 def _frames(points: Iterable[tuple], lines: _Lines, t_as_text: bool) -> Iterator[PointsFrame]:
     """Group consecutive points of one frame_id into frames (checks: ids, t_ns, finiteness, size)."""
     seen = _SeenIds()
-    frame_id, t_ns, values, first, t_text = None, None, [], 0, None
-    for line, fid, t, xyz in points:
+    frame_id, t_ns, values, first, t_text, k_first = None, None, [], 0, None, None
+    for line, fid, t, xyz, k in points:
         if fid != frame_id:
             if frame_id is not None:
-                yield _frame(frame_id, t_ns, values, first, lines.bytes_read)
+                yield _frame(frame_id, t_ns, values, first, lines.bytes_read, k_first)
             if not fid:
                 raise lines.error("empty frame_id", line)
             if not seen.add(fid):
@@ -263,10 +318,20 @@ def _frames(points: Iterable[tuple], lines: _Lines, t_as_text: bool) -> Iterator
                     f"frame_id {shown(fid)} reappears after other frames (the rows of a frame must be consecutive)",
                     line,
                 )
-            frame_id, values, first, t_text = fid, [], line, t
+            frame_id, values, first, t_text, k_first = fid, [], line, t, k
             t_ns = _t_ns(t, lines, line) if t_as_text and t is not None else t
+            if k is not None and not all(map(isfinite, k)):
+                raise lines.error(
+                    f"fx_px, fy_px, cx_px, cy_px must be finite numbers, got {', '.join(map(repr, k))}", line
+                )
         elif t != t_text and (not t_as_text or _t_ns(t, lines, line) != t_ns):
             raise lines.error(f"t_ns {shown(t)} differs from the frame's first row ({t_ns}, line {first})", line)
+        elif k != k_first:
+            raise lines.error(
+                f"fx_px, fy_px, cx_px, cy_px ({'none' if k is None else ', '.join(map(repr, k))}) differ from the "
+                f"frame's first row (line {first}): a frame has one K_c",
+                line,
+            )
         if len(values) == 5 * MAX_FRAME_POINTS:
             raise lines.error(f"frame {shown(fid)} has more than {MAX_FRAME_POINTS} points", line)
         if not isfinite(sum(xyz)) and not all(map(isfinite, xyz)):  # the sum: one test for most rows
@@ -274,7 +339,7 @@ def _frames(points: Iterable[tuple], lines: _Lines, t_as_text: bool) -> Iterator
         values += xyz
     if frame_id is None:
         raise lines.error("no points in the file", lines.number or 1)
-    yield _frame(frame_id, t_ns, values, first, lines.bytes_read)
+    yield _frame(frame_id, t_ns, values, first, lines.bytes_read, k_first)
 
 
 def read_points(path: str | Path) -> Iterator[PointsFrame]:

@@ -45,8 +45,9 @@ def run_record(rectifier: Rectifier, *, refine: bool, points: str, camera: Optio
 def frame_record(frame: PointsFrame, res: Rectification) -> dict:
     """One rectified frame: K (3, 3) px, rvec rad and tvec mm {W}->{C}, e and e_c px, fallback and its
     fallback_code (``FALLBACK_CODES``), K_sigma_px the standard deviations of (fx, fy, cx, cy) px or None (no
-    uncertainty model, or K_c)."""
+    uncertainty model, or K_c); and K_c (3, 3) px when the frame gave its own (points format 2)."""
     cov = res.K_cov
+    own = {} if frame.K_c is None else {"K_c": frame.K_c.tolist()}
     return {
         "frame_id": frame.frame_id,
         "t_ns": frame.t_ns,
@@ -58,6 +59,7 @@ def frame_record(frame: PointsFrame, res: Rectification) -> dict:
         "fallback": res.fallback,
         "fallback_code": res.fallback_code,
         "K_sigma_px": None if cov is None else np.sqrt(np.diag(cov)).tolist(),
+        **own,
     }
 
 

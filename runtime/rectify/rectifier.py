@@ -166,15 +166,20 @@ class Rectifier:
         """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""
         return frame_within_bounds(list(k), self.K_bounds.tolist())
 
-    def rectify(self, points_2d: ArrayLike, points_3d: ArrayLike, *, refine: bool = False) -> Rectification:
+    def rectify(
+        self, points_2d: ArrayLike, points_3d: ArrayLike, *, refine: bool = False, K_c: Optional[ArrayLike] = None
+    ) -> Rectification:
         """K and pose of one frame from its correspondences: points_2d (N, 2) px, points_3d (N, 3) mm in {W}
         (or OpenCV's (N, 1, 2) and (N, 1, 3), as cv2.findChessboardCorners returns them).
 
         Lists and other real dtypes are accepted and cast to float64. Raises InputError for
         unusable input. See the module docstring for the stages and ``rectify.checks`` for the
-        rules.
+        rules. ``K_c`` (3, 3) px: this frame's own prior (a platform's per-frame K, e.g. Android's
+        LENS_INTRINSIC_CALIBRATION) instead of the Rectifier's, in the same image (and lens); a generic model
+        serves it, e_c is measured under it and a refused frame keeps it.
         """
-        lap, cam = Lap(), self._cam
+        lap = Lap()
+        cam = self._cam if K_c is None else self._frame_camera(K_c)
         exact_map = cam.dist_coeffs is None
         p2_image, p2, p3, invariants_3d = validated_frame(
             cam.image, cam.to_model, points_2d, points_3d, exact_map=exact_map
@@ -203,6 +208,22 @@ class Rectifier:
         lap("check")
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
+
+    def _frame_camera(self, K_c: ArrayLike) -> stages.ModelCamera:
+        """The camera of one frame with its own prior ``K_c`` (3, 3) px: this Rectifier's image and lens (the lens's
+        K stays the one its coefficients were stated about). InputError for a device model, which serves its own
+        K_c, and for a K_c no camera has (``checked_camera``'s rules)."""
+        if self.spec.generic is None:
+            raise InputError(
+                f"{self.model.source} is a device model: it serves its own K_c; a frame's own K_c needs a generic "
+                "model (the bundled default is one)"
+            )
+        lens_K = None if self.dist_coeffs is None else self._cam.lens_K
+        try:
+            camera = checked_camera(K_c, self.image_size, "the frame's K_c", self.dist_coeffs, lens_K)
+        except CameraError as exc:
+            raise InputError(str(exc)) from None
+        return stages.ModelCamera.build(self.spec.for_camera(camera, self.model.source), camera)
 
     def stream(self, **options):
         """A new ``rectify.stream.Stream``: one recording's K tracked frame by frame (``Stream.update``), its

@@ -27,8 +27,8 @@ FLAGS = {
     "bench": {
         "--ingest": OUT,
         "--model": IN,
-        "other": "--json --points --frames --threads --batch --callers --budget-ms --refine --mode --n --seed --profile "
-        "--workers --bpnp --repeats --baseline-repeats --fuzz --stream",
+        "other": "--json --points --frames --threads --batch --callers --budget-ms --refine --mode --n --seed "
+        "--profile --workers --bpnp --repeats --baseline-repeats --fuzz --stream",
     },
     "calibrate": {"--out": OUT, "--camera-out": OUT, "data": IN, "other": "--distortion --camera-format"},
     "evaluate": {

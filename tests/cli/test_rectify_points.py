@@ -119,6 +119,38 @@ def test_a_generic_model_needs_the_camera_a_device_model_has_its_own(recording, 
     assert len(records) == 6 and all("K" in r for r in records)
 
 
+def _format_2(recording, tmp_path, shift_px: float):
+    """The recording as points format 2: frame k's own K_c the example camera's with c moved by k * shift_px."""
+    K = example_camera().K
+    lines = recording.read_text().splitlines()
+    out = ["#dimenet-points/2", lines[0] + ",fx_px,fy_px,cx_px,cy_px"]
+    for line in lines[1:]:
+        k = int(line.split(",", 1)[0][1:])
+        k_c = (K[0, 0], K[1, 1], K[0, 2] + k * shift_px, K[1, 2] - k * shift_px)
+        out.append(line + "," + ",".join(repr(float(v)) for v in k_c))
+    path = tmp_path / "rec2.csv"
+    path.write_text("\n".join(out) + "\n")
+    return path
+
+
+def test_a_format_2_file_rectifies_each_frame_about_its_own_k_c(recording, camera_file, tmp_path, capsys):
+    path = _format_2(recording, tmp_path, 4.0)
+    assert main(["rectify", "--points", str(path), "--camera", str(camera_file)]) == 0
+    _, *records = _lines(capsys.readouterr().out)
+    rectifier = default_rectifier()
+    frames = list(read_points(path))
+    assert len(records) == len(frames) == 6
+    for record, frame in zip(records, frames):
+        res = rectifier.rectify(frame.points_2d, frame.points_3d, K_c=frame.K_c)
+        np.testing.assert_array_equal(record["K_c"], frame.K_c)
+        np.testing.assert_array_equal(record["K"], res.K)
+        assert record["e_c_px"] == res.reprojection_error_kc_px and record["fallback_code"] == res.fallback_code
+    assert records[3]["K_c"][0][2] == example_camera().K[0, 2] + 12.0
+    assert main(["rectify", "--points", str(path), "--camera", str(camera_file), "--temporal"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "gives its own K_c" in err and "without --temporal" in err
+
+
 def _dimenet(command: str) -> subprocess.CompletedProcess:
     """``dimenet`` in a shell command line, with bash's pipefail: a pipe's status is dimenet's."""
     cli = f"{shlex.quote(sys.executable)} -m dimenet.runtime.cli.main"
