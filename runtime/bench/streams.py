@@ -2,7 +2,8 @@
 (``metrics.reduction_ratio``) over its settled frames on the points the methods never see.
 
 Methods: ``fixed`` K_c (rho 0 by construction), ``platform`` (the SDK's K alone, where the recording has one: rho
-only), ``per_frame`` (``Rectifier.rectify``), ``temporal``
+only), ``platform_prior`` (where it has one: ``Rectifier.rectify`` about the SDK's K as the frame's own K_c, which a
+refused frame keeps), ``per_frame`` (``Rectifier.rectify``), ``temporal``
 (``Rectifier.stream()``) and ``gyro`` (``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
 the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
 reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
@@ -70,12 +71,21 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
         camera = nominal_camera(recording)
         rectifier = Rectifier.load(K_c=camera.K, image_size=camera.image_size)
     streams = {"temporal": rectifier.stream(), "gyro": rectifier.stream(motion=recording.gyro)}
-    K = {m: np.empty((ds.n_frames, 3, 3)) for m in METHODS}
-    sigma = {m: np.full((ds.n_frames, 4), np.nan) for m in METHODS}
-    own = {m: np.zeros(ds.n_frames, bool) for m in METHODS}
+    methods = METHODS if ds.K_platform is None else (*METHODS, "platform_prior")
+    K = {m: np.empty((ds.n_frames, 3, 3)) for m in methods}
+    sigma = {m: np.full((ds.n_frames, 4), np.nan) for m in methods}
+    own = {m: np.zeros(ds.n_frames, bool) for m in methods}
     for i in range(ds.n_frames):
         m = ds.infer_mask[i]
         p2, p3, t = ds.points_2d[i, m], ds.points_3d[i, m], int(recording.t_ns[i])
+        if ds.K_platform is not None:
+            try:
+                res = rectifier.rectify(p2, p3, K_c=ds.K_platform[i])
+                K["platform_prior"][i], own["platform_prior"][i] = res.K, res.fallback is None
+                if res.K_cov is not None:
+                    sigma["platform_prior"][i] = np.sqrt(np.diag(res.K_cov))
+            except InputError:  # the app keeps the platform's K
+                K["platform_prior"][i] = ds.K_platform[i]
         try:
             results = {name: s.update(p2, p3, t) for name, s in streams.items()}
         except InputError:  # a frame the rectifier refuses: the app keeps K_c (no sigma)
@@ -97,7 +107,7 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
     if ds.K_platform is not None:  # the platform's K alone
         e = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, ds.K_platform)
         rho["platform"], rho_after["platform"] = _rho(e_c, e, e_star, settled), _rho(e_c, e, e_star, after)
-    for name in METHODS:
+    for name in methods:
         e = reprojection_error_under_k(ds.points_2d, ds.points_3d, held, K[name])
         rho[name], rho_after[name] = _rho(e_c, e, e_star, settled), _rho(e_c, e, e_star, after)
         k = k_params(K[name])
@@ -105,5 +115,5 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
             coverage[name] = float(np.mean(np.all(np.abs(k - k_true) <= sigma[name], 1)))
             moved = np.any(k != k_c, 1)
             within[name] = float(np.mean(~moved | np.all(np.abs(k - k_c) <= 2.0 * sigma[name], 1)))
-    shares = {name: float(own[name].mean()) for name in METHODS}
+    shares = {name: float(own[name].mean()) for name in methods}
     return StreamScores(rho, rho_after, coverage, within, shares, ds.n_frames, int(settled.sum()))
