@@ -248,6 +248,7 @@ def family_member(
     platform_k: bool = False,
     scenes: str = "paper",
     fill: tuple = FILL,
+    mislabel_share: float = 0.0,
 ) -> Dataset:
     """The dataset of camera ``index`` (``profile``) of the family of ``seed`` and ``n`` cameras:
     ``simulate(profile, seed=camera_seed(seed, index), ...)`` with ``family`` = {"seed", "index", "cameras",
@@ -261,7 +262,7 @@ def family_member(
     boards placed slightly off; its image has a residual lens, corner bias and JPEG noise, and a share of cameras
     photographs ChArUco boards (``image_errors.draw_image_errors``, a fourth stream); its natural frames see a random
     room, street or table of the rig's size around the rig's first board (``natural.random_natural``, a fifth
-    stream)."""
+    stream); ``mislabel_share`` of their labels are gross mislabels (``simulate``'s)."""
     if scenes not in SCENES:
         raise InputError(f"scenes must be one of {', '.join(SCENES)}, got {scenes!r}")
     rig, offsets, natural, errors = None, None, None, None
@@ -283,6 +284,7 @@ def family_member(
         rig_offsets_mm=offsets,
         natural=natural,
         image_errors=errors,
+        mislabel_share=mislabel_share,
     )
     family = {"seed": int(seed), "index": index, "cameras": int(n), "scenes": scenes}
     return replace(ds, meta={**ds.meta, "family": family})

@@ -43,6 +43,7 @@ from dimenet.runtime.geometry import (
 )
 from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
 from dimenet.runtime.sim.image_errors import ImageErrors
+from dimenet.runtime.sim.mislabels import MISLABEL_PX, checked_share, mislabel_rng, mislabelled
 from dimenet.runtime.sim.platform import platform_matrices, platform_meta, platform_rng
 from dimenet.runtime.sim.profiles import DeviceProfile, get_profile
 from dimenet.runtime.sim.scene_geometry import NaturalSet, Scene, natural_scene, occluded, rig_scene
@@ -249,6 +250,7 @@ def simulate(
     rig_offsets_mm: Optional[np.ndarray] = None,
     natural: Optional[NaturalSet] = None,
     image_errors: Optional[ImageErrors] = None,
+    mislabel_share: float = 0.0,
 ) -> Dataset:
     """A simulated dataset: the profile's train/test rig frames, then ``natural_frames`` natural
     test frames, then ``planar_frames`` planar test frames.
@@ -270,12 +272,16 @@ def simulate(
     LEGO buildings beside the rig's first board, with the profile's label and model noise).
     ``image_errors``: the camera's residual lens, corner bias, JPEG noise and ChArUco detection (``sim.image_errors``,
     its own generator); the border margin grows by their reach, and meta ``image_errors`` records them.
+    ``mislabel_share``: that share of the natural frames' labels is grossly mislabelled (``sim.mislabels``, its own
+    generator; meta ``mislabels``); 0 changes nothing.
     """
     profile = get_profile(profile) if isinstance(profile, str) else profile
     for name, value in (("seed", seed), ("natural_frames", natural_frames), ("planar_frames", planar_frames)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
             raise InputError(f"{name} must be an integer >= 0, got {value!r}")
     dist = checked_dist_coeffs(dist_coeffs)
+    mislabel_share = checked_share(mislabel_share)
+    mrng = mislabel_rng(seed) if mislabel_share else None
     rig = paper_rig() if rig is None else rig
     rng = np.random.default_rng(seed)
     errors = image_errors
@@ -319,6 +325,8 @@ def simulate(
         n = len(px)
         noise = (rng.normal(0.0, 1.0, px.shape) * noise_px)[seen]
         seen, p2[k, :n] = _observed(px, seen, noise, nature, usable, profile, errors, erng)
+        if mrng is not None:
+            p2[k, :n] = mislabelled(p2[k, :n], seen & building, mislabel_share, profile.image_size_px, mrng)[0]
         p3[k, :n][seen] = model_points[seen]
         valid[k, :n], infer[k, :n] = seen, seen & building
         labelled = to_camera(nature.points[seen & building], rvec, tvec)
@@ -353,6 +361,8 @@ def simulate(
         }
     if errors is not None:
         meta["image_errors"] = asdict(errors)
+    if mislabel_share:
+        meta["mislabels"] = {"share": mislabel_share, "px": list(MISLABEL_PX)}
     if dist is not None:
         p2 = distort_points(p2, profile.nominal_K, dist)
     if platform_k:

@@ -51,6 +51,7 @@ FLAGS = {
         "--seed": SEED,
         "--natural-frames": counts(0),
         "--planar-frames": counts(0),
+        "--mislabels": FLOAT + ["0.51"],
         "--out": OUT,
     },
     "calibrate": {"--out": OUT},

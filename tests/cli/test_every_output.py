@@ -67,7 +67,7 @@ FLAGS = {
     "simulate": {
         "--out": OUT,
         "other": "--profile --family --scenes --seed --natural-frames --planar-frames --dist-coeffs --platform-k "
-        "--address --cpus-per-job --recording --seconds --cuts --held-out --ois-off",
+        "--address --cpus-per-job --recording --seconds --cuts --held-out --ois-off --mislabels",
     },
     "train": {
         "--out": OUT,

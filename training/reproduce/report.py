@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from dimenet.runtime.evaluation.methods import ALL_METHODS
+from dimenet.runtime.evaluation.prior_oracle import PRIOR_ORACLE
 
 from ..config import ReproduceConfig
 from .generic import SMALL_POINTS
@@ -301,7 +302,7 @@ def plot_methods(baselines: dict) -> bytes:
     plt = _figure()
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5), dpi=100, sharey=True)
     for ax, noise in zip(axes, ("clean", "noisy")):
-        for m in ALL_METHODS[1:-1]:
+        for m in (m for m in ALL_METHODS if m not in ("kc", "oracle", PRIOR_ORACLE)):
             rows = [baselines[f"galaxy-s8 {noise} {n} pts"]["methods"].get(m) for n in POINTS]
             if all(rows):
                 ax.plot(POINTS, [100 * (row["rho"] or 0) for row in rows], "o-", label=m)

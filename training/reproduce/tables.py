@@ -12,8 +12,9 @@ import numpy as np
 
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.evaluation.conditions import add_noise, drop_inference_points, empty_cells, occupancy
-from dimenet.runtime.evaluation.methods import ALL_METHODS, METHODS, evaluate
+from dimenet.runtime.evaluation.methods import ALL_METHODS, METHODS, evaluate, with_prior_oracle
 from dimenet.runtime.evaluation.predictor import load_predictor
+from dimenet.runtime.evaluation.prior_oracle import PRIOR_ORACLE
 from dimenet.runtime.formats.atomic import atomic_write, atomic_write_text
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.jobs.engine import Engine
@@ -78,7 +79,8 @@ def _baseline(frames: Dataset, run_dir: str) -> dict:
     """One baseline case: {"n_frames", "methods": method -> {avg_e, rho, fallbacks}, "coverage"
     and "coverage_true": method -> parameter -> share (against K* and against K_true)}."""
     p = load_predictor(run_dir)
-    ev = evaluate(frames, p.K_c, p, methods=METHODS if frames.K_platform is None else ALL_METHODS)
+    methods = METHODS if frames.K_platform is None else tuple(m for m in ALL_METHODS if m != PRIOR_ORACLE)
+    ev = evaluate(frames, p.K_c, p, methods=with_prior_oracle(frames, methods)[0])  # natural frames: the prior oracle
     return {
         "n_frames": frames.n_frames,
         "methods": {

@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dimenet.runtime.cli.arguments import add_address_argument, integer_in, nonempty_path, seed
+from dimenet.runtime.cli.arguments import add_address_argument, finite_float_in, integer_in, nonempty_path, seed
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.jobs.engine import run_all
 from dimenet.runtime.sim.family import MAX_FAMILY, SCENES, family_member, family_profiles, hfov_deg
+from dimenet.runtime.sim.mislabels import MAX_MISLABEL_SHARE, MISLABEL_PX
 from dimenet.runtime.sim.profiles import PROFILES, DeviceProfile
 from dimenet.runtime.sim.recording import KINDS as RECORDING_KINDS
 from dimenet.runtime.sim.recording import simulate_recording, write_recording
@@ -62,6 +63,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=0,
         help="natural-scene test frames to add (the paper has 34; default 0), per camera: the paper's LEGO "
         "buildings, or with --scenes random a room, street or table of the camera's own",
+    )
+    p.add_argument(
+        "--mislabels",
+        type=finite_float_in(0.0, MAX_MISLABEL_SHARE),
+        default=0.0,
+        metavar="SHARE",
+        help="with --natural-frames, this share of the natural labels clicked on the wrong feature, "
+        f"{MISLABEL_PX[0]:g}-{MISLABEL_PX[1]:g} px off (models_spec/simulator.md, 'Mislabels'; default 0)",
     )
     p.add_argument(
         "--planar-frames",
@@ -127,9 +136,9 @@ def camera_summary(profile: DeviceProfile) -> str:
 
 def write_member(job: tuple) -> tuple[str, int]:
     """One camera of a family to ``out``/<camera>.npz (a job of ``run_all``): job = (profile, index,
-    seed, n, natural_frames, planar_frames, dist_coeffs, platform_k, scenes, out). Returns its summary line
-    and frame count."""
-    profile, index, seed_, n, natural_frames, planar_frames, dist, platform_k, scenes, out = job
+    seed, n, natural_frames, planar_frames, dist_coeffs, platform_k, scenes, mislabels, out). Returns its summary
+    line and frame count."""
+    profile, index, seed_, n, natural_frames, planar_frames, dist, platform_k, scenes, mislabels, out = job
     ds = family_member(
         profile,
         index,
@@ -140,6 +149,7 @@ def write_member(job: tuple) -> tuple[str, int]:
         dist_coeffs=dist,
         platform_k=platform_k,
         scenes=scenes,
+        mislabel_share=mislabels,
     )
     path = write_dataset(ds, Path(out) / f"{profile.name}.npz")
     boards = ds.meta["rig"]["boards"]
@@ -166,6 +176,7 @@ def run_family(args: argparse.Namespace) -> int:
             args.dist_coeffs,
             args.platform_k,
             args.scenes,
+            args.mislabels,
             str(out),
         )
         for i, p in enumerate(profiles)
@@ -217,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
         planar_frames=args.planar_frames,
         dist_coeffs=args.dist_coeffs,
         platform_k=args.platform_k,
+        mislabel_share=args.mislabels,
     )
     path = write_dataset(ds, args.out)
     print(
