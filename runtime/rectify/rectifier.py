@@ -277,8 +277,7 @@ class Rectifier:
         cam = self._cam
         fr = validated_batch(cam.image, cam.to_model, points_2d, points_3d, valid, infer_mask)
         rvec_c0, tvec_c0 = stages.batch_c0_poses(cam, fr)
-        reasons: list = [None] * len(fr.frames)
-        infer, *poses_i = stages.batch_inference_poses(cam, fr, rvec_c0, tvec_c0, reasons)
+        infer, poses_i, reasons = stages.batch_inference_poses(cam, fr, rvec_c0, tvec_c0)
         net = network_k(cam.spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, tuple(poses_i))
         # With K inferred from the valid points, the feature's PMD rows are their residuals under K_c
         # at the C0 pose: their mean norm is e_c, and the uncertainty's PMD statistic.

@@ -118,12 +118,14 @@ def batch_c0_poses(cam: ModelCamera, fr: Frames) -> tuple[np.ndarray, np.ndarray
     return rvec_c0, tvec_c0
 
 
-def batch_inference_poses(cam: ModelCamera, fr: Frames, rvec_c0, tvec_c0, reasons: list):
+def batch_inference_poses(cam: ModelCamera, fr: Frames, rvec_c0, tvec_c0) -> tuple:
     """The C0 poses of the inference points: the valid points' when they are the inference
     points, else SQPnP under K_c on each frame's inference points; frames with too few of
-    them or no pose get a fallback reason and an empty inference mask. -> (infer, rvec, tvec)."""
+    them or no pose get a fallback reason and an empty inference mask. -> (infer, (rvec, tvec),
+    reasons): the reasons (B,) a new list, which ``batch_candidates`` takes over."""
+    reasons: list = [None] * len(fr.frames)
     if fr.infer is fr.valid:
-        return fr.infer, rvec_c0, tvec_c0
+        return fr.infer, (rvec_c0, tvec_c0), reasons
     rvec, tvec, infer = rvec_c0.copy(), tvec_c0.copy(), fr.infer.copy()
     for b in range(len(infer)):
         n = int(infer[b].sum())
@@ -133,7 +135,7 @@ def batch_inference_poses(cam: ModelCamera, fr: Frames, rvec_c0, tvec_c0, reason
             rvec[b], tvec[b] = pnp(fr.points_2d[b][infer[b]], fr.points_3d[b][infer[b]], cam.K_c)
         except InputError as exc:
             reasons[b], infer[b] = Fallback("no_k_inferred", f"no K inferred: {exc}"), False
-    return infer, rvec, tvec
+    return infer, (rvec, tvec), reasons
 
 
 # -- features: the network's input at the C0 pose (a batch's: ``inference.network_k``) ---------
@@ -186,7 +188,9 @@ def frame_covariance(spec: ModelSpec, feats: np.ndarray, points_3d, pmd_px: floa
 
 def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_c0, e_c0, reasons: list):
     """The range rule on e_c0 (B,) px and the K-bounds rule of B frames, then SQPnP under each
-    standing K on the frame's valid points (``frame_pose``)."""
+    standing K on the frame's valid points (``frame_pose``). The candidates own the batch's state from here:
+    a copy of ``reasons`` (those of ``batch_inference_poses``), which the later stages write, with the notes."""
+    reasons = list(reasons)
     cand = BatchCandidates(
         K=k_matrix(net.k),
         delta_k=net.delta_k,
