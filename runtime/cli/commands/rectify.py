@@ -336,7 +336,7 @@ COMMAND = Command(
     "  dimenet rectify frames.npz --camera cam.json --model paper-rig   # the paper's grid model\n"
     "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
     "  dimenet rectify --points rec.csv --camera cam.json --temporal   # K tracked through the recording\n"
-    "  dimenet rectify --points rec.csv --camera cam.json --temporal --motion gyro.csv   # with the gyroscope\n"
+    "  dimenet rectify --points rec/points.csv --camera rec/camera.json --temporal --motion rec/gyro.csv  # gyro\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,
