@@ -10,7 +10,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from dimenet.runtime.geometry import covariance_invariants_batch, k_params, mean_residual_norms
-from dimenet.runtime.rectify.features import FeatureSpec, grid_features
+from dimenet.runtime.rectify.features import CHANNELS, FeatureSpec, grid_features
 from dimenet.runtime.rectify.spec import ModelSpec
 from dimenet.runtime.rectify.uncertainty import input_statistics
 
@@ -43,11 +43,28 @@ def network_k(
 ) -> NetworkK:
     """The network's K of B frames from their inference points ``mask`` (B, N) bool (None: all):
     points_2d (B, N, 2) px, points_3d (B, N, 3) mm in {W}; delta_k maps features (B, D) float32 to
-    (B, 4) px (a model backend); poses (rvec_c0, tvec_c0) the C0 poses, else solved here."""
-    feats, points = grid_features(
-        points_2d, points_3d, mask, spec.K_c, spec.image_size, spec.features, poses=poses, return_points=True
-    )
-    dk = np.asarray(delta_k(feats.astype(np.float32)), dtype=np.float64)
+    (B, 4) px (a model backend); poses (rvec_c0, tvec_c0) the C0 poses, else solved here. A frame without
+    an inference point (a batch's refused frame) is not read: its features and point rows are 0, its
+    Delta K 0."""
+    read = None if mask is None else mask.any(1)
+    if read is not None and not read.all():
+        B, N = points_2d.shape[:2]
+        feats, points, dk = np.zeros((B, spec.features.size)), np.zeros((B, len(CHANNELS) + 1, N)), np.zeros((B, 4))
+        if read.any():
+            some = network_k(
+                spec,
+                delta_k,
+                points_2d[read],
+                points_3d[read],
+                mask[read],
+                None if poses is None else (poses[0][read], poses[1][read]),
+            )
+            feats[read], points[read], dk[read] = some.features, some.points, some.delta_k
+    else:
+        feats, points = grid_features(
+            points_2d, points_3d, mask, spec.K_c, spec.image_size, spec.features, poses=poses, return_points=True
+        )
+        dk = np.asarray(delta_k(feats.astype(np.float32)), dtype=np.float64)
     k = k_params(spec.K_c) + dk
     return NetworkK(features=feats, points=points, delta_k=dk, k=k, plausible=spec.k_within_bounds(k))
 

@@ -88,7 +88,10 @@ def test_frame_delta_k_is_the_batch_call_in_every_thread(rectifier, frames):
     assert got[0].dtype == np.float64 and got[0].shape == (4,)
 
 
-def test_batch_infers_k_from_the_infer_mask(rectifier, frames):
+@pytest.mark.parametrize("which", ["test model", "bundled default"])
+def test_batch_infers_k_from_the_infer_mask(which, rectifier, frames):
+    # The bundled default reads a data step, whose Gauss-Newton Hessian a refused frame (no inference point) has not.
+    rectifier = rectifier if which == "test model" else default_rectifier()
     idx = np.flatnonzero(frames.scene == "natural")
     p2, p3, valid, infer = frames.points_2d[idx], frames.points_3d[idx], frames.valid[idx], frames.infer_mask[idx]
     assert np.all(infer.sum(1) < valid.sum(1))
