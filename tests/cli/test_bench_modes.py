@@ -52,7 +52,7 @@ def test_bench_help_shows_every_bench_and_ends_with_their_examples(capsys):
         (["--ingest", "shots", "--n", "0"], "--n: must be >= 1"),
     ],
 )
-def test_bench_refuses_an_option_of_another_bench_in_one_line(args, message, capsys):
+def test_bench_refuses_an_option_of_another_bench_in_one_line(args, message, capsys, every_extra_present):
     assert main(["bench", *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
@@ -65,6 +65,7 @@ def test_bench_bpnp_without_torch_is_one_line_naming_the_train_extra():
     assert lines[0].startswith("dimenet: error: dimenet bench --bpnp needs torch") and "[train]" in lines[0]
 
 
+@pytest.mark.usefixtures("every_extra_present")
 def test_bench_bpnp_without_its_entry_point_is_one_line_naming_the_train_extra(monkeypatch, capsys):
     monkeypatch.setattr(bench_command, "entry_points", lambda group: {})  # an install without the training package
     assert main(["bench", "--bpnp", "--repeats", "1"]) == 2

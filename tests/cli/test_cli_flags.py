@@ -165,7 +165,7 @@ def test_the_features_choices_are_letters_not_substrings():
     assert [parser.parse_args([*BASE["train"], "--features", v]).features for v in "ABCDE"] == list("ABCDE")
 
 
-def test_bench_bpnp_refuses_a_scene_too_big_for_memory_before_importing_torch(capsys):
+def test_bench_bpnp_refuses_a_scene_too_big_for_memory_before_importing_torch(capsys, every_extra_present):
     # the baseline's Jacobian is 2N x 3N per frame: --points 100000 would need ~240 GB
     assert main(["bench", "--bpnp", "--points", "100000"]) == 2
     assert main(["bench", "--bpnp", "--frames", "50000", "--points", "2000"]) == 2
