@@ -27,17 +27,18 @@ def rectified_records(rectifier: Rectifier, frames: Iterable[PointsFrame], *, re
 
 
 def streamed_records(stream: Stream, frames: Iterable[PointsFrame]) -> Iterator[dict]:
-    """``frame_record`` of each frame's fused result (``Stream.update``) with its ``event`` and whether K is the
-    filter's (``fused``), or its ``error_record`` when the rectifier refuses the frame; the run goes on. A frame
-    with its own K_c (points format 2) is a PointsError: the filter tracks K about the camera's one K_c."""
+    """``frame_record`` of each frame's fused result (``Stream.update``, with the frame's own K_c where points
+    format 2 gives one) with its ``event`` and whether K is the filter's (``fused``), or its ``error_record`` when
+    the rectifier refuses the frame; the run goes on. A frame with its own K_c in a stream with motion is a
+    PointsError: the gyroscope's loop predicts c about the camera's one K_c."""
     for frame in frames:
-        if frame.K_c is not None:
+        if frame.K_c is not None and stream.gyro is not None:
             raise PointsError(
-                f"frame {frame.frame_id!r} (line {frame.line}) gives its own K_c (fx_px..cy_px): the temporal mode "
-                "tracks K about the camera's one K_c and does not use it yet; rectify the file without --temporal"
+                f"frame {frame.frame_id!r} (line {frame.line}) gives its own K_c (fx_px..cy_px): with --motion the "
+                "gyroscope predicts c about the camera's one K_c; track the file without --motion"
             )
         try:
-            out = stream.update(frame.points_2d, frame.points_3d, frame.t_ns)
+            out = stream.update(frame.points_2d, frame.points_3d, frame.t_ns, K_c=frame.K_c)
         except InputError as exc:
             yield error_record(frame, exc)
         else:

@@ -162,9 +162,11 @@ class Rectifier:
         training frames in the camera's pixels (None: the model has none, spec < 1.6)."""
         return self._cam.population_cov_user
 
-    def k_within_bounds(self, k: np.ndarray) -> bool:
-        """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels."""
-        return frame_within_bounds(list(k), self.K_bounds.tolist())
+    def k_within_bounds(self, k: np.ndarray, K_c: Optional[ArrayLike] = None) -> bool:
+        """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels; ``K_c`` (3, 3) px a
+        frame's own prior, as ``rectify``'s (its camera's bounds)."""
+        bounds = self.K_bounds if K_c is None else self.spec.for_camera(self._frame_user_camera(K_c)).K_bounds
+        return frame_within_bounds(list(k), bounds.tolist())
 
     def rectify(
         self, points_2d: ArrayLike, points_3d: ArrayLike, *, refine: bool = False, K_c: Optional[ArrayLike] = None
@@ -210,6 +212,11 @@ class Rectifier:
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
 
     def _frame_camera(self, K_c: ArrayLike) -> stages.ModelCamera:
+        """The model's camera of one frame with its own prior ``K_c`` (3, 3) px (``_frame_user_camera``)."""
+        camera = self._frame_user_camera(K_c)
+        return stages.ModelCamera.build(self.spec.for_camera(camera, self.model.source), camera)
+
+    def _frame_user_camera(self, K_c: ArrayLike) -> Camera:
         """The camera of one frame with its own prior ``K_c`` (3, 3) px: this Rectifier's image and lens (the lens's
         K stays the one its coefficients were stated about). InputError for a device model, which serves its own
         K_c, and for a K_c no camera has (``checked_camera``'s rules)."""
@@ -220,10 +227,9 @@ class Rectifier:
             )
         lens_K = None if self.dist_coeffs is None else self._cam.lens_K
         try:
-            camera = checked_camera(K_c, self.image_size, "the frame's K_c", self.dist_coeffs, lens_K)
+            return checked_camera(K_c, self.image_size, "the frame's K_c", self.dist_coeffs, lens_K)
         except CameraError as exc:
             raise InputError(str(exc)) from None
-        return stages.ModelCamera.build(self.spec.for_camera(camera, self.model.source), camera)
 
     def stream(self, **options):
         """A new ``rectify.stream.Stream``: one recording's K tracked frame by frame (``Stream.update``), its

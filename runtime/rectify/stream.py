@@ -17,6 +17,11 @@ and streams): a Kalman filter over k = (fx, fy, cx, cy) px. Each frame:
    (``checks.loses_to_k_c``): where the fused K fits the frame's points worse than K_c (or leaves K_bounds, or has
    no pose), the frame keeps K_c's own solution with the reason as its fallback, and the state is kept.
 
+A frame may bring its own K_c (``update(..., K_c=)``: the platform's per-frame K, points format 2): the state is then
+K's offset from each frame's K_c, which the AR(1) draws back to 0 and which carries from frame to frame as the
+platform's K moves (its bias, not its motion, is what the filter averages); that frame's rectify, e_c, K_bounds and
+refused result are under its K_c.
+
 With the gyroscope (``motion``, (G, 4) rows t_ns, gx, gy, gz rad/s in {C}: ``formats.motion``), the principal
 point is the OIS loop's prediction from the measured rotation (``rectify.gyro_ois``: the loop's cutoff and gain
 learned from the frames' points) and the focal length the filter's or K_c's, whichever has left less error on the
@@ -81,17 +86,21 @@ class Stream:
         self.tau_s, self.frame_s = tau, float(frame_s)
         self.k: Optional[np.ndarray] = None
         self.P: Optional[np.ndarray] = None
+        self._k0 = self.k_c  # the prior the state was last drawn towards: K_c, or the last frame's own
         self._t_ns: Optional[int] = None
         self._pose: Optional[tuple] = None
         self.gyro = None if motion is None else GyroOis(motion, self.k_c)
 
-    def _reset(self) -> None:
-        self.k, self.P = self.k_c.copy(), self.Q.copy()
+    def _reset(self, k0: np.ndarray) -> None:
+        self.k, self.P = k0.copy(), self.Q.copy()
 
-    def _predict(self, dt_s: float) -> None:
+    def _predict(self, dt_s: float, k0: np.ndarray) -> None:
+        """The state carried to this frame, whose prior is k0 (4,) px: its offset from the last prior kept, then drawn
+        towards k0."""
         a = np.exp(-dt_s / self.tau_s)
         A = np.outer(a, a)
-        self.k = self.k_c + a * (self.k - self.k_c)
+        offset = self.k - self._k0
+        self.k = k0 + a * offset
         self.P = A * self.P + (1.0 - A) * self.Q
 
     def _event(self, t_ns: Optional[int], res: Rectification) -> tuple[Optional[str], float]:
@@ -108,26 +117,31 @@ class Stream:
             return "cut", dt_s
         return None, dt_s
 
-    def update(self, points_2d, points_3d, t_ns: Optional[int] = None) -> StreamFrame:
+    def update(self, points_2d, points_3d, t_ns: Optional[int] = None, *, K_c=None) -> StreamFrame:
         """The frame's K fused with the stream's state: points as ``Rectifier.rectify`` takes them; ``t_ns`` the
-        frame's time (ns, None: FRAME_S after the last). InputError as ``rectify``'s (the state is left as it was)."""
+        frame's time (ns, None: FRAME_S after the last); ``K_c`` (3, 3) px this frame's own prior, as ``rectify``'s
+        (None: the Rectifier's). InputError as ``rectify``'s (the state is left as it was)."""
         rect = self.rectifier
         if self.gyro is not None and t_ns is None:
             raise InputError("a stream with motion needs each frame's t_ns (on the motion's clock)")
-        res = rect.rectify(points_2d, points_3d, refine=self.refine)
+        if self.gyro is not None and K_c is not None:
+            raise InputError("a stream with motion tracks K about the camera's one K_c, not a frame's own")
+        res = rect.rectify(points_2d, points_3d, refine=self.refine, K_c=K_c)
+        k0 = self.k_c if K_c is None else k_params(res.K_c)
         event, dt_s = self._event(t_ns, res)
         z, R = k_params(res.K), res.K_cov
         if R is None:
             R = self.Q
         if event is not None:
-            self._reset()
+            self._reset(k0)
         else:
-            self._predict(dt_s)
+            self._predict(dt_s, k0)
+        self._k0 = k0
         S = self.P + R
         innovation = z - self.k
         if event is None and float(innovation @ np.linalg.solve(S, innovation)) > INNOVATION_CHI2:
             event = "jump"
-            self._reset()
+            self._reset(k0)
             S, innovation = self.P + R, z - self.k
         gain = np.linalg.solve(S.T, self.P.T).T  # P S^-1
         self.k = self.k + gain @ innovation
@@ -137,7 +151,7 @@ class Stream:
         self._pose = (rvec_to_matrix(res.rvec), float(np.linalg.norm(res.tvec)))
         if self.gyro is not None:
             self._gyro_c(points_2d, points_3d, event, t_ns)
-        return self._checked(points_2d, points_3d, res, event)
+        return self._checked(points_2d, points_3d, res, event, K_c)
 
     def _gyro_c(self, points_2d, points_3d, event: Optional[str], t_ns: int) -> None:
         """The principal point from the gyroscope's prediction (``rectify.gyro_ois``) in place of the filter's, the
@@ -157,17 +171,17 @@ class Stream:
         self.P[2:, :] = self.P[:, 2:] = 0.0
         self.P[2, 2], self.P[3, 3] = var
 
-    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback) -> StreamFrame:
-        """K_c's own solution for a frame whose tracked K is refused (the per-frame result when it is K_c's; else the
-        pose under K_c by PnP, e = e_c), with ``reason``; K_cov the population spread. The state is kept."""
+    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback, K0) -> StreamFrame:
+        """The frame's K_c's (K0 (3, 3) px) own solution for a frame whose tracked K is refused (the per-frame result
+        when it is K_c's; else the pose under K_c by PnP, e = e_c), with ``reason``; K_cov the population spread. The
+        state is kept."""
         if res.fallback is not None and res.fallback.refusal:
             return StreamFrame(res, res, event, False)
-        rect = self.rectifier
-        rvec, tvec = pnp(p2, p3, rect.K_c)
+        rvec, tvec = pnp(p2, p3, K0)
         Q = self.Q
         kept = replace(
             res,
-            K=rect.K_c.copy(),
+            K=K0.copy(),
             rvec=rvec,
             tvec=tvec,
             reprojection_error_px=res.reprojection_error_kc_px,
@@ -177,28 +191,29 @@ class Stream:
         )
         return StreamFrame(kept, res, event, False)
 
-    def _checked(self, points_2d, points_3d, res: Rectification, event: Optional[str]) -> StreamFrame:
-        """The fused K's result on the frame's points, or the per-frame result where it fits worse than K_c."""
-        rect = self.rectifier
+    def _checked(self, points_2d, points_3d, res: Rectification, event: Optional[str], K_c) -> StreamFrame:
+        """The fused K's result on the frame's points, or the per-frame result where it fits worse than the frame's
+        K_c (``res.K_c``: ``K_c`` the frame's own, or None: the Rectifier's)."""
+        rect, K0 = self.rectifier, res.K_c
         K = k_matrix(self.k)
         p2 = np.asarray(points_2d, dtype=np.float64).reshape(-1, 2)
         p3 = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
         e_c = res.reprojection_error_kc_px
-        if rect.dist_coeffs is not None:  # both in the pinhole image of K_c (the lens stated about K_c)
+        if rect.dist_coeffs is not None:  # both in the pinhole image of the lens's K (the camera's K_c)
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
-            e_c = frame_error_and_depth(p2, p3, rect.K_c, *pnp(p2, p3, rect.K_c))[0]
-        if not rect.k_within_bounds(self.k):
-            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self.k_c, self.k))
+            e_c = frame_error_and_depth(p2, p3, K0, *pnp(p2, p3, K0))[0]
+        if not rect.k_within_bounds(self.k, K_c=K_c):
+            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0)
         try:
             rvec, tvec = pnp(p2, p3, K)
         except InputError:
-            return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"))
+            return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0)
         e, depth = frame_error_and_depth(p2, p3, K, rvec, tvec)
         if depth <= 0:
             reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
-            return self._k_c_kept(res, p2, p3, event, reason)
-        if loses_to_k_c(e, e_c, float(rect.K_c[0, 0])):
-            return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, float(rect.K_c[0, 0])))
+            return self._k_c_kept(res, p2, p3, event, reason, K0)
+        if loses_to_k_c(e, e_c, float(K0[0, 0])):
+            return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, float(K0[0, 0])), K0)
         P = self.P.copy()
         fused = replace(
             res,
@@ -207,7 +222,7 @@ class Stream:
             tvec=tvec,
             reprojection_error_px=float(e),
             reprojection_error_kc_px=float(e_c),
-            delta_k=self.k - self.k_c,
+            delta_k=self.k - self._k0,
             fallback=None,
             covariance=lambda: P,
         )

@@ -146,9 +146,24 @@ def test_a_format_2_file_rectifies_each_frame_about_its_own_k_c(recording, camer
         np.testing.assert_array_equal(record["K"], res.K)
         assert record["e_c_px"] == res.reprojection_error_kc_px and record["fallback_code"] == res.fallback_code
     assert records[3]["K_c"][0][2] == example_camera().K[0, 2] + 12.0
-    assert main(["rectify", "--points", str(path), "--camera", str(camera_file), "--temporal"]) == 2
+
+
+def test_temporal_tracks_a_format_2_file_about_each_frames_k_c(recording, camera_file, tmp_path, capsys):
+    path = _format_2(recording, tmp_path, 4.0)
+    assert main(["rectify", "--points", str(path), "--camera", str(camera_file), "--temporal"]) == 0
+    _, *records = _lines(capsys.readouterr().out)
+    stream = default_rectifier().stream()
+    for record, frame in zip(records, read_points(path)):
+        out = stream.update(frame.points_2d, frame.points_3d, frame.t_ns, K_c=frame.K_c)
+        np.testing.assert_array_equal(record["K_c"], frame.K_c)
+        np.testing.assert_array_equal(record["K"], out.result.K)
+        assert record["fused"] == out.fused and record["event"] == out.event
+    motion = tmp_path / "gyro.csv"
+    motion.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n0,0,0,0\n1000000000,0,0,0\n")
+    args = ["rectify", "--points", str(path), "--camera", str(camera_file), "--temporal", "--motion", str(motion)]
+    assert main(args) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "gives its own K_c" in err and "without --temporal" in err
+    assert err.count("\n") == 1 and "gives its own K_c" in err and "without --motion" in err
 
 
 def _dimenet(command: str) -> subprocess.CompletedProcess:

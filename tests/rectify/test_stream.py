@@ -5,15 +5,16 @@ every frame (else K_c kept), events at the start, cuts and gaps, constant memory
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import k_params
+from dimenet.runtime.geometry import k_matrix, k_params
 from dimenet.runtime.rectify.rectifier import Rectifier
-from dimenet.runtime.rectify.stream import Stream
+from dimenet.runtime.rectify.stream import FRAME_S, TAU_S, Stream
 from dimenet.runtime.sim.recording import nominal_camera, simulate_recording, write_recording
 
 
@@ -162,3 +163,69 @@ def test_cli_motion(recording, tmp_path, capsys):
     assert lines[0]["motion"] == str(paths["gyro"]) and len(lines) == recording.dataset.n_frames + 1
     assert main([*args, "--motion", str(paths["gyro"])]) == 2
     assert "--temporal" in capsys.readouterr().err
+
+
+def test_a_stream_given_the_rectifiers_own_k_c_on_every_frame_is_the_plain_stream(recording, rectifier, streamed):
+    stream = rectifier.stream()
+    for f, plain in zip(frames(recording), streamed):
+        out = stream.update(*f, K_c=rectifier.K_c)
+        np.testing.assert_array_equal(out.result.K, plain.result.K)
+        np.testing.assert_array_equal(out.result.K_cov, plain.result.K_cov)
+        assert (out.event, out.fused) == (plain.event, plain.fused)
+        assert out.result.fallback_code == plain.result.fallback_code
+
+
+def test_a_stream_about_each_frames_own_k_c(recording, rectifier):
+    """The platform's per-frame K as each frame's K_c: e_c, the never-worse rule and a refused frame are under the
+    frame's own K_c, and Delta K is from it."""
+    K_platform = recording.dataset.K_platform
+    stream, fused = rectifier.stream(), 0
+    for i, f in enumerate(frames(recording)):
+        out = stream.update(*f, K_c=K_platform[i])
+        r = out.result
+        np.testing.assert_array_equal(r.K_c, K_platform[i])
+        assert r.reprojection_error_px <= r.reprojection_error_kc_px
+        np.testing.assert_allclose(r.delta_k, k_params(r.K) - k_params(K_platform[i]), atol=1e-9)
+        if out.fused:
+            fused += 1
+        else:
+            np.testing.assert_array_equal(r.K, K_platform[i])
+            assert r.fallback.refusal
+    assert fused > len(K_platform) // 2
+
+
+class _Evidence:
+    """A Rectifier whose frames say K = K_c + offset_px with covariance cov_px2 (the real result otherwise)."""
+
+    def __init__(self, rectifier, offset_px, cov_px2):
+        self._rectifier, self.offset_px, self.cov_px2 = rectifier, offset_px, cov_px2
+
+    def __getattr__(self, name):
+        return getattr(self._rectifier, name)
+
+    def rectify(self, points_2d, points_3d, *, refine=False, K_c=None):
+        res = self._rectifier.rectify(points_2d, points_3d, refine=refine, K_c=K_c)
+        cov = self.cov_px2
+        return replace(res, K=k_matrix(k_params(res.K_c) + self.offset_px), covariance=lambda: cov)
+
+
+def test_the_state_is_the_offset_from_each_frames_k_c(recording, rectifier):
+    """A K_c moving 4 px a frame with weak evidence after the first: the state keeps its offset from each frame's
+    K_c (drawn back by the AR(1)), where a state about one K_c would lag the moving K_c by tens of px."""
+    offset = np.array([6.0, 6.0, -9.0, 5.0])
+    evidence = _Evidence(rectifier, offset, np.eye(4) * 1e-6)
+    stream = Stream(evidence)
+    K = rectifier.K_c.copy()
+    for i, (p2, p3, _) in enumerate(list(frames(recording))[:20]):
+        K[0, 2], K[1, 2] = rectifier.K_c[0, 2] + 4.0 * i, rectifier.K_c[1, 2] - 4.0 * i
+        stream.update(p2, p3, None, K_c=K)
+        evidence.cov_px2 = np.eye(4) * 1e12  # after the first frame the frames say almost nothing
+    a = np.exp(-FRAME_S / np.asarray(TAU_S)) ** 19
+    np.testing.assert_allclose(stream.k - k_params(K), a * offset, atol=0.05)
+
+
+def test_a_stream_with_motion_refuses_a_frames_own_k_c(recording, rectifier):
+    stream = rectifier.stream(motion=recording.gyro)
+    p2, p3, t = next(frames(recording))
+    with pytest.raises(InputError, match="one K_c"):
+        stream.update(p2, p3, t, K_c=recording.dataset.K_platform[0])
