@@ -3,7 +3,8 @@
 
 Methods: ``fixed`` K_c (rho 0 by construction), ``platform`` (the SDK's K alone, where the recording has one: rho
 only), ``platform_prior`` (where it has one: ``Rectifier.rectify`` about the SDK's K as the frame's own K_c, which a
-refused frame keeps), ``per_frame`` (``Rectifier.rectify``), ``temporal``
+refused frame keeps), ``platform_temporal`` (where it has one: ``Rectifier.stream()`` fed each frame's SDK K as its
+K_c), ``per_frame`` (``Rectifier.rectify``), ``temporal``
 (``Rectifier.stream()``) and ``gyro`` (``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
 the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
 reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
@@ -71,7 +72,8 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
         camera = nominal_camera(recording)
         rectifier = Rectifier.load(K_c=camera.K, image_size=camera.image_size)
     streams = {"temporal": rectifier.stream(), "gyro": rectifier.stream(motion=recording.gyro)}
-    methods = METHODS if ds.K_platform is None else (*METHODS, "platform_prior")
+    platform_stream = rectifier.stream()
+    methods = METHODS if ds.K_platform is None else (*METHODS, "platform_prior", "platform_temporal")
     K = {m: np.empty((ds.n_frames, 3, 3)) for m in methods}
     sigma = {m: np.full((ds.n_frames, 4), np.nan) for m in methods}
     own = {m: np.zeros(ds.n_frames, bool) for m in methods}
@@ -86,6 +88,13 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
                     sigma["platform_prior"][i] = np.sqrt(np.diag(res.K_cov))
             except InputError:  # the app keeps the platform's K
                 K["platform_prior"][i] = ds.K_platform[i]
+            try:
+                res = platform_stream.update(p2, p3, t, K_c=ds.K_platform[i]).result
+                K["platform_temporal"][i], own["platform_temporal"][i] = res.K, res.fallback is None
+                if res.K_cov is not None:
+                    sigma["platform_temporal"][i] = np.sqrt(np.diag(res.K_cov))
+            except InputError:
+                K["platform_temporal"][i] = ds.K_platform[i]
         try:
             results = {name: s.update(p2, p3, t) for name, s in streams.items()}
         except InputError:  # a frame the rectifier refuses: the app keeps K_c (no sigma)

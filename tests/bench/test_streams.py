@@ -23,8 +23,9 @@ def test_settled_frames_skip_the_start_and_each_event(recording):
 
 def test_scores_every_method(recording):
     s = score_recording(recording)
-    assert set(s.rho) == {"platform", "platform_prior", *METHODS} and s.frames == recording.dataset.n_frames
-    for name in (*METHODS, "platform_prior"):
+    platform = ("platform_prior", "platform_temporal")
+    assert set(s.rho) == {"platform", *platform, *METHODS} and s.frames == recording.dataset.n_frames
+    for name in (*METHODS, *platform):
         assert s.rho[name] is None or np.isfinite(s.rho[name])
         assert 0.0 <= s.coverage[name] <= 1.0 and 0.0 <= s.own_k[name] <= 1.0
     assert s.rho["gyro"] is not None and s.rho["gyro"] > s.rho["per_frame"]
