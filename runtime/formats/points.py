@@ -363,11 +363,14 @@ def read_points(path: str | Path) -> Iterator[PointsFrame]:
 POINTS_COLUMNS = ("frame_id", "t_ns", "x_px", "y_px", "X_mm", "Y_mm", "Z_mm")
 
 
-def write_points(path: str | Path, rows: Iterable[tuple]) -> Path:
-    """Write a format-1 points CSV (POINTS_COLUMNS) of ``rows`` (frame_id, t_ns or None, x, y px, X, Y, Z mm),
-    the rows of a frame consecutive, atomically (``formats.atomic``)."""
+def write_points(path: str | Path, rows: Iterable[tuple], *, frame_k_c: bool = False) -> Path:
+    """Write a points CSV of ``rows`` (frame_id, t_ns or None, x, y px, X, Y, Z mm), the rows of a frame
+    consecutive, atomically (``formats.atomic``): format 1 (POINTS_COLUMNS), or with ``frame_k_c`` format 2, each
+    row ending in its frame's K_c (fx, fy, cx, cy px: K_COLUMNS)."""
     text = io.StringIO()
-    text.write(",".join(POINTS_COLUMNS) + "\n")
+    if frame_k_c:
+        text.write(f"#{FORMAT_NAME}/2\n")
+    text.write(",".join(POINTS_COLUMNS + (K_COLUMNS if frame_k_c else ())) + "\n")
     for fid, t, *values in rows:
         text.write(",".join([str(fid), "" if t is None else str(int(t)), *(repr(float(v)) for v in values)]) + "\n")
     return atomic_write(path, lambda f: f.write(text.getvalue().encode("utf-8")))

@@ -39,7 +39,7 @@ from dimenet.runtime.formats.camera_file import write_camera
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
 from dimenet.runtime.formats.motion import write_gyro
 from dimenet.runtime.formats.points import write_points
-from dimenet.runtime.geometry import matrix_to_rvec, rvec_to_matrix, to_camera
+from dimenet.runtime.geometry import k_params, matrix_to_rvec, rvec_to_matrix, to_camera
 from dimenet.runtime.rectify.user_camera import checked_camera
 from dimenet.runtime.sim.family import family_profile
 from dimenet.runtime.sim.natural import random_natural
@@ -316,14 +316,15 @@ def simulate_recording(
     return Recording(dataset, np.asarray(t_ns, np.int64), gyro, cut_frames, refocus_frames)
 
 
-def points_rows(recording: Recording):
+def points_rows(recording: Recording, platform: bool = False):
     """The points CSV rows of the recording (frame_id, t_ns, x_px, y_px, X_mm, Y_mm, Z_mm): each frame's streamed
-    points (``infer_mask``)."""
+    points (``infer_mask``); with ``platform`` each row ends in the frame's platform K (fx, fy, cx, cy px)."""
     ds = recording.dataset
     for i in range(ds.n_frames):
         m = ds.infer_mask[i]
+        k = tuple(k_params(ds.K_platform[i])) if platform else ()
         for (x, y), (X, Y, Z) in zip(ds.points_2d[i, m], ds.points_3d[i, m]):
-            yield (str(ds.frame_id[i]), int(recording.t_ns[i]), x, y, X, Y, Z)
+            yield (str(ds.frame_id[i]), int(recording.t_ns[i]), x, y, X, Y, Z, *k)
 
 
 def nominal_camera(recording: Recording):
@@ -338,12 +339,14 @@ def nominal_camera(recording: Recording):
 
 
 def write_recording(recording: Recording, out_dir) -> dict:
-    """The recording's files in ``out_dir``: points.csv (the streamed points, format 1), gyro.csv
-    (``formats.motion``), camera.json (``nominal_camera``) and truth.npz (the dataset: K_true per frame, held-out
-    points ``valid & ~infer_mask``); -> {name: path}."""
+    """The recording's files in ``out_dir``: points.csv (the streamed points, format 1), points-platform.csv (the
+    same points in format 2 with the platform's per-frame K as each frame's K_c), gyro.csv (``formats.motion``),
+    camera.json (``nominal_camera``) and truth.npz (the dataset: K_true per frame, held-out points
+    ``valid & ~infer_mask``); -> {name: path}."""
     out = Path(out_dir)
     return {
         "points": write_points(out / "points.csv", points_rows(recording)),
+        "points_platform": write_points(out / "points-platform.csv", points_rows(recording, True), frame_k_c=True),
         "gyro": write_gyro(out / "gyro.csv", recording.gyro),
         "camera": write_camera(out / "camera.json", nominal_camera(recording), "json"),
         "truth": write_dataset(recording.dataset, out / "truth.npz"),

@@ -85,6 +85,11 @@ def test_files_round_trip(recording, tmp_path):
     assert len(frames) == ds.n_frames
     assert [f.t_ns for f in frames] == recording.t_ns.tolist()
     np.testing.assert_array_equal(frames[3].points_2d, ds.points_2d[3, ds.infer_mask[3]])
+    assert all(f.K_c is None for f in frames)
+    platform = list(read_points(paths["points_platform"]))  # format 2: the same points, the platform's K per frame
+    assert [f.t_ns for f in platform] == recording.t_ns.tolist()
+    np.testing.assert_array_equal(platform[3].points_3d, frames[3].points_3d)
+    np.testing.assert_array_equal(np.stack([f.K_c for f in platform]), ds.K_platform)
     np.testing.assert_array_equal(read_gyro(paths["gyro"]), recording.gyro)
     np.testing.assert_array_equal(read_dataset(paths["truth"]).K_true, ds.K_true)
 
