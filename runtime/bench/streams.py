@@ -2,10 +2,10 @@
 (``metrics.reduction_ratio``) over its settled frames on the points the methods never see.
 
 Methods: ``fixed`` K_c (rho 0 by construction), ``platform`` (the SDK's K alone, where the recording has one: rho
-only), ``platform_prior`` (where it has one: ``Rectifier.rectify`` about the SDK's K as the frame's own K_c, which a
-refused frame keeps), ``platform_temporal`` (where it has one: ``Rectifier.stream()`` fed each frame's SDK K as its
-K_c), ``per_frame`` (``Rectifier.rectify``), ``temporal``
-(``Rectifier.stream()``) and ``gyro`` (``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
+only), ``platform_temporal`` (where it has one: ``Rectifier.stream()`` fed each frame's SDK K as its K_c, which a
+refused frame keeps), ``platform_prior`` (its per-frame results: ``Rectifier.rectify`` about the SDK's K),
+``per_frame`` (``Rectifier.rectify``), ``temporal`` (``Rectifier.stream()``) and ``gyro``
+(``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
 the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
 reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
 does not stream), pose by PnP under K (``metrics.reprojection_error_under_k``); e* is K_true's. A frame the
@@ -80,28 +80,20 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
     for i in range(ds.n_frames):
         m = ds.infer_mask[i]
         p2, p3, t = ds.points_2d[i, m], ds.points_3d[i, m], int(recording.t_ns[i])
+        outs = {}
         if ds.K_platform is not None:
-            try:
-                res = rectifier.rectify(p2, p3, K_c=ds.K_platform[i])
-                K["platform_prior"][i], own["platform_prior"][i] = res.K, res.fallback is None
-                if res.K_cov is not None:
-                    sigma["platform_prior"][i] = np.sqrt(np.diag(res.K_cov))
+            try:  # the stream about the SDK's K: its per-frame result is rectify about it
+                out = platform_stream.update(p2, p3, t, K_c=ds.K_platform[i])
+                outs.update(platform_prior=out.per_frame, platform_temporal=out.result)
             except InputError:  # the app keeps the platform's K
-                K["platform_prior"][i] = ds.K_platform[i]
-            try:
-                res = platform_stream.update(p2, p3, t, K_c=ds.K_platform[i]).result
-                K["platform_temporal"][i], own["platform_temporal"][i] = res.K, res.fallback is None
-                if res.K_cov is not None:
-                    sigma["platform_temporal"][i] = np.sqrt(np.diag(res.K_cov))
-            except InputError:
-                K["platform_temporal"][i] = ds.K_platform[i]
+                for name in ("platform_prior", "platform_temporal"):
+                    K[name][i] = ds.K_platform[i]
         try:
             results = {name: s.update(p2, p3, t) for name, s in streams.items()}
+            outs.update(per_frame=results["temporal"].per_frame, **{n: r.result for n, r in results.items()})
         except InputError:  # a frame the rectifier refuses: the app keeps K_c (no sigma)
             for name in METHODS:
                 K[name][i] = rectifier.K_c
-            continue
-        outs = {"per_frame": results["temporal"].per_frame, **{n: r.result for n, r in results.items()}}
         for name, res in outs.items():
             K[name][i] = res.K
             own[name][i] = res.fallback is None

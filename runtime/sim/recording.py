@@ -346,7 +346,9 @@ def write_recording(recording: Recording, out_dir) -> dict:
     out = Path(out_dir)
     return {
         "points": write_points(out / "points.csv", points_rows(recording)),
-        "points_platform": write_points(out / "points-platform.csv", points_rows(recording, True), frame_k_c=True),
+        "points_platform": write_points(
+            out / "points-platform.csv", points_rows(recording, platform=True), frame_k_c=True
+        ),
         "gyro": write_gyro(out / "gyro.csv", recording.gyro),
         "camera": write_camera(out / "camera.json", nominal_camera(recording), "json"),
         "truth": write_dataset(recording.dataset, out / "truth.npz"),
