@@ -365,6 +365,8 @@ def simulate(
         meta["mislabels"] = {"share": mislabel_share, "px": list(MISLABEL_PX)}
     if dist is not None:
         p2 = distort_points(p2, profile.nominal_K, dist)
+    # A label or corner the noise carries off the image is on its border, as a click or a detection is.
+    p2 = np.clip(p2, -0.5, (profile.image_size_px[0] - 0.5, profile.image_size_px[1] - 0.5))
     if platform_k:
         meta["platform_k"] = platform_meta(profile)
     return Dataset(
