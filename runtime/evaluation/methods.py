@@ -255,11 +255,13 @@ def map_estimate(
 
 
 def runtime_estimate(frames: Dataset, predictor: Predictor, mode: str) -> MethodEstimate:
-    """The rectifier's K per frame in ``mode``, K inferred from the inference points, every
-    fallback rule applied (a frame that keeps K_c counts as a fallback; map's soft fallbacks to
-    DIME-Net's K do not), as `dimenet rectify` returns it."""
+    """The rectifier's K per frame in ``mode`` from the inference points alone, every fallback rule applied (a frame
+    that keeps K_c counts as a fallback; map's soft fallbacks to DIME-Net's K do not), as `dimenet rectify` returns
+    it for an app that has only those points: the rules read no point the frame is scored on beyond them (a
+    natural frame's board)."""
     rect = Rectifier(predictor, mode, predictor.camera)
-    r = rect.rectify_batch(frames.points_2d, frames.points_3d, frames.valid, infer_mask=frames.infer_mask)
+    infer = frames.infer_mask
+    r = rect.rectify_batch(frames.points_2d, frames.points_3d, infer, infer_mask=infer)
     kept = sum(f is not None and f.refusal for f in r.fallback)
     return MethodEstimate(K=r.K, K_cov=r.K_cov, fallbacks=kept)
 

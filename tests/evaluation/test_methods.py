@@ -104,7 +104,8 @@ def test_evaluate_works_on_the_undistorted_points(tmp_path, capsys):
 
 
 def test_the_runtime_methods_return_the_rectifiers_k():
-    """evaluate's rectify and rectify-map give the K `dimenet rectify` gives, every rule applied."""
+    """evaluate's rectify and rectify-map give the K `dimenet rectify` gives on the inference points alone, every
+    rule applied (the rules read none of the board a natural frame is scored on)."""
     from dimenet.runtime.evaluation.methods import runtime_estimate
     from dimenet.runtime.evaluation.predictor import load_predictor
     from dimenet.runtime.rectify.rectifier import Rectifier
@@ -118,6 +119,8 @@ def test_the_runtime_methods_return_the_rectifiers_k():
     for mode in ("dimenet", "map"):
         est = runtime_estimate(test, predictor, mode)
         rect = Rectifier.load(K_c=camera.K, image_size=camera.image_size, mode=mode)
-        r = rect.rectify_batch(test.points_2d, test.points_3d, test.valid, infer_mask=test.infer_mask)
+        r = rect.rectify_batch(test.points_2d, test.points_3d, test.infer_mask, infer_mask=test.infer_mask)
         np.testing.assert_array_equal(est.K, r.K)
+        natural = test.scene == "natural"
+        assert natural.any() and (test.valid[natural].sum(-1) > test.infer_mask[natural].sum(-1)).all()
         assert est.fallbacks == sum(f is not None and not f.startswith("map:") for f in r.fallback)
