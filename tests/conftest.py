@@ -78,3 +78,13 @@ def map_model(tmp_path_factory):
     frames = simulate("galaxy-s8", seed=7, natural_frames=2, planar_frames=2)
     spec = replace(model_spec(frames), uncertainty=constant_uncertainty(8.0))
     return frames, random_model_file(tmp_path_factory.mktemp("map") / "map.onnx", spec)
+
+
+@pytest.fixture
+def without_evidence_rule(monkeypatch):
+    """The evidence rule off (``rectify.checks.EVIDENCE_P`` 1: no p-value is above it), for tests whose stand-in
+    networks move K at random: the rule keeps K_c on nearly every frame of theirs, and the path under test would
+    not run."""
+    from dimenet.runtime.rectify import checks
+
+    monkeypatch.setattr(checks, "EVIDENCE_P", 1.0)

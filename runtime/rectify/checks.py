@@ -20,7 +20,9 @@ another resolution, K_c of another lens, 3D points in another unit; training/MET
 mismatch"); or the structure rule (``structured``): K removes less than half of e(K_c) and the
 frame's residuals under K_c hold smooth structure that neither OIS nor corner noise makes, which the
 network read as OIS (a sheet that is not flat, a lens K_c leaves out); an OIS shift that K
-explains leaves e(K) far below e(K_c), and the test (~100 us) runs only where it does not. A frame
+explains leaves e(K) far below e(K_c), and the test (~100 us) runs only where it does not; or the
+evidence rule (``unproven``): e(K) below e(K_c) by no more than fitting K's 4 parameters to the
+points' noise gives by chance, so the frame does not show the move (natural labels). A frame
 that keeps K_c gets the population covariance as its K_cov when the model has one
 (``Uncertainty.population_sigma_px``).
 
@@ -29,6 +31,7 @@ The values in the reasons are in the user's pixels (``user_px``: user px per mod
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -69,6 +72,10 @@ STRUCTURE_GATE = 0.5
 STRUCTURE_PX = 0.5
 STRUCTURE_RATIO = 3.0
 RADIAL_SHARE = 0.5
+# The evidence rule (``unproven``): K stands only where the frame's own points show its move with a p-value of
+# at most EVIDENCE_P against K_c (training/METHOD.md, "Evidence for a move"); the parameters a frame fits.
+EVIDENCE_P = 0.05
+POSE_PARAMETERS, K_PARAMETERS = 6, 4
 SPREAD_RATIO = 1e-4
 SPREAD_ABSOLUTE = 1e-10
 
@@ -201,6 +208,39 @@ def loses_to_k_c(e, e_c, fx_c: float):
     """The predicted K gives way to K_c's solution: the worse rule or the mismatch rule (e, e_c,
     fx_c in model px): floats -> bool, (B,) arrays -> (B,) bool."""
     return worse(e, e_c) | mismatched(e, e_c, fx_c)
+
+
+def move_p_value(e: float, e_c: float, n_points: int) -> float:
+    """How likely the frame's noise alone makes K look this good: the p-value of the F test of K's 4
+    parameters against K_c on the frame's n_points points, with the mean errors' squares e**2 and e_c**2
+    (px) in place of the residuals' mean squares. Under K_c with Gaussian noise, e(K) of K fitted to the
+    noise gives F = ((e_c^2 - e^2) / 4) / (e^2 / n) with n = 2 n_points - 10 (6 pose + 4 K parameters) on
+    F(4, n), whose tail at q = e^2 / e_c^2 is q^(n/2) (1 + (n/2)(1 - q)) (the incomplete beta function
+    of an integer parameter, in closed form). 1 when e >= e_c or either is NaN, 0 when e = 0 < e_c."""
+    if not e < e_c:
+        return 1.0
+    if e <= 0.0:
+        return 0.0
+    half = n_points - (POSE_PARAMETERS + K_PARAMETERS) / 2.0
+    q = (e / e_c) ** 2
+    return math.exp(half * math.log(q) + math.log1p(half * (1.0 - q)))
+
+
+def unproven(e: float, e_c: float, n_points: int) -> bool:
+    """The evidence rule: K's lower error e (px) over e_c (px) on the frame's n_points points is within
+    what fitting K's parameters to the points' noise gives (``move_p_value`` above EVIDENCE_P): one
+    frame does not justify the move, and K_c is kept (training/METHOD.md, "Evidence for a move")."""
+    return move_p_value(e, e_c, n_points) > EVIDENCE_P
+
+
+def unproven_reason(e: float, e_c: float, n_points: int, user_px: float = 1.0) -> Fallback:
+    """Why ``unproven`` (e, e_c in model px; the reason in the user's, ``user_px`` per model px)."""
+    return Fallback(
+        "not_significant",
+        f"K_c kept: the predicted K lowers the mean error over the {n_points} points only from "
+        f"{e_c * user_px:.3f} to {e * user_px:.3f} px, which fitting K to their noise gives by chance "
+        f"(p = {move_p_value(e, e_c, n_points):.2g} > {EVIDENCE_P:g})",
+    )
 
 
 def worse_reason(e: float, e_c: float, fx_c: float, user_px: float = 1.0) -> Fallback:

@@ -20,6 +20,7 @@ FALLBACK_CODES = {
     "structure": REFUSAL,  # the residuals under K_c hold structure OIS does not make
     "worse_than_k_c": REFUSAL,  # the worse rule: e(K) above e(K_c)
     "mismatch": REFUSAL,  # the mismatch rule: the points do not fit this camera
+    "not_significant": REFUSAL,  # the evidence rule: the frame's points do not show K's move beyond their noise
     "map_no_c0_pose": NOTE,  # no C0 pose under K_c to start the MAP fit
     "map_no_pose": NOTE,  # the points fix no MAP pose
     "map_no_step": NOTE,  # the MAP step did not lower the cost

@@ -43,6 +43,8 @@ from dimenet.runtime.rectify.checks import (
     out_of_range_reason,
     structure_reason,
     structured,
+    unproven,
+    unproven_reason,
     worse_reason,
 )
 from dimenet.runtime.rectify.features import grid_features, native_frame_features
@@ -312,7 +314,7 @@ def k_c_solutions(cam: ModelCamera, K, rvec, tvec, c0_pose):
 
 
 def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c0_pose, p2_image) -> tuple:
-    """e(K) over the frame's points, the cheirality and worse-than-K_c rules (on the errors the result
+    """e(K) over the frame's points, the cheirality, worse-than-K_c and evidence rules (on the errors the result
     reports: in the lens's image from ``p2_image`` when the camera has one) and, where e(K) is above
     STRUCTURE_GATE e(K_c), the structure rule at the C0 pose first (its reason says more than the
     worse rule's; the mismatch rule's says more than it); on a refusal (``reason``
@@ -341,6 +343,8 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
             reason = frame_structure(cam, p2, p3, c0_pose)
         if reason is None and loses_to_k_c(e, e_c_rule, cam.fx_c):
             reason = worse_reason(e, e_c_rule, cam.fx_c, cam.user_px)
+        if reason is None and np.count_nonzero(cand.delta_k) and unproven(e, e_c_rule, len(p2)):
+            reason = unproven_reason(e, e_c_rule, len(p2), cam.user_px)
     if reason is not None:
         covariance = None if cam.population_cov is None else partial(np.array, cam.population_cov)
         zero = np.zeros(4)
@@ -350,8 +354,8 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
 
 
 def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses, inference) -> np.ndarray:
-    """e(K) over each frame's valid points (e_c where not pending), and the cheirality, worse-than-K_c
-    and (where e(K) is above STRUCTURE_GATE e(K_c)) structure rules into ``cand.reasons`` (on the
+    """e(K) over each frame's valid points (e_c where not pending), and the cheirality, worse-than-K_c,
+    evidence and (where e(K) is above STRUCTURE_GATE e(K_c)) structure rules into ``cand.reasons`` (on the
     errors the result reports: in the lens's image when the camera has one, K_c's at the C0 poses
     ``c0_poses`` (rvec_c0, tvec_c0)); the structure rule reads what the network read, ``inference``
     (infer (B, P) bool, (rvec, tvec) their C0 poses)."""
@@ -395,6 +399,10 @@ def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e
     for b in np.flatnonzero(pending & loses_to_k_c(e_rule, e_c_rule, cam.fx_c)):
         if cand.reasons[b] is None:
             cand.reasons[b] = worse_reason(e_rule[b], e_c_rule[b], cam.fx_c, cam.user_px)
+    n_points = fr.valid.sum(-1)
+    for b in np.flatnonzero(pending & cand.delta_k.any(-1)):
+        if cand.reasons[b] is None and unproven(e_rule[b], e_c_rule[b], int(n_points[b])):
+            cand.reasons[b] = unproven_reason(e_rule[b], e_c_rule[b], int(n_points[b]), cam.user_px)
     return e
 
 

@@ -45,11 +45,16 @@ def cases(frames):
     )
 
 
+@pytest.mark.parametrize("evidence", [True, False])
 @pytest.mark.parametrize("refine", [False, True])
 @pytest.mark.parametrize("lens", [False, True])
 @pytest.mark.parametrize("model", ["device", "generic", "device-half"])
 @pytest.mark.parametrize("mode", ["dimenet", "map"])
-def test_batch_equals_single_frames(cases, mode, model, lens, refine):
+def test_batch_equals_single_frames(cases, mode, model, lens, refine, evidence, request):
+    """With the evidence rule and without it (the stand-in device network's random Delta K: the rule keeps K_c
+    on its frames, so the paths of a standing K run only without it)."""
+    if not evidence:
+        request.getfixturevalue("without_evidence_rule")
     by_model, p3, valid = cases
     network, camera, p2 = by_model[model]
     if lens:
@@ -60,7 +65,8 @@ def test_batch_equals_single_frames(cases, mode, model, lens, refine):
     single = [rect.rectify(p2[b][valid[b]], p3[b][valid[b]], refine=refine) for b in range(len(p2))]
     assert batch.fallback == tuple(s.fallback for s in single)
     assert single[NOISY_FRAME].fallback is not None and "beyond" in single[NOISY_FRAME].fallback
-    assert sum(s.fallback is None for s in single) >= 3  # the other frames keep their rectified K
+    if not evidence or model == "generic":  # the other frames keep their rectified K
+        assert sum(s.fallback is None for s in single) >= 3
     np.testing.assert_allclose(batch.K, [s.K for s in single], rtol=1e-9, atol=1e-6)
     np.testing.assert_allclose(batch.delta_k, [s.delta_k for s in single], rtol=1e-9, atol=1e-6)
     np.testing.assert_allclose(batch.rvec, [s.rvec for s in single], atol=1e-6)

@@ -53,7 +53,7 @@ def K_c(frames):
 
 
 @pytest.mark.parametrize("mode", ["dimenet", "map"])
-def test_a_generic_model_is_free_of_resolution_and_world_unit(frames, K_c, mode):
+def test_a_generic_model_is_free_of_resolution_and_world_unit(frames, K_c, mode, without_evidence_rule):
     spec = replace(generic_spec(), uncertainty=constant_uncertainty(3.0))
     model = linear_model(spec)
     full = Rectifier(model, mode, Camera(K_c, (4032, 3024)))

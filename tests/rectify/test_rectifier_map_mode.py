@@ -37,9 +37,12 @@ def test_rectifier_map_mode_fits_at_least_as_well_and_reports_its_posterior(map_
     np.testing.assert_allclose(batch.K_cov, [o.K_cov for o in one], rtol=1e-6)
 
 
-def test_batch_covariance_is_the_single_frame_covariance_of_the_inference_points(tmp_path, map_model, monkeypatch):
+def test_batch_covariance_is_the_single_frame_covariance_of_the_inference_points(
+    tmp_path, map_model, monkeypatch, without_evidence_rule
+):
     frames, _ = map_model
-    # The random network's K may fit a frame worse than K_c (then no K_cov): the worse rule is off here, as
+    # The random network's K may fit a frame worse than K_c (then no K_cov): the worse and evidence rules are off
+    # here, as
     # the frames' errors come from other points in the batch (all valid) than in the single frames (inference).
     monkeypatch.setattr(checks, "worse", lambda e, e_c: np.zeros(np.shape(e), bool))
     coef = np.array([[1.0, -0.3, 0.2, 0.5, 0.1]] * 4) * [[1.0], [1.1], [0.9], [1.2]]  # every statistic counts

@@ -175,9 +175,10 @@ def test_a_stream_given_the_rectifiers_own_k_c_on_every_frame_is_the_plain_strea
         assert out.result.fallback_code == plain.result.fallback_code
 
 
-def test_a_stream_about_each_frames_own_k_c(recording, rectifier):
+def test_a_stream_about_each_frames_own_k_c(recording, rectifier, without_evidence_rule):
     """The platform's per-frame K as each frame's K_c: e_c, the never-worse rule and a refused frame are under the
-    frame's own K_c, and Delta K is from it."""
+    frame's own K_c, and Delta K is from it (the evidence rule off: on these natural labels it keeps the frame's
+    K_c as the evidence of most frames, and the fused K would stand on few)."""
     K_platform = recording.dataset.K_platform
     stream, fused = rectifier.stream(), 0
     for i, f in enumerate(frames(recording)):
