@@ -4,8 +4,9 @@
 Methods: ``fixed`` K_c (rho 0 by construction), ``platform`` (the SDK's K alone, where the recording has one: rho
 only), ``platform_temporal`` (where it has one: ``Rectifier.stream()`` fed each frame's SDK K as its K_c, which a
 refused frame keeps), ``platform_prior`` (its per-frame results: ``Rectifier.rectify`` about the SDK's K),
-``per_frame`` (``Rectifier.rectify``), ``temporal`` (``Rectifier.stream()``) and ``gyro``
-(``Rectifier.stream(motion=...)``). A frame is settled from SETTLE frames after
+``per_frame`` (``Rectifier.rectify``), ``temporal`` (``Rectifier.stream()``), ``gyro``
+(``Rectifier.stream(motion=...)``) and ``lens_shift`` (``Rectifier.stream(lens_shift=...)``, the platform's OIS
+samples). A frame is settled from SETTLE frames after
 the start and after each cut or refocus; ``after_event`` is rho over frames 5 to 9 after them. e(K) is the mean
 reprojection error over the frame's held-out points (``valid & ~infer_mask``: the board and the features an app
 does not stream), pose by PnP under K (``metrics.reprojection_error_under_k``); e* is K_true's. A frame the
@@ -28,7 +29,7 @@ from dimenet.runtime.sim.recording import Recording, nominal_camera
 
 SETTLE = 10  # frames after the start, a cut or a refocus before a frame counts as settled
 AFTER_EVENT = (5, 10)  # frames [5, 10) after a cut or refocus: the recovery window
-METHODS = ("per_frame", "temporal", "gyro")
+METHODS = ("per_frame", "temporal", "gyro", "lens_shift")
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,11 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
     if rectifier is None:
         camera = nominal_camera(recording)
         rectifier = Rectifier.load(K_c=camera.K, image_size=camera.image_size)
-    streams = {"temporal": rectifier.stream(), "gyro": rectifier.stream(motion=recording.gyro)}
+    streams = {
+        "temporal": rectifier.stream(),
+        "gyro": rectifier.stream(motion=recording.gyro),
+        "lens_shift": rectifier.stream(lens_shift=recording.lens_shift),
+    }
     platform_stream = rectifier.stream()
     methods = METHODS if ds.K_platform is None else (*METHODS, "platform_prior", "platform_temporal")
     K = {m: np.empty((ds.n_frames, 3, 3)) for m in methods}

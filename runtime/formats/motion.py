@@ -1,14 +1,20 @@
-"""The gyroscope's samples beside a points file (`dimenet rectify --points FILE --motion GYRO.csv`;
-models_spec/points-csv.md, "Motion"): a CSV ``t_ns,gx_rad_s,gy_rad_s,gz_rad_s``, one sample a row in time
-order, on the points' clock (ns), the angular rate (rad/s) in the camera's axes (OpenCV {C}: x right, y down,
-z forward). ``write_gyro`` writes one atomically; ``read_gyro`` reads one whole (a gyroscope's samples are
-~30 bytes each: 10 minutes at 500 Hz is 9 MB) into a (G, 4) float64 array. Every problem is a PointsError naming
-the file and line."""
+"""The motion samples beside a points file (`dimenet rectify --points FILE --temporal --motion FILE`;
+models_spec/points-csv.md, "Motion"), one sample a row in time order, on the points' clock (ns), either kind:
+
+- the gyroscope: a CSV ``t_ns,gx_rad_s,gy_rad_s,gz_rad_s``, the angular rate (rad/s) in the camera's axes (OpenCV
+  {C}: x right, y down, z forward);
+- the lens shift: a CSV ``t_ns,x_shift_px,y_shift_px``, the platform's samples of the optical centre's shift (px of
+  the sensor's active array, +x to the right, +y down: Android's STATISTICS_OIS_SAMPLES, ``OisSample``).
+
+``write_gyro`` and ``write_lens_shift`` write one atomically; ``read_motion`` reads either whole (a sample is ~30
+bytes: 10 minutes at 500 Hz is 9 MB), telling them apart by the header. Every problem is a PointsError naming the
+file and line."""
 
 from __future__ import annotations
 
 import csv
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,35 +24,64 @@ from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.text import decimal
 
 GYRO_COLUMNS = ("t_ns", "gx_rad_s", "gy_rad_s", "gz_rad_s")
+LENS_SHIFT_COLUMNS = ("t_ns", "x_shift_px", "y_shift_px")
 MAX_RATE_RAD_S = 100.0  # |rate| above this is no hand-held phone's (a unit error: deg/s)
+MAX_SHIFT_PX = 10_000.0  # |shift| above this is no lens's (a unit error, or not pixels)
+GYRO, LENS_SHIFT = "gyro", "lens_shift"
+_KINDS = {
+    GYRO: (GYRO_COLUMNS, MAX_RATE_RAD_S, "finite rad/s of magnitude <= {:g} (deg/s?)"),
+    LENS_SHIFT: (LENS_SHIFT_COLUMNS, MAX_SHIFT_PX, "finite px of magnitude <= {:g}"),
+}
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A motion file's samples: ``kind`` GYRO ((G, 4) rows t_ns, gx, gy, gz rad/s) or LENS_SHIFT ((G, 3) rows t_ns,
+    x_shift_px, y_shift_px), float64."""
+
+    kind: str
+    samples: np.ndarray
+
+
+def _write(path: str | Path, columns: tuple, samples: np.ndarray) -> Path:
+    text = io.StringIO()
+    text.write(",".join(columns) + "\n")
+    for t, *values in np.asarray(samples, dtype=np.float64):
+        text.write(",".join([str(int(t)), *(repr(float(v)) for v in values)]) + "\n")
+    return atomic_write(path, lambda f: f.write(text.getvalue().encode("utf-8")))
 
 
 def write_gyro(path: str | Path, samples: np.ndarray) -> Path:
     """Write (G, 4) rows (t_ns, gx, gy, gz rad/s) as the gyroscope CSV, atomically."""
-    text = io.StringIO()
-    text.write(",".join(GYRO_COLUMNS) + "\n")
-    for t, gx, gy, gz in np.asarray(samples, dtype=np.float64):
-        text.write(f"{int(t)},{float(gx)!r},{float(gy)!r},{float(gz)!r}\n")
-    return atomic_write(path, lambda f: f.write(text.getvalue().encode("utf-8")))
+    return _write(path, GYRO_COLUMNS, samples)
 
 
-def read_gyro(path: str | Path) -> np.ndarray:
-    """(G, 4) float64 rows (t_ns, gx, gy, gz rad/s) of a gyroscope CSV: header GYRO_COLUMNS (in any order, other
-    columns ignored), t_ns integers strictly increasing, rates finite and |rate| <= MAX_RATE_RAD_S."""
+def write_lens_shift(path: str | Path, samples: np.ndarray) -> Path:
+    """Write (G, 3) rows (t_ns, x_shift_px, y_shift_px) as the lens-shift CSV, atomically."""
+    return _write(path, LENS_SHIFT_COLUMNS, samples)
+
+
+def read_motion(path: str | Path) -> Motion:
+    """The samples of a motion CSV: its header names GYRO_COLUMNS or LENS_SHIFT_COLUMNS (in any order, other
+    columns ignored), t_ns integers strictly increasing, the values finite and within the kind's bound."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
-        raise PointsError(f"{path}: cannot read the gyroscope file ({exc})") from None
+        raise PointsError(f"{path}: cannot read the motion file ({exc})") from None
     rows = [r for r in csv.reader(io.StringIO(text)) if "".join(r).strip()]
     if not rows:
-        raise PointsError(f"{path}:1: no header: the gyroscope file is empty")
+        raise PointsError(f"{path}:1: no header: the motion file is empty")
     names = [c.strip() for c in rows[0]]
-    missing = [c for c in GYRO_COLUMNS if c not in names]
-    if missing:
-        raise PointsError(f"{path}:1: the header must name {', '.join(GYRO_COLUMNS)}; it has no {', '.join(missing)}")
-    index = [names.index(c) for c in GYRO_COLUMNS]
-    out = np.empty((len(rows) - 1, 4))
+    kind = next((k for k, (columns, _, _) in _KINDS.items() if all(c in names for c in columns)), None)
+    if kind is None:
+        raise PointsError(
+            f"{path}:1: the header must name {', '.join(GYRO_COLUMNS)} (the gyroscope) or "
+            f"{', '.join(LENS_SHIFT_COLUMNS)} (the lens shift); it has {', '.join(names)}"
+        )
+    columns, bound, unit = _KINDS[kind]
+    index = [names.index(c) for c in columns]
+    out = np.empty((len(rows) - 1, len(columns)))
     for i, row in enumerate(rows[1:]):
         line = i + 2
         if len(row) != len(names):
@@ -55,14 +90,14 @@ def read_gyro(path: str | Path) -> np.ndarray:
         if not t.lstrip("+-").isdigit():
             raise PointsError(f"{path}:{line}: t_ns must be an integer of nanoseconds, got {t!r}")
         values = [decimal(row[j]) for j in index[1:]]
-        if any(v is None or not abs(v) <= MAX_RATE_RAD_S for v in values):
+        if any(v is None or not abs(v) <= bound for v in values):
             raise PointsError(
-                f"{path}:{line}: gx_rad_s, gy_rad_s, gz_rad_s must be finite rad/s of magnitude <= "
-                f"{MAX_RATE_RAD_S:g} (deg/s?), got {', '.join(row[j] for j in index[1:])}"
+                f"{path}:{line}: {', '.join(columns[1:])} must be {unit.format(bound)}, got "
+                f"{', '.join(row[j] for j in index[1:])}"
             )
         out[i] = (int(t), *values)
         if i and out[i, 0] <= out[i - 1, 0]:
             raise PointsError(f"{path}:{line}: t_ns must increase strictly, got {t} after {int(out[i - 1, 0])}")
-    if len(out) == 0:
-        raise PointsError(f"{path}:2: no samples in the gyroscope file")
-    return out
+    if len(out) < 2:
+        raise PointsError(f"{path}:{len(rows) + 1}: the motion file needs at least 2 samples, it has {len(out)}")
+    return Motion(kind, out)

@@ -16,6 +16,11 @@ not assumed. The focal length is K_c's or the stream's tracked one, whichever ha
 c (the network's f is biased on some recordings, and right on others). sigma of c: SIGMA_FLOOR_PX and the spread
 of the best few pairs' predictions.
 
+``LensShiftOis`` takes the platform's own samples of the lens shift instead (Android's STATISTICS_OIS_SAMPLES: the
+optical centre's shift, px of the active array, timestamped): c = c_rest + gain · scale · shift(t), the shift
+interpolated at the frame's time, ``scale`` the stream's px per active-array px; the gain (GAINS: the Hall sensor's
+calibration as users report it; 0: the samples do not move c) is learned from the frames as the gyroscope's loop is.
+
 Memory: a few numbers per cutoff and pair, and an index into the samples.
 """
 
@@ -38,48 +43,29 @@ SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the 
 SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
 
 
-class GyroOis:
-    """The OIS shift predicted from the gyroscope (see the module doc). ``samples`` (G, 4): t_ns, gx, gy, gz rad/s
-    in {C}, t_ns increasing; ``k_c`` (4,) px."""
+def _samples(samples, columns: str) -> np.ndarray:
+    """(G, C) float64 of ``samples``, G >= 2 rows of ``columns`` (C names) with t_ns increasing, or InputError."""
+    samples = np.asarray(samples, dtype=np.float64)
+    n = len(columns.split(", "))
+    if samples.ndim != 2 or samples.shape[1] != n or len(samples) < 2 or np.any(np.diff(samples[:, 0]) <= 0):
+        raise InputError(f"motion must be (G >= 2, {n}) rows of {columns} with t_ns increasing, got {samples.shape}")
+    if not np.all(np.isfinite(samples)):
+        raise InputError("motion: every sample must be finite")
+    return samples
 
-    def __init__(self, samples, k_c: np.ndarray) -> None:
-        samples = np.asarray(samples, dtype=np.float64)
-        if samples.ndim != 2 or samples.shape[1] != 4 or len(samples) < 2 or np.any(np.diff(samples[:, 0]) <= 0):
-            raise InputError(
-                f"motion must be (G >= 2, 4) rows of t_ns, gx, gy, gz with t_ns increasing, got {samples.shape}"
-            )
-        self.samples, self.k_c = samples, np.asarray(k_c, dtype=np.float64)
-        self._cutoffs = np.asarray(CUTOFFS_HZ)
-        self._next = 0  # the first sample not consumed
-        self._bias = np.zeros(3)
-        self._bias_s = 0.0
-        self._hp = np.zeros((len(CUTOFFS_HZ), 2))  # (yaw, pitch) high-passed, rad, per cutoff
-        self._scores = np.zeros((len(CUTOFFS_HZ), len(GAINS)))
+
+class _LoopBank:
+    """The scoring both predictors share: rows of lens shifts at gain 1 (``_shifts``) times GAINS, each pair scored
+    on the frames' points; ``k_c`` (4,) px."""
+
+    def __init__(self, k_c: np.ndarray, rows: int) -> None:
+        self.k_c = np.asarray(k_c, dtype=np.float64)
+        self._scores = np.zeros((rows, len(GAINS)))
         self._f_scores = np.zeros(2)  # K_c's f, the tracked f
         self._frames = 0
 
-    def recentre(self) -> None:
-        """The OIS recentres (a cut): the high-pass states to 0; the loop's scores stay (the same phone)."""
-        self._hp[:] = 0.0
-
-    def advance(self, t_ns: int) -> None:
-        """Consume the samples up to ``t_ns``: the bias's running mean and the bank's high-pass at the gyro's rate."""
-        s = self.samples
-        while self._next < len(s) and s[self._next, 0] <= t_ns:
-            i = self._next
-            self._next += 1
-            if i == 0:
-                continue
-            step_s = (s[i, 0] - s[i - 1, 0]) * 1e-9
-            self._bias_s += step_s
-            self._bias += min(1.0, step_s / min(self._bias_s, BIAS_TAU_S)) * (s[i, 1:] - self._bias)
-            rate = s[i, 1:] - self._bias
-            a = 1.0 / (1.0 + 2.0 * math.pi * self._cutoffs * step_s)
-            self._hp = a[:, None] * (self._hp + np.array([rate[1], rate[0]]) * step_s)
-
     def _shifts(self) -> np.ndarray:
-        """(cutoffs, 2) px the lens shift of each cutoff at gain 1."""
-        return self.k_c[0] * np.stack([np.tan(self._hp[:, 0]), -np.tan(self._hp[:, 1])], 1)
+        raise NotImplementedError
 
     def score(self, points_2d: np.ndarray, points_3d: np.ndarray, f_tracked: np.ndarray) -> None:
         """Score the bank on one frame's points (px, mm), every SCORE_EVERY-th call, with K_c's (fx, fy); then the
@@ -123,7 +109,73 @@ class GyroOis:
         preds = np.array([self.k_c[2:] + GAINS[j] * shifts[i] for i, j in pairs])
         return preds[0], SIGMA_FLOOR_PX**2 + preds.var(0)
 
+
+class GyroOis(_LoopBank):
+    """The OIS shift predicted from the gyroscope (see the module doc). ``samples`` (G, 4): t_ns, gx, gy, gz rad/s
+    in {C}, t_ns increasing; ``k_c`` (4,) px."""
+
+    def __init__(self, samples, k_c: np.ndarray) -> None:
+        super().__init__(k_c, len(CUTOFFS_HZ))
+        self.samples = _samples(samples, "t_ns, gx, gy, gz")
+        self._cutoffs = np.asarray(CUTOFFS_HZ)
+        self._next = 0  # the first sample not consumed
+        self._bias = np.zeros(3)
+        self._bias_s = 0.0
+        self._hp = np.zeros((len(CUTOFFS_HZ), 2))  # (yaw, pitch) high-passed, rad, per cutoff
+
+    def recentre(self) -> None:
+        """The OIS recentres (a cut): the high-pass states to 0; the loop's scores stay (the same phone)."""
+        self._hp[:] = 0.0
+
+    def advance(self, t_ns: int) -> None:
+        """Consume the samples up to ``t_ns``: the bias's running mean and the bank's high-pass at the gyro's rate."""
+        s = self.samples
+        while self._next < len(s) and s[self._next, 0] <= t_ns:
+            i = self._next
+            self._next += 1
+            if i == 0:
+                continue
+            step_s = (s[i, 0] - s[i - 1, 0]) * 1e-9
+            self._bias_s += step_s
+            self._bias += min(1.0, step_s / min(self._bias_s, BIAS_TAU_S)) * (s[i, 1:] - self._bias)
+            rate = s[i, 1:] - self._bias
+            a = 1.0 / (1.0 + 2.0 * math.pi * self._cutoffs * step_s)
+            self._hp = a[:, None] * (self._hp + np.array([rate[1], rate[0]]) * step_s)
+
+    def _shifts(self) -> np.ndarray:
+        """(cutoffs, 2) px the lens shift of each cutoff at gain 1."""
+        return self.k_c[0] * np.stack([np.tan(self._hp[:, 0]), -np.tan(self._hp[:, 1])], 1)
+
     def loop(self) -> dict:
         """The loop as estimated: cutoff (Hz), gain, the gyroscope's bias (rad/s)."""
         i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
         return {"cutoff_hz": CUTOFFS_HZ[i], "gain": GAINS[j], "bias_rad_s": self._bias.tolist()}
+
+
+class LensShiftOis(_LoopBank):
+    """The OIS shift the platform samples (see the module doc). ``samples`` (G, 3): t_ns, x_shift_px, y_shift_px (the
+    optical centre's shift, px of the active array: +x to the right, +y down), t_ns increasing; ``k_c`` (4,) px;
+    ``scale`` the stream's px per active-array px (> 0)."""
+
+    def __init__(self, samples, k_c: np.ndarray, scale: float = 1.0) -> None:
+        super().__init__(k_c, 1)
+        self.samples = _samples(samples, "t_ns, x_shift_px, y_shift_px")
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise InputError(f"the lens shift's scale must be > 0 stream px per active-array px, got {scale!r}")
+        self.scale = float(scale)
+        self._shift = np.zeros(2)
+
+    def recentre(self) -> None:
+        """The samples are the lens's position itself: nothing to reset at a cut."""
+
+    def advance(self, t_ns: int) -> None:
+        """The shift at ``t_ns``, linear between the samples around it (the first or last one outside them)."""
+        s = self.samples
+        self._shift = np.array([np.interp(float(t_ns), s[:, 0], s[:, 1]), np.interp(float(t_ns), s[:, 0], s[:, 2])])
+
+    def _shifts(self) -> np.ndarray:
+        return (self.scale * self._shift)[None]
+
+    def loop(self) -> dict:
+        """The shift's gain as estimated and the scale given."""
+        return {"gain": GAINS[int(np.argmin(self._scores[0]))], "scale": self.scale}

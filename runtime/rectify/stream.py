@@ -24,7 +24,10 @@ refused result are under its K_c.
 
 With the gyroscope (``motion``, (G, 4) rows t_ns, gx, gy, gz rad/s in {C}: ``formats.motion``), the principal
 point is the OIS loop's prediction from the measured rotation (``rectify.gyro_ois``: the loop's cutoff and gain
-learned from the frames' points) and the focal length the filter's or K_c's, whichever has left less error on the
+learned from the frames' points); with the platform's lens-shift samples instead (``lens_shift``, (G, 3) rows t_ns,
+x_shift_px, y_shift_px of the active array, times ``lens_shift_scale`` stream px per active-array px: Android's
+STATISTICS_OIS_SAMPLES), K_c's centre plus the shift at the frame's time, its gain learned the same way. The focal
+length is the filter's or K_c's, whichever has left less error on the
 frames' points (on natural labels the network's f is biased per recording, measured 5-60 px RMS where K_c's is 3-11,
 which no filter averages away; on a rig it is right).
 
@@ -43,7 +46,7 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params, rvec_to_matrix, undistort_points
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import implausible_reason, loses_to_k_c, worse_reason
-from dimenet.runtime.rectify.gyro_ois import GyroOis
+from dimenet.runtime.rectify.gyro_ois import GyroOis, LensShiftOis
 from dimenet.runtime.rectify.results import Fallback, Rectification
 
 TAU_S = (30.0, 30.0, 0.6, 0.6)  # AR(1) time constants of fx, fy, cx, cy (s)
@@ -72,7 +75,17 @@ class StreamFrame:
 class Stream:
     """One recording's K filter over a shared Rectifier (see the module doc). ``update`` one frame at a time."""
 
-    def __init__(self, rectifier, *, tau_s=TAU_S, frame_s: float = FRAME_S, refine: bool = False, motion=None) -> None:
+    def __init__(
+        self,
+        rectifier,
+        *,
+        tau_s=TAU_S,
+        frame_s: float = FRAME_S,
+        refine: bool = False,
+        motion=None,
+        lens_shift=None,
+        lens_shift_scale: float = 1.0,
+    ) -> None:
         Q = rectifier.population_K_cov
         if Q is None:
             raise InputError(
@@ -89,7 +102,13 @@ class Stream:
         self._k0 = self.k_c  # the prior the state was last drawn towards: K_c, or the last frame's own
         self._t_ns: Optional[int] = None
         self._pose: Optional[tuple] = None
-        self.gyro = None if motion is None else GyroOis(motion, self.k_c)
+        if motion is not None and lens_shift is not None:
+            raise InputError("a stream takes the gyroscope's samples or the lens shift's, not both")
+        self.gyro = None  # the OIS predictor: the gyroscope's loop or the platform's lens shift
+        if motion is not None:
+            self.gyro = GyroOis(motion, self.k_c)
+        elif lens_shift is not None:
+            self.gyro = LensShiftOis(lens_shift, self.k_c, lens_shift_scale)
 
     def _reset(self, k0: np.ndarray) -> None:
         self.k, self.P = k0.copy(), self.Q.copy()

@@ -14,7 +14,10 @@ looking at a random room, street or table (``natural.random_natural``) or at its
   which changes only when the camera refocuses (a step in f);
 - cuts: the recording jumps to a new hand-held pose (``simulator.sample_pose``) and refocuses; the OIS recentres;
 - the gyroscope: the angular rate in {C} (rad/s, small-angle: the angles' derivative) plus a constant bias and
-  white noise, at ``gyro_hz``.
+  white noise, at ``gyro_hz``;
+- the platform's lens-shift samples (Android's STATISTICS_OIS_SAMPLES) at the gyroscope's times: the optical
+  centre's shift f (tan hp yaw, -tan hp pitch) px at the nominal f, times a Hall-sensor gain in LENS_SHIFT_GAIN,
+  plus white noise of LENS_SHIFT_NOISE_PX (its own stream).
 
 The frames are a ``dimenet-dataset/1`` Dataset in time order: ``infer_mask`` the points an app would stream (the
 natural labels, with their 2D noise and 3D model error; half of a rig's corners), ``valid & ~infer_mask`` held-out
@@ -37,7 +40,7 @@ import numpy as np
 from dimenet.runtime.errors import InputError, RigError
 from dimenet.runtime.formats.camera_file import write_camera
 from dimenet.runtime.formats.dataset import Dataset, write_dataset
-from dimenet.runtime.formats.motion import write_gyro
+from dimenet.runtime.formats.motion import write_gyro, write_lens_shift
 from dimenet.runtime.formats.points import write_points
 from dimenet.runtime.geometry import k_params, matrix_to_rvec, rvec_to_matrix, to_camera
 from dimenet.runtime.rectify.user_camera import checked_camera
@@ -73,6 +76,8 @@ PAN_SECONDS = (1.0, 2.5)  # one pan's duration, uniform
 REFOCUS_PER_MINUTE = 4.0  # Poisson rate of refocus events (besides the one at each cut)
 REFOCUS_DISTANCE = (0.5, 1.8)  # a refocus focuses at this factor of the scene distance, uniform
 LABEL_SHARE = 0.5  # share of the features (a rig's corners) streamed; the rest are held out for scoring
+LENS_SHIFT_GAIN = (0.9, 1.05)  # the lens-shift samples' gain (the Hall sensor's calibration), uniform
+LENS_SHIFT_NOISE_PX = (0.05, 0.3)  # their white noise's std per axis (px), uniform
 
 
 @dataclass(frozen=True)
@@ -158,13 +163,15 @@ def ois_shift_rad(trace: TraceModel, angles_rad: np.ndarray, dt_s: float, reset:
 class Recording:
     """A simulated recording: ``dataset`` (frames in time order, see the module doc), ``t_ns`` (F,) int64 per frame,
     ``gyro`` (G, 4) float64 rows (t_ns, gx, gy, gz rad/s in {C}), ``cuts`` and ``refocus``: frame indices where a
-    cut or a refocus (a cut refocuses too) takes effect."""
+    cut or a refocus (a cut refocuses too) takes effect; ``lens_shift`` (G, 3) float64 rows (t_ns, x_shift_px,
+    y_shift_px): the platform's samples of the optical centre's shift."""
 
     dataset: Dataset
     t_ns: np.ndarray
     gyro: np.ndarray
     cuts: tuple
     refocus: tuple
+    lens_shift: np.ndarray
 
 
 def _events(rng: np.random.Generator, seconds: float, cuts: int) -> tuple[np.ndarray, np.ndarray]:
@@ -205,7 +212,7 @@ def simulate_recording(
     if not (0.0 < seconds <= MAX_SECONDS) or not (0 <= cuts <= 100):
         raise InputError(f"seconds must be in (0, {MAX_SECONDS:g}] and cuts in [0, 100], got {seconds!r}, {cuts!r}")
     root = np.random.SeedSequence(int(seed), spawn_key=(51,))
-    g_cam, g_rig, g_nat, g_trace, g_hand, g_run, g_sdk = (np.random.default_rng(s) for s in root.spawn(7))
+    g_cam, g_rig, g_nat, g_trace, g_hand, g_run, g_sdk, g_ois = (np.random.default_rng(s) for s in root.spawn(8))
     rig = random_rig(g_rig)
     trace = draw_trace(g_trace, held_out, ois)
     profile = framed(family_profile(g_cam, f"recording-s{seed}", image_size_px, (1, 0)), rig)
@@ -233,6 +240,10 @@ def simulate_recording(
     gyro_noise = g_run.normal(0.0, trace.gyro_noise_rad_s, rate.shape)
     t0_ns = int(g_run.integers(10**9, 10**12))
     gyro = np.column_stack([t0_ns + np.round(t_gyro * 1e9), rate + np.asarray(trace.gyro_bias_rad_s) + gyro_noise])
+    shift_px = profile.nominal_K[0, 0] * np.column_stack([np.tan(ois_rad[:, 1]), -np.tan(ois_rad[:, 0])])
+    shift_px = g_ois.uniform(*LENS_SHIFT_GAIN) * shift_px
+    shift_px += g_ois.normal(0.0, g_ois.uniform(*LENS_SHIFT_NOISE_PX), shift_px.shape)
+    lens_shift = np.column_stack([gyro[:, 0], shift_px])
 
     frames_t = np.arange(0.0, seconds, 1.0 / trace.fps)
     segment = np.searchsorted(cut_s, frames_t, side="right")
@@ -313,7 +324,7 @@ def simulate_recording(
         frame_id=np.array([f"f{k:05d}" for k in kept]),
         K_platform=K_platform,
     )
-    return Recording(dataset, np.asarray(t_ns, np.int64), gyro, cut_frames, refocus_frames)
+    return Recording(dataset, np.asarray(t_ns, np.int64), gyro, cut_frames, refocus_frames, lens_shift)
 
 
 def points_rows(recording: Recording, platform: bool = False):
@@ -340,7 +351,8 @@ def nominal_camera(recording: Recording):
 
 def write_recording(recording: Recording, out_dir) -> dict:
     """The recording's files in ``out_dir``: points.csv (the streamed points, format 1), points-platform.csv (the
-    same points in format 2 with the platform's per-frame K as each frame's K_c), gyro.csv (``formats.motion``),
+    same points in format 2 with the platform's per-frame K as each frame's K_c), gyro.csv and ois.csv (the lens
+    shift's samples; ``formats.motion``),
     camera.json (``nominal_camera``) and truth.npz (the dataset: K_true per frame, held-out points
     ``valid & ~infer_mask``); -> {name: path}."""
     out = Path(out_dir)
@@ -350,6 +362,7 @@ def write_recording(recording: Recording, out_dir) -> dict:
             out / "points-platform.csv", points_rows(recording, platform=True), frame_k_c=True
         ),
         "gyro": write_gyro(out / "gyro.csv", recording.gyro),
+        "ois": write_lens_shift(out / "ois.csv", recording.lens_shift),
         "camera": write_camera(out / "camera.json", nominal_camera(recording), "json"),
         "truth": write_dataset(recording.dataset, out / "truth.npz"),
     }

@@ -56,7 +56,7 @@ FLAGS = {
         "--model": IN,
         "--camera": IN,
         "--motion": IN,
-        "other": "--example --mode --refine --json --temporal",
+        "other": "--example --mode --refine --json --temporal --ois-scale",
     },
     "render": {"--out": OUT, "--rig": IN, "other": "--profile --n --seed --format --scale --dist-coeffs"},
     "reproduce": {

@@ -13,6 +13,7 @@ import pytest
 from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import k_matrix, k_params
+from dimenet.runtime.rectify.gyro_ois import LensShiftOis
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.stream import FRAME_S, TAU_S, Stream
 from dimenet.runtime.sim.recording import nominal_camera, simulate_recording, write_recording
@@ -148,6 +149,39 @@ def test_the_gyroscope_predicts_c_better_than_k_c():
     assert set(stream.gyro.loop()) == {"cutoff_hz", "gain", "bias_rad_s"}
 
 
+def test_the_lens_shift_predicts_c_better_than_k_c():
+    """With the platform's lens-shift samples, c follows them: closer to the truth than K_c's centre on the settled
+    frames, never worse than K_c on the frame's points; the samples' gain is learned."""
+    rec = simulate_recording(2, seconds=5.0, cuts=0)
+    camera = nominal_camera(rec)
+    stream = Rectifier.load(K_c=camera.K, image_size=camera.image_size).stream(lens_shift=rec.lens_shift)
+    err, err_c = [], []
+    for i, f in enumerate(frames(rec)):
+        out = stream.update(*f)
+        assert out.result.reprojection_error_px <= out.result.reprojection_error_kc_px
+        if i >= 30:
+            truth = k_params(rec.dataset.K_true[i])[2:]
+            err.append(stream.k[2:] - truth)
+            err_c.append(k_params(camera.K)[2:] - truth)
+    assert np.sqrt(np.mean(np.square(err))) < 0.5 * np.sqrt(np.mean(np.square(err_c)))
+    assert stream.gyro.loop()["gain"] > 0 and stream.gyro.loop()["scale"] == 1.0
+
+
+def test_the_lens_shift_is_interpolated_and_scaled(rectifier):
+    ois = LensShiftOis(np.array([[0, 0.0, 10.0], [100, 10.0, -10.0]]), np.array([3000.0, 3000.0, 2000.0, 1500.0]), 0.5)
+    ois.advance(25)
+    np.testing.assert_allclose(ois._shifts(), [[1.25, 2.5]])
+    ois.advance(1000)  # after the last sample: the last
+    np.testing.assert_allclose(ois._shifts(), [[5.0, -5.0]])
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(InputError, match="scale"):
+            LensShiftOis(np.array([[0, 0.0, 0.0], [1, 0.0, 0.0]]), np.zeros(4), bad)
+    with pytest.raises(InputError, match="finite"):
+        LensShiftOis(np.array([[0, 0.0, np.nan], [1, 0.0, 0.0]]), np.zeros(4))
+    with pytest.raises(InputError, match="not both"):
+        rectifier.stream(motion=np.zeros((2, 4)), lens_shift=np.zeros((2, 3)))
+
+
 def test_motion_needs_t_ns(recording, rectifier):
     stream = rectifier.stream(motion=recording.gyro)
     p2, p3, _ = next(frames(recording))
@@ -163,6 +197,17 @@ def test_cli_motion(recording, tmp_path, capsys):
     assert lines[0]["motion"] == str(paths["gyro"]) and len(lines) == recording.dataset.n_frames + 1
     assert main([*args, "--motion", str(paths["gyro"])]) == 2
     assert "--temporal" in capsys.readouterr().err
+    assert main([*args, "--temporal", "--motion", str(paths["ois"]), "--ois-scale", "1"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert lines[0]["motion"] == str(paths["ois"]) and len(lines) == recording.dataset.n_frames + 1
+    for extra, why in (
+        (["--motion", str(paths["gyro"]), "--ois-scale", "0.5"], "gyroscope"),
+        (["--ois-scale", "0.5"], "--motion"),
+        (["--motion", str(paths["ois"]), "--ois-scale", "0"], "--ois-scale"),
+    ):
+        assert main([*args, "--temporal", *extra]) == 2
+        err = capsys.readouterr().err
+        assert why in err and err.count("\n") == 1, err
 
 
 def test_a_stream_given_the_rectifiers_own_k_c_on_every_frame_is_the_plain_stream(recording, rectifier, streamed):

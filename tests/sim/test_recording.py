@@ -10,7 +10,7 @@ import pytest
 from dimenet.runtime.errors import InputError, PointsError
 from dimenet.runtime.evaluation.metrics import reprojection_error_under_k
 from dimenet.runtime.formats.dataset import read_dataset
-from dimenet.runtime.formats.motion import read_gyro, write_gyro
+from dimenet.runtime.formats.motion import GYRO, LENS_SHIFT, read_motion, write_gyro, write_lens_shift
 from dimenet.runtime.formats.points import read_points
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.sim.recording import TRACE_RANGES, draw_trace, simulate_recording, write_recording
@@ -90,19 +90,42 @@ def test_files_round_trip(recording, tmp_path):
     assert [f.t_ns for f in platform] == recording.t_ns.tolist()
     np.testing.assert_array_equal(platform[3].points_3d, frames[3].points_3d)
     np.testing.assert_array_equal(np.stack([f.K_c for f in platform]), ds.K_platform)
-    np.testing.assert_array_equal(read_gyro(paths["gyro"]), recording.gyro)
+    gyro, ois = read_motion(paths["gyro"]), read_motion(paths["ois"])
+    assert gyro.kind == GYRO and ois.kind == LENS_SHIFT
+    np.testing.assert_array_equal(gyro.samples, recording.gyro)
+    np.testing.assert_array_equal(ois.samples, recording.lens_shift)
     np.testing.assert_array_equal(read_dataset(paths["truth"]).K_true, ds.K_true)
 
 
-def test_gyro_file_errors_name_the_line(tmp_path):
+def test_motion_file_errors_name_the_line(tmp_path):
     path = tmp_path / "g.csv"
     write_gyro(path, np.array([[10, 0.1, 0.2, 0.3], [20, 0.1, 0.2, 0.3]]))
     path.write_text(path.read_text() + "15,0,0,0\n")
     with pytest.raises(PointsError, match=r"g.csv:4: t_ns must increase"):
-        read_gyro(path)
-    path.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n1,0,0,300\n")
+        read_motion(path)
+    path.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n1,0,0,300\n2,0,0,0\n")
     with pytest.raises(PointsError, match=r":2: .*deg/s"):
-        read_gyro(path)
+        read_motion(path)
+    write_lens_shift(path, np.array([[10, 1.5, -2.0], [20, 1.0, 0.5]]))
+    path.write_text(path.read_text() + "30,nan,0\n")
+    with pytest.raises(PointsError, match=r"g.csv:4: x_shift_px, y_shift_px must be finite px"):
+        read_motion(path)
+    path.write_text("t_ns,x_shift_px,y_shift_px\n10,1,2\n")
+    with pytest.raises(PointsError, match=r"at least 2 samples"):
+        read_motion(path)
+    path.write_text("t_ns,x_px,y_px\n10,1,2\n")
+    with pytest.raises(PointsError, match=r"g.csv:1: the header must name .*gx_rad_s.* or .*x_shift_px"):
+        read_motion(path)
+
+
+def test_the_lens_shift_samples_follow_the_true_principal_point(recording):
+    """The platform's lens-shift samples, interpolated at each frame's time, against K_true's c - the nominal
+    centre: the same motion up to the samples' gain and noise (and focus breathing's share of f)."""
+    ds = recording.dataset
+    samples = recording.lens_shift
+    shift = np.stack([np.interp(recording.t_ns, samples[:, 0], samples[:, a]) for a in (1, 2)], 1)
+    truth = ds.K_true[:, :2, 2] - ds.K_true[0, :2, 2] + shift[0]
+    assert np.corrcoef(shift[:, 0], truth[:, 0])[0, 1] > 0.9 and np.corrcoef(shift[:, 1], truth[:, 1])[0, 1] > 0.9
 
 
 def test_bad_arguments():

@@ -20,7 +20,7 @@ from importlib import resources
 import numpy as np
 
 from dimenet.runtime.assets import asset
-from dimenet.runtime.cli.arguments import nonempty_path
+from dimenet.runtime.cli.arguments import finite_float_in, nonempty_path
 from dimenet.runtime.cli.camera_option import add_camera_argument, require_dataset_size, served_camera
 from dimenet.runtime.cli.main import CliError, Command
 from dimenet.runtime.cli.outputs import refuse_overwriting_inputs
@@ -28,7 +28,7 @@ from dimenet.runtime.evaluation.rectify_points import rectified_records, streame
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.camera_file import camera_file, read_camera
 from dimenet.runtime.formats.dataset import Dataset, read_dataset
-from dimenet.runtime.formats.motion import read_gyro
+from dimenet.runtime.formats.motion import GYRO, read_motion
 from dimenet.runtime.formats.points import PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.geometry import k_params
@@ -88,9 +88,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--motion",
         type=nonempty_path,
-        metavar="GYRO.csv",
-        help="with --temporal: the gyroscope's samples, t_ns,gx_rad_s,gy_rad_s,gz_rad_s on the points' clock in the "
-        "camera's axes (models_spec/points-csv.md, 'Motion'): c predicted from the rotation through the OIS loop",
+        metavar="MOTION.csv",
+        help="with --temporal: the gyroscope's samples, t_ns,gx_rad_s,gy_rad_s,gz_rad_s in the camera's axes (c "
+        "predicted from the rotation through the OIS loop), or the platform's lens-shift samples, "
+        "t_ns,x_shift_px,y_shift_px (Android's STATISTICS_OIS_SAMPLES: c follows the shift), on the points' clock "
+        "(models_spec/points-csv.md, 'Motion')",
+    )
+    p.add_argument(
+        "--ois-scale",
+        type=finite_float_in(0.0, above=True),
+        default=None,
+        metavar="S",
+        help="with a lens-shift --motion: the stream's px per px of the sensor's active array, which the shifts are "
+        "in (default 1: the stream is the active array; e.g. 1920 / 4032 for a 1080p stream of a 4032 px array)",
     )
 
 
@@ -232,9 +242,8 @@ def _run_points(args: argparse.Namespace) -> int:
     tally: Counter = Counter()
     if args.temporal:
         header["temporal"] = True
-        motion = None if args.motion is None else read_gyro(args.motion)
         header["motion"] = args.motion
-        records = streamed_records(rectifier.stream(refine=args.refine, motion=motion), frames)
+        records = streamed_records(rectifier.stream(refine=args.refine, **_motion_options(args)), frames)
     else:
         records = rectified_records(rectifier, frames, refine=args.refine)
     lines = json_lines(header, counted(records, tally))
@@ -275,10 +284,24 @@ def _check_out(args: argparse.Namespace) -> None:
     refuse_overwriting_inputs("dimenet rectify", [("--out", args.out)], [(n, p) for n, p in inputs if p is not None])
 
 
+def _motion_options(args: argparse.Namespace) -> dict:
+    """The stream's options of --motion (either kind, ``formats.motion``) and --ois-scale."""
+    if args.motion is None:
+        return {}
+    motion = read_motion(args.motion)
+    if motion.kind == GYRO:
+        if args.ois_scale is not None:
+            raise CliError(f"dimenet rectify: --ois-scale scales lens shifts; {args.motion} holds gyroscope rates")
+        return {"motion": motion.samples}
+    return {"lens_shift": motion.samples, "lens_shift_scale": 1.0 if args.ois_scale is None else args.ois_scale}
+
+
 def run(args: argparse.Namespace) -> int:
     _check_out(args)
     if args.motion and not args.temporal:
         raise CliError("dimenet rectify: --motion feeds the temporal mode: give --temporal with it")
+    if args.ois_scale is not None and not args.motion:
+        raise CliError("dimenet rectify: --ois-scale scales a lens-shift --motion file: give --motion with it")
     if args.temporal and not args.points:
         raise CliError("dimenet rectify: --temporal tracks K through a recording: it needs --points FILE")
     if args.points:
@@ -337,6 +360,7 @@ COMMAND = Command(
     "  dimenet rectify --points rec.csv --camera cam.json --out rec.jsonl   # an app's recording, streamed\n"
     "  dimenet rectify --points rec.csv --camera cam.json --temporal   # K tracked through the recording\n"
     "  dimenet rectify --points rec/points.csv --camera rec/camera.json --temporal --motion rec/gyro.csv  # gyro\n"
+    "  dimenet rectify --points rec/points.csv --camera rec/camera.json --temporal --motion rec/ois.csv  # lens shift\n"
     "  dimenet rectify --example",
     add_arguments=add_arguments,
     run=run,
