@@ -36,7 +36,8 @@ METHODS = ("per_frame", "temporal", "gyro", "lens_shift")
 class StreamScores:
     """One recording's figures per method (METHODS): rho over settled frames and over the recovery window (None:
     undefined, ``reduction_ratio``), coverage and within_2_sigma (shares of frames), the share of frames whose K is
-    the method's own (not K_c kept), and the frames."""
+    the method's own (not K_c kept), and the frames; ``tracks``: method -> (k (F, 4) px (fx, fy, cx, cy) per
+    frame, sigma (F, 4) px, NaN where the method gives none)."""
 
     rho: dict
     rho_after_event: dict
@@ -45,6 +46,7 @@ class StreamScores:
     own_k: dict
     frames: int
     settled: int
+    tracks: dict
 
 
 def _masks(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
@@ -122,4 +124,5 @@ def score_recording(recording: Recording, rectifier: Optional[Rectifier] = None)
             moved = np.any(k != k_c, 1)
             within[name] = float(np.mean(~moved | np.all(np.abs(k - k_c) <= 2.0 * sigma[name], 1)))
     shares = {name: float(own[name].mean()) for name in methods}
-    return StreamScores(rho, rho_after, coverage, within, shares, ds.n_frames, int(settled.sum()))
+    tracks = {name: (k_params(K[name]), sigma[name]) for name in methods}
+    return StreamScores(rho, rho_after, coverage, within, shares, ds.n_frames, int(settled.sum()), tracks)

@@ -93,6 +93,8 @@ def report(results: dict, config: ReproduceConfig) -> str:
     L += _baselines_report(results["baselines"])
     if "generic" in results:
         L += _generic_report(results["generic"])
+    if "streams" in results:
+        L += _streams_report(results["streams"])
     L += ["## Cost", "", "| model | training s |", "|---|---|"]
     L += [f"| {k} | {v:.0f} |" for k, v in results["train_seconds"].items()]
     L += ["", f"Whole run: {results['seconds'] / 60:.1f} min on this machine.", ""]
@@ -366,4 +368,77 @@ def plot_eta(t2: dict) -> bytes:
     ax.set_ylabel("Avg(e) (px)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
+    return _png(fig, plt)
+
+
+STREAM_COLUMNS = ("platform", "per_frame", "temporal", "gyro", "lens_shift", "platform_prior", "platform_temporal")
+STREAM_STYLES = {  # the plot's methods: label, colour
+    "per_frame": ("per frame", "tab:orange"),
+    "temporal": ("temporal", "tab:green"),
+    "gyro": ("temporal + gyroscope", "tab:red"),
+    "lens_shift": ("temporal + lens shift", "tab:purple"),
+}
+
+
+def _streams_report(streams: dict) -> list:
+    """The streams' rho table (``reproduce.streams``) and the plot of one recording's K over time."""
+    rho = streams["rho"]
+    L = [
+        "## Streams — K through a hand-held recording (issue 51)",
+        "",
+        "Simulated recordings of the held-out trace model (`dimenet simulate --recording KIND --seed N --held-out`, "
+        "6 s, one cut), the bundled default model serving the nominal camera; ρ over the settled frames on the "
+        'points no method sees (models_spec/simulator.md, "Recordings"; `runtime/bench/streams.py`). `platform`: '
+        "the phone's reported K alone; `gyro`, `lens_shift`: `--temporal` with `--motion gyro.csv` or `ois.csv`; "
+        "`platform_*`: rectified about the phone's K (points format 2). A fixed K_c is ρ 0.",
+        "",
+        "| recording | " + " | ".join(STREAM_COLUMNS) + " |",
+        "|---" * (len(STREAM_COLUMNS) + 1) + "|",
+    ]
+    for name, row in rho.items():
+        L.append(f"| {name} | " + " | ".join(_pct(row.get(m)) for m in STREAM_COLUMNS) + " |")
+    return L + ["", f"![K over time]({STREAM_PLOT})", ""]
+
+
+STREAM_PLOT = "k_over_time.png"
+
+
+def plot_stream(plot: dict) -> bytes:
+    """K over time for one recording: the truth, K_c, the platform's K and each method with its ±σ band (where
+    narrower than the panel), a panel per parameter."""
+    plt = _figure()
+    t = np.asarray(plot["t_s"])
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6), dpi=100, sharex=True)
+    names = ("fx", "fy", "cx", "cy")
+    arr = lambda v: np.array(v, dtype=float)  # noqa: E731  (None -> NaN)
+    bands: list = []
+    for j, ax in enumerate(axes.ravel()):
+        lines = [arr(plot["k_true"])[:, j], arr(plot["k_platform"])[:, j], np.array([plot["k_c"][j]])]
+        for method, (label, colour) in STREAM_STYLES.items():
+            track = plot["methods"].get(method)
+            if track is None:
+                continue
+            k, sd = arr(track["k"])[:, j], arr(track["sigma"])[:, j]
+            lines.append(k)
+            bands.append((k, sd, colour))
+            ax.plot(t, k, color=colour, lw=0.9, label=label)
+        ax.plot(t, lines[1], color="tab:blue", lw=0.9, ls="--", label="platform K")
+        ax.plot(t, lines[0], color="black", lw=1.2, label="truth")
+        ax.axhline(plot["k_c"][j], color="grey", lw=0.8, ls=":", label="K_c")
+        low, high = np.nanmin(np.concatenate(lines)), np.nanmax(np.concatenate(lines))
+        margin = max(0.3 * (high - low), 5.0)  # the lines in view
+        ax.set_ylim(low - margin, high + margin)
+        for k, sd, colour in bands:  # a band wider than the view says only that the method does not know
+            sd = np.where(2.0 * sd < high - low + 2.0 * margin, sd, np.nan)
+            ax.fill_between(t, k - sd, k + sd, color=colour, alpha=0.15, lw=0)
+        bands.clear()
+        ax.set_ylabel(f"{names[j]} (px)")
+        ax.grid(alpha=0.3)
+    for ax in axes[1]:
+        ax.set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    fig.suptitle(
+        f"K over time, simulated recording {plot['name']} (held-out trace); bands: ±σ where narrower than the panel",
+        fontsize=10,
+    )
     return _png(fig, plt)

@@ -28,7 +28,8 @@ from ..init_weights import initial_weights
 from ..trainer import train
 from .generic import GENERIC_MODEL, fine_tune_training, fresh_family, fresh_scenes, run_generic
 from .paper import DEVICES, ETAS, GRIDS, NATURAL_FRAMES, NOISE_2D_PX, NOISE_3D_MM, PLANAR_FRAMES, POINTS, VARIANTS
-from .report import plot_eta, plot_methods, plot_points, report
+from .report import STREAM_PLOT, plot_eta, plot_methods, plot_points, plot_stream, report
+from .streams import QUICK_SECONDS, SECONDS, run_streams
 
 
 def _row(ev) -> dict:
@@ -109,6 +110,7 @@ JOBS = {
     "tables": _tables,
     "baseline": _baseline,
     "generic": _generic_rows,
+    "streams": run_streams,
 }
 
 
@@ -175,6 +177,7 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
             side = (trained["fresh family"].value, scenes)
             evaluations["generic"] = ("generic", data, run_dirs, tune, *side, config)
         evaluations["tables"] = ("tables", data, run_dirs, config)
+        evaluations["streams"] = ("streams", SECONDS if config.held_out_cameras is None else QUICK_SECONDS)
         evaluations.update({case: ("baseline", frames, run_dirs[name]) for case, (frames, name) in cases.items()})
         evaluated = _run_jobs(engine, evaluations, cpus_per_job, "reproduce: evaluation")
     results: dict = {"train_seconds": {name: trained[name].seconds for name in run_dirs}}
@@ -182,12 +185,14 @@ def run(config: ReproduceConfig, *, address: Optional[str] = None, cpus_per_job:
     results["baselines"] = {case: evaluated[case].value for case in cases}
     if generic:
         results["generic"] = evaluated["generic"].value
+    results["streams"] = evaluated["streams"].value
     results["seconds"] = time.monotonic() - start
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
     atomic_write(out / "rho_vs_points.png", lambda f: f.write(plot_points(results["table4"])))
     atomic_write(out / "e_vs_eta.png", lambda f: f.write(plot_eta(results["table2"])))
     atomic_write(out / "methods_vs_points.png", lambda f: f.write(plot_methods(results["baselines"])))
+    atomic_write(out / STREAM_PLOT, lambda f: f.write(plot_stream(results["streams"]["plot"])))
     atomic_write_text(out / "REPRODUCTION.md", report(results, config))
     return results
 
