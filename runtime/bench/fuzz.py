@@ -29,6 +29,8 @@ from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.formats.camera_file import read_camera
 from dimenet.runtime.formats.cameras import json_file, ros
 from dimenet.runtime.formats.dataset import read_dataset
+from dimenet.runtime.formats.motion import read_motion, write_gyro, write_lens_shift
+from dimenet.runtime.formats.points import read_points, write_points
 from dimenet.runtime.formats.rig import load_rig
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix, k_params, solve_pnp_start
 from dimenet.runtime.plugins import entry_points
@@ -371,9 +373,31 @@ def _refused(model) -> tuple[str, str]:
     return "silent-wrong", f"loaded ({model.source}): a crafted model must be refused"
 
 
+def _text_sources(folder: Path) -> dict:
+    """The recording's text files (a points CSV of format 2, the gyroscope's and the lens shift's samples), each as
+    (bytes, name, reader) for ``fuzz_files``; the points reader read to its end."""
+    frame = [
+        (f"f{i}", 1000 * i, 10.0 * j, 5.0 * j, float(j), float(j * j), 500.0, 3000.0, 3000.0, 2000.0, 1500.0)
+        for i in range(2)
+        for j in range(7)
+    ]
+    times = np.arange(1, 6) * 1_000_000
+    files = {
+        "points file": ("points.csv", lambda p: write_points(p, frame, frame_k_c=True), lambda p: list(read_points(p))),
+        "gyroscope file": ("gyro.csv", lambda p: write_gyro(p, np.c_[times, np.full((5, 3), 0.01)]), read_motion),
+        "lens-shift file": ("ois.csv", lambda p: write_lens_shift(p, np.c_[times, np.full((5, 2), 1.5)]), read_motion),
+    }
+    sources = {}
+    for area, (name, write, reader) in files.items():
+        path = write(folder / name)
+        sources[area] = (path.read_bytes(), name, reader)
+    return sources
+
+
 def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
     """``n_cases`` mutated files of each kind, read by their reader: a dataset (the example frames),
-    the bundled model, the paper rig, the example camera as ROS YAML. A reader that returns counts
+    the bundled model, the paper rig, the example camera as ROS YAML, a points CSV of format 2, a gyroscope's and a
+    lens shift's samples. A reader that returns counts
     as ok: a mutation may miss what the reader reads (e.g. zip padding). Then ``n_cases`` crafted
     model files (``_crafted_models``), which must each be refused."""
     folder = Path(folder)
@@ -384,6 +408,7 @@ def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, repor
         "model file": (model, "model.onnx", None),
         "rig file": (asset("paper_rig.json").read_bytes(), "rig.json", load_rig),
         "camera file": (ros.write(camera, "camera.yaml").encode("utf-8"), "camera.yaml", read_camera),
+        **_text_sources(folder),
     }
     for area, (blob, name, reader) in sources.items():
         mutations = _mutations(rng, blob)

@@ -89,6 +89,9 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
         "model file",
         "rig file",
         "camera file",
+        "points file",
+        "gyroscope file",
+        "lens-shift file",
         "crafted model",
     } | {
         area for area, modules in (("full graph", ("onnx",)), (".ort file", ("onnx", "torch"))) if importable(*modules)
