@@ -5,10 +5,10 @@ The CSV (``models_spec/points-csv.md``) tiles the frames of a dataset, all their
 to 1e-4 px and 1e-4 mm (frame k is frame k mod F, id ``f<k>``, t_ns at 30 frames/s). It is then
 streamed through the same path as the command, ``formats.points.read_points``,
 ``evaluation.rectify_points.rectified_records`` (``Rectifier.rectify`` frame by frame) and ``json_lines``, each line
-written and flushed to /dev/null; then again through ``Rectifier.stream`` (``--temporal``) and with a 200 Hz
-gyroscope (``--temporal --motion``): their extra microseconds per frame. Memory: the process's peak resident set size
-(``resource.getrusage``) after 10 % of the frames and at the end; equal figures show the stream
-runs in constant memory.
+written and flushed to /dev/null; then again through ``Rectifier.stream`` (``--temporal``), with a 200 Hz
+gyroscope (``--temporal --motion``) and with 200 Hz lens-shift samples: their extra microseconds per frame.
+Memory: the process's peak resident set size (``resource.getrusage``) after 10 % of the frames and at the end; equal
+figures show the stream runs in constant memory.
 """
 
 from __future__ import annotations
@@ -89,8 +89,13 @@ def run_stream_bench(folder: str | Path, n_frames: int, frames: Dataset, camera:
             out.write(line)
             out.flush()
     seconds = time.perf_counter() - start
-    for name, motion in (("temporal", None), ("temporal_motion", bench_gyro(n_frames))):
-        figures[f"{name}_s"] = _timed_temporal(rectifier, path, motion)
+    passes = (
+        ("temporal", {}),
+        ("temporal_motion", {"motion": bench_gyro(n_frames)}),
+        ("temporal_lens_shift", {"lens_shift": bench_lens_shift(n_frames)}),
+    )
+    for name, options in passes:
+        figures[f"{name}_s"] = _timed_temporal(rectifier, path, options)
         figures[f"{name}_extra_us_per_frame"] = (figures[f"{name}_s"] - seconds) / n_frames * 1e6
     figures.update(
         refused=counts["refused"],
@@ -114,11 +119,19 @@ def bench_gyro(n_frames: int, rate_hz: float = GYRO_HZ) -> np.ndarray:
     return np.column_stack([t_ns, rates])
 
 
-def _timed_temporal(rectifier: Rectifier, path: Path, motion) -> float:
-    """Seconds to stream the points CSV through ``Rectifier.stream`` (``--temporal``, with ``motion``: --motion),
-    each line written and flushed to /dev/null."""
+def bench_lens_shift(n_frames: int, rate_hz: float = GYRO_HZ) -> np.ndarray:
+    """(G, 3) lens-shift samples (t_ns, x_shift_px, y_shift_px) at ``rate_hz`` over the bench's ``n_frames`` frames:
+    a slow sway of a few px."""
+    t_ns = np.arange(0, n_frames * FRAME_NS + 1, int(1e9 / rate_hz), dtype=np.int64)
+    t_s = t_ns * 1e-9
+    return np.column_stack([t_ns, 8.0 * np.sin(2.1 * t_s), 6.0 * np.cos(1.3 * t_s)])
+
+
+def _timed_temporal(rectifier: Rectifier, path: Path, options: dict) -> float:
+    """Seconds to stream the points CSV through ``Rectifier.stream(**options)`` (``--temporal``; with motion or
+    lens_shift: --motion), each line written and flushed to /dev/null."""
     header = run_record(rectifier, refine=False, points=str(path), camera=None)
-    records = streamed_records(rectifier.stream(motion=motion), read_points(path))
+    records = streamed_records(rectifier.stream(**options), read_points(path))
     start = time.perf_counter()
     with open(os.devnull, "w", encoding="utf-8") as out:
         for line in json_lines(header, records):
@@ -136,7 +149,9 @@ def format_stream_report(r: dict) -> str:
             f"rectify --points: {r['stream_s']:.1f} s, {r['frames_per_s']:.0f} frames/s, {r['mb_per_s']:.1f} MB/s; "
             f"{r['refused']} refused, {r['fallbacks']} fallbacks",
             f"--temporal: {r['temporal_s']:.1f} s, {r['temporal_extra_us_per_frame']:+.0f} us a frame over per frame; "
-            f"--temporal --motion: {r['temporal_motion_s']:.1f} s, {r['temporal_motion_extra_us_per_frame']:+.0f} us",
+            f"--temporal --motion gyro: {r['temporal_motion_s']:.1f} s, "
+            f"{r['temporal_motion_extra_us_per_frame']:+.0f} us; --temporal --motion lens shift: "
+            f"{r['temporal_lens_shift_s']:.1f} s, {r['temporal_lens_shift_extra_us_per_frame']:+.0f} us",
             f"peak RSS {r['peak_rss_mb_before']:.1f} MB before the stream, {r['peak_rss_mb_at_10_percent']:.1f} MB "
             f"after 10 % of it, {r['peak_rss_mb']:.1f} MB at its end",
         ]
