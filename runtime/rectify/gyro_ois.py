@@ -30,8 +30,9 @@ import math
 
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import frame_error_and_depth, k_matrix
+from dimenet.runtime.geometry import k_matrix
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 
 CUTOFFS_HZ = (0.3, 0.5, 0.8, 1.1, 1.5, 2.0)
@@ -41,6 +42,11 @@ SCORE_EVERY = 3  # frames between two scorings of the bank (each scoring: one Pn
 SCORE_MEMORY = 0.99  # forgetting factor of the scores, per scoring
 SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the stroke's clip)
 SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
+
+
+def _error_at_pnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> float:
+    """The frame's mean reprojection error (px) under K (3, 3) at its PnP pose; InputError when there is none."""
+    return native.frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
 
 
 def _samples(samples, columns: str) -> np.ndarray:
@@ -83,7 +89,7 @@ class _LoopBank:
                     continue
                 K = k_matrix(np.r_[k[:2], self.k_c[2:] + gain * shift])
                 try:
-                    errors[i, j] = frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
+                    errors[i, j] = _error_at_pnp(points_2d, points_3d, K)
                 except InputError:
                     errors[i, j] = np.nan
         if not np.all(np.isfinite(errors)):
@@ -92,7 +98,7 @@ class _LoopBank:
         i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
         K = k_matrix(np.r_[f_tracked, self.k_c[2:] + GAINS[j] * shifts[i]])
         try:
-            e = frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
+            e = _error_at_pnp(points_2d, points_3d, K)
         except InputError:
             return
         self._f_scores = SCORE_MEMORY * self._f_scores + (errors[i, j], e)

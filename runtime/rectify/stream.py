@@ -42,8 +42,9 @@ from typing import Optional
 
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import frame_error_and_depth, k_matrix, k_params, rvec_to_matrix, undistort_points
+from dimenet.runtime.geometry import k_matrix, k_params, rotation_matrices, undistort_points
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import implausible_reason, loses_to_k_c, worse_reason
 from dimenet.runtime.rectify.gyro_ois import GyroOis, LensShiftOis
@@ -122,15 +123,16 @@ class Stream:
         self.k = k0 + a * offset
         self.P = A * self.P + (1.0 - A) * self.Q
 
-    def _event(self, t_ns: Optional[int], res: Rectification) -> tuple[Optional[str], float]:
-        """Which event resets the state before this frame (or None), and the time since the last frame (s)."""
+    def _event(self, t_ns: Optional[int], pose: tuple) -> tuple[Optional[str], float]:
+        """Which event resets the state before this frame (or None), and the time since the last frame (s); ``pose``
+        the frame's (R (3, 3), distance mm)."""
         dt_s = self.frame_s if t_ns is None or self._t_ns is None else (t_ns - self._t_ns) * 1e-9
         if self.k is None:
             return "start", dt_s
         if dt_s <= 0 or dt_s > GAP_FRAMES * self.frame_s:
             return "gap", dt_s
         R0, d0 = self._pose
-        R1, d1 = rvec_to_matrix(res.rvec), float(np.linalg.norm(res.tvec))
+        R1, d1 = pose
         turn = math.degrees(math.acos(float(np.clip((np.trace(R0.T @ R1) - 1.0) / 2.0, -1.0, 1.0))))
         if turn > CUT_DEG or abs(d1 - d0) > CUT_DEPTH * max(d0, 1e-9):
             return "cut", dt_s
@@ -147,7 +149,8 @@ class Stream:
             raise InputError("a stream with motion tracks K about the camera's one K_c, not a frame's own")
         res = rect.rectify(points_2d, points_3d, refine=self.refine, K_c=K_c)
         k0 = self.k_c if K_c is None else k_params(res.K_c)
-        event, dt_s = self._event(t_ns, res)
+        pose = (rotation_matrices(res.rvec), float(np.linalg.norm(res.tvec)))
+        event, dt_s = self._event(t_ns, pose)
         z, R = k_params(res.K), res.K_cov
         if R is None:
             R = self.Q
@@ -167,7 +170,7 @@ class Stream:
         self.P = (np.eye(4) - gain) @ self.P
         self.P = (self.P + self.P.T) / 2.0
         self._t_ns = t_ns
-        self._pose = (rvec_to_matrix(res.rvec), float(np.linalg.norm(res.tvec)))
+        self._pose = pose
         if self.gyro is not None:
             self._gyro_c(points_2d, points_3d, event, t_ns)
         return self._checked(points_2d, points_3d, res, event, K_c)
@@ -220,14 +223,14 @@ class Stream:
         e_c = res.reprojection_error_kc_px
         if rect.dist_coeffs is not None:  # both in the pinhole image of the lens's K (the camera's K_c)
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
-            e_c = frame_error_and_depth(p2, p3, K0, *pnp(p2, p3, K0))[0]
+            e_c = native.frame_error_and_depth(p2, p3, K0, *pnp(p2, p3, K0))[0]
         if not rect.k_within_bounds(self.k, K_c=K_c):
             return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0)
         try:
             rvec, tvec = pnp(p2, p3, K)
         except InputError:
             return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0)
-        e, depth = frame_error_and_depth(p2, p3, K, rvec, tvec)
+        e, depth = native.frame_error_and_depth(p2, p3, K, rvec, tvec)
         if depth <= 0:
             reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
             return self._k_c_kept(res, p2, p3, event, reason, K0)
