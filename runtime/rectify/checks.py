@@ -219,10 +219,10 @@ def move_p_value(e: float, e_c: float, n_points: int) -> float:
     of an integer parameter, in closed form). 1 when e >= e_c or either is NaN, 0 when e = 0 < e_c."""
     if not e < e_c:
         return 1.0
-    if e <= 0.0:
+    q = (e / e_c) ** 2
+    if q <= 0.0:  # e = 0, or e / e_c below the smallest float
         return 0.0
     half = n_points - (POSE_PARAMETERS + K_PARAMETERS) / 2.0
-    q = (e / e_c) ** 2
     return math.exp(half * math.log(q) + math.log1p(half * (1.0 - q)))
 
 

@@ -20,6 +20,7 @@ def test_the_p_value_by_hand():
     assert move_p_value(1.0, 1.0, 50) == 1.0 and move_p_value(1.5, 1.0, 50) == 1.0
     assert move_p_value(float("nan"), 1.0, 50) == 1.0 and move_p_value(0.5, float("nan"), 50) == 1.0
     assert move_p_value(0.0, 1.0, 6) == 0.0
+    assert move_p_value(1e-200, 1e200, 6) == 0.0 and move_p_value(1.0, float("inf"), 6) == 0.0  # q underflows
     assert move_p_value(0.0, 0.0, 6) == 1.0  # no error to lower: no evidence
     # Scale-free: the same ratio of errors in other units gives the same p.
     assert move_p_value(0.9e-3, 1e-3, 40) == pytest.approx(move_p_value(900.0, 1000.0, 40), rel=1e-12)
