@@ -30,12 +30,12 @@ def streamed_records(stream: Stream, frames: Iterable[PointsFrame]) -> Iterator[
     """``frame_record`` of each frame's fused result (``Stream.update``, with the frame's own K_c where points
     format 2 gives one) with its ``event`` and whether K is the filter's (``fused``), or its ``error_record`` when
     the rectifier refuses the frame; the run goes on. A frame with its own K_c in a stream with motion is a
-    PointsError: the gyroscope's loop predicts c about the camera's one K_c."""
+    PointsError: the motion (the gyroscope's loop, the lens shift) predicts c about the camera's one K_c."""
     for frame in frames:
         if frame.K_c is not None and stream.gyro is not None:
             raise PointsError(
                 f"frame {frame.frame_id!r} (line {frame.line}) gives its own K_c (fx_px..cy_px): with --motion the "
-                "gyroscope predicts c about the camera's one K_c; track the file without --motion"
+                "motion predicts c about the camera's one K_c; track the file without --motion"
             )
         try:
             out = stream.update(frame.points_2d, frame.points_3d, frame.t_ns, K_c=frame.K_c)
