@@ -22,11 +22,10 @@ import numpy as np
 from dimenet.runtime.errors import PointsError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.text import decimal
+from dimenet.runtime.rectify.gyro_ois import MAX_RATE_RAD_S, MAX_SHIFT_PX
 
 GYRO_COLUMNS = ("t_ns", "gx_rad_s", "gy_rad_s", "gz_rad_s")
 LENS_SHIFT_COLUMNS = ("t_ns", "x_shift_px", "y_shift_px")
-MAX_RATE_RAD_S = 100.0  # |rate| above this is no hand-held phone's (a unit error: deg/s)
-MAX_SHIFT_PX = 10_000.0  # |shift| above this is no lens's (a unit error, or not pixels)
 GYRO, LENS_SHIFT = "gyro", "lens_shift"
 _KINDS = {
     GYRO: (GYRO_COLUMNS, MAX_RATE_RAD_S, "finite rad/s of magnitude <= {:g} (deg/s?)"),

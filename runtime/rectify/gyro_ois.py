@@ -40,6 +40,9 @@ GAINS = (0.0, 0.8, 0.9, 1.0, 1.1)  # 0: no OIS (off, or a camera without it): c 
 BIAS_TAU_S = 5.0  # the gyroscope bias's running mean
 SCORE_EVERY = 3  # frames between two scorings of the bank (each scoring: one PnP per pair)
 SCORE_MEMORY = 0.99  # forgetting factor of the scores, per scoring
+MAX_RATE_RAD_S = 100.0  # |rate| above this is no hand-held phone's (a unit error: deg/s)
+MAX_SHIFT_PX = 10_000.0  # |lens shift| above this is no lens's (a unit error, or not pixels)
+MAX_SCALE = 16.0  # stream px per active-array px: a stream is at most this much finer than the sensor's array
 SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the stroke's clip)
 SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
 
@@ -49,14 +52,20 @@ def _error_at_pnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -
     return native.frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
 
 
-def _samples(samples, columns: str) -> np.ndarray:
-    """(G, C) float64 of ``samples``, G >= 2 rows of ``columns`` (C names) with t_ns increasing, or InputError."""
-    samples = np.asarray(samples, dtype=np.float64)
+def _samples(samples, columns: str, bound: float) -> np.ndarray:
+    """(G, C) float64 of ``samples``, G >= 2 rows of ``columns`` (C names) with t_ns increasing and every value
+    after t_ns finite and within +-``bound``, or InputError."""
+    try:
+        samples = np.asarray(samples, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"motion: not an array of numbers ({exc})") from None
     n = len(columns.split(", "))
-    if samples.ndim != 2 or samples.shape[1] != n or len(samples) < 2 or np.any(np.diff(samples[:, 0]) <= 0):
+    if samples.ndim != 2 or samples.shape[1] != n or len(samples) < 2:
         raise InputError(f"motion must be (G >= 2, {n}) rows of {columns} with t_ns increasing, got {samples.shape}")
-    if not np.all(np.isfinite(samples)):
-        raise InputError("motion: every sample must be finite")
+    if not np.all(np.isfinite(samples[:, 0])) or np.any(np.diff(samples[:, 0]) <= 0):
+        raise InputError(f"motion must be (G >= 2, {n}) rows of {columns} with t_ns increasing")
+    if not np.all(np.abs(samples[:, 1:]) <= bound):  # NaN fails too
+        raise InputError(f"motion: every sample's {columns.split(', ', 1)[1]} must be finite, within +-{bound:g}")
     return samples
 
 
@@ -122,7 +131,7 @@ class GyroOis(_LoopBank):
 
     def __init__(self, samples, k_c: np.ndarray) -> None:
         super().__init__(k_c, len(CUTOFFS_HZ))
-        self.samples = _samples(samples, "t_ns, gx, gy, gz")
+        self.samples = _samples(samples, "t_ns, gx, gy, gz", MAX_RATE_RAD_S)
         self._cutoffs = np.asarray(CUTOFFS_HZ)
         self._next = 0  # the first sample not consumed
         self._bias = np.zeros(3)
@@ -165,9 +174,15 @@ class LensShiftOis(_LoopBank):
 
     def __init__(self, samples, k_c: np.ndarray, scale: float = 1.0) -> None:
         super().__init__(k_c, 1)
-        self.samples = _samples(samples, "t_ns, x_shift_px, y_shift_px")
-        if not (math.isfinite(scale) and scale > 0.0):
-            raise InputError(f"the lens shift's scale must be > 0 stream px per active-array px, got {scale!r}")
+        self.samples = _samples(samples, "t_ns, x_shift_px, y_shift_px", MAX_SHIFT_PX)
+        try:
+            scale = float(scale)
+        except (TypeError, ValueError):
+            scale = math.nan
+        if not 0.0 < scale <= MAX_SCALE:
+            raise InputError(
+                f"the lens shift's scale must be in (0, {MAX_SCALE:g}] stream px per active-array px, got {scale!r}"
+            )
         self.scale = float(scale)
         self._shift = np.zeros(2)
 

@@ -161,11 +161,16 @@ def test_the_lens_shift_is_interpolated_and_scaled(rectifier):
     np.testing.assert_allclose(ois._shifts(), [[1.25, 2.5]])
     ois.advance(1000)  # after the last sample: the last
     np.testing.assert_allclose(ois._shifts(), [[5.0, -5.0]])
-    for bad in (0.0, -1.0, float("nan")):
+    for bad in (0.0, -1.0, float("nan"), 1e300, "x", None):
         with pytest.raises(InputError, match="scale"):
             LensShiftOis(np.array([[0, 0.0, 0.0], [1, 0.0, 0.0]]), np.zeros(4), bad)
-    with pytest.raises(InputError, match="finite"):
-        LensShiftOis(np.array([[0, 0.0, np.nan], [1, 0.0, 0.0]]), np.zeros(4))
+    for bad in (np.nan, 1e300):
+        with pytest.raises(InputError, match="finite, within"):
+            LensShiftOis(np.array([[0, 0.0, bad], [1, 0.0, 0.0]]), np.zeros(4))
+    with pytest.raises(InputError, match="finite, within"):  # deg/s for rad/s
+        rectifier.stream(motion=np.array([[0, 0.0, 0.0, 0.0], [1, 500.0, 0.0, 0.0]]))
+    with pytest.raises(InputError, match="t_ns increasing"):
+        LensShiftOis(np.array([[0, 0.0, 0.0], [np.nan, 0.0, 0.0]]), np.zeros(4))
     with pytest.raises(InputError, match="not both"):
         rectifier.stream(motion=np.zeros((2, 4)), lens_shift=np.zeros((2, 3)))
 
@@ -192,6 +197,7 @@ def test_cli_motion(recording, tmp_path, capsys):
         (["--motion", str(paths["gyro"]), "--ois-scale", "0.5"], "gyroscope"),
         (["--ois-scale", "0.5"], "--motion"),
         (["--motion", str(paths["ois"]), "--ois-scale", "0"], "--ois-scale"),
+        (["--motion", str(paths["ois"]), "--ois-scale", "1e300"], "--ois-scale"),
     ):
         assert main([*args, "--temporal", *extra]) == 2
         err = capsys.readouterr().err

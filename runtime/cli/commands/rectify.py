@@ -33,6 +33,7 @@ from dimenet.runtime.formats.points import PointsFrame, read_points
 from dimenet.runtime.formats.rectified_points import counted, json_lines, run_record
 from dimenet.runtime.geometry import k_params
 from dimenet.runtime.jobs.progress import progress
+from dimenet.runtime.rectify.gyro_ois import MAX_SCALE
 from dimenet.runtime.rectify.model import BUNDLED_HELP, load_model
 from dimenet.runtime.rectify.rectifier import MODES, Rectifier
 from dimenet.runtime.rectify.results import BatchRectification
@@ -96,7 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--ois-scale",
-        type=finite_float_in(0.0, above=True),
+        type=finite_float_in(0.0, MAX_SCALE, above=True),
         default=None,
         metavar="S",
         help="with a lens-shift --motion: the stream's px per px of the sensor's active array, which the shifts are "
