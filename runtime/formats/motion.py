@@ -68,7 +68,10 @@ def read_motion(path: str | Path) -> Motion:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise PointsError(f"{path}: cannot read the motion file ({exc})") from None
-    rows = [r for r in csv.reader(io.StringIO(text)) if "".join(r).strip()]
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text)) if "".join(r).strip()]
+    except csv.Error as exc:  # a NUL byte on Python < 3.11, for one
+        raise PointsError(f"{path}: not a readable CSV ({exc})") from None
     if not rows:
         raise PointsError(f"{path}:1: no header: the motion file is empty")
     names = [c.strip() for c in rows[0]]

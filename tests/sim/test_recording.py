@@ -113,6 +113,9 @@ def test_motion_file_errors_name_the_line(tmp_path):
     path.write_text("t_ns,x_shift_px,y_shift_px\n10,1,2\n")
     with pytest.raises(PointsError, match=r"at least 2 samples"):
         read_motion(path)
+    path.write_text("t_ns,x_shift_px,y_shift_px\n10,1,2\n20,1,\x002\n")  # csv refuses NUL before Python 3.11
+    with pytest.raises(PointsError, match=r"g.csv(:3: x_shift_px, y_shift_px must be finite px|: not a readable CSV)"):
+        read_motion(path)
     path.write_text("t_ns,x_px,y_px\n10,1,2\n")
     with pytest.raises(PointsError, match=r"g.csv:1: the header must name .*gx_rad_s.* or .*x_shift_px"):
         read_motion(path)
