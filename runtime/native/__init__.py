@@ -29,7 +29,7 @@ import numpy as np
 
 from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.geometry import frame_error_and_depth as _frame_error_and_depth_reference
-from dimenet.runtime.geometry import k_matrix
+from dimenet.runtime.geometry import k_matrix, solve_pnp_start
 from dimenet.runtime.geometry.pose_step import POSE_STEPS
 from dimenet.runtime.geometry.pose_step import pose_under_k as _pose_under_k_reference
 
@@ -121,6 +121,12 @@ def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, f
     if core is None or K[0, 1] != 0.0:
         return _frame_error_and_depth_reference(points_2d, points_3d, K, rvec, tvec)
     return _core_call(points_2d, points_3d, K, rvec, tvec, 0, None, None)
+
+
+def error_at_pnp(points_2d, points_3d, K) -> float:
+    """One frame's mean reprojection error (px) under K (3, 3) at its PnP pose (``geometry.solve_pnp_start``),
+    ``frame_error_and_depth`` in the running implementation; InputError when there is no pose."""
+    return frame_error_and_depth(points_2d, points_3d, K, *solve_pnp_start(points_2d, points_3d, K))[0]
 
 
 def _core_call(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out) -> tuple[float, float]:

@@ -33,7 +33,6 @@ import numpy as np
 from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import k_matrix
-from dimenet.runtime.geometry import solve_pnp_start as pnp
 
 CUTOFFS_HZ = (0.3, 0.5, 0.8, 1.1, 1.5, 2.0)
 GAINS = (0.0, 0.8, 0.9, 1.0, 1.1)  # 0: no OIS (off, or a camera without it): c stays K_c's
@@ -45,11 +44,6 @@ MAX_SHIFT_PX = 10_000.0  # |lens shift| above this is no lens's (a unit error, o
 MAX_SCALE = 16.0  # stream px per active-array px: a stream is at most this much finer than the sensor's array
 SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the stroke's clip)
 SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
-
-
-def _error_at_pnp(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> float:
-    """The frame's mean reprojection error (px) under K (3, 3) at its PnP pose; InputError when there is none."""
-    return native.frame_error_and_depth(points_2d, points_3d, K, *pnp(points_2d, points_3d, K))[0]
 
 
 def _samples(samples, columns: str, bound: float) -> np.ndarray:
@@ -98,7 +92,7 @@ class _LoopBank:
                     continue
                 K = k_matrix(np.r_[k[:2], self.k_c[2:] + gain * shift])
                 try:
-                    errors[i, j] = _error_at_pnp(points_2d, points_3d, K)
+                    errors[i, j] = native.error_at_pnp(points_2d, points_3d, K)
                 except InputError:
                     errors[i, j] = np.nan
         if not np.all(np.isfinite(errors)):
@@ -107,7 +101,7 @@ class _LoopBank:
         i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
         K = k_matrix(np.r_[f_tracked, self.k_c[2:] + GAINS[j] * shifts[i]])
         try:
-            e = _error_at_pnp(points_2d, points_3d, K)
+            e = native.error_at_pnp(points_2d, points_3d, K)
         except InputError:
             return
         self._f_scores = SCORE_MEMORY * self._f_scores + (errors[i, j], e)
@@ -176,14 +170,13 @@ class LensShiftOis(_LoopBank):
         super().__init__(k_c, 1)
         self.samples = _samples(samples, "t_ns, x_shift_px, y_shift_px", MAX_SHIFT_PX)
         try:
-            scale = float(scale)
+            self.scale = float(scale)
         except (TypeError, ValueError):
-            scale = math.nan
-        if not 0.0 < scale <= MAX_SCALE:
+            self.scale = math.nan
+        if not 0.0 < self.scale <= MAX_SCALE:
             raise InputError(
                 f"the lens shift's scale must be in (0, {MAX_SCALE:g}] stream px per active-array px, got {scale!r}"
             )
-        self.scale = float(scale)
         self._shift = np.zeros(2)
 
     def recentre(self) -> None:

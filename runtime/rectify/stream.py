@@ -223,7 +223,7 @@ class Stream:
         e_c = res.reprojection_error_kc_px
         if rect.dist_coeffs is not None:  # both in the pinhole image of the lens's K (the camera's K_c)
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
-            e_c = native.frame_error_and_depth(p2, p3, K0, *pnp(p2, p3, K0))[0]
+            e_c = native.error_at_pnp(p2, p3, K0)
         if not rect.k_within_bounds(self.k, K_c=K_c):
             return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0)
         try:
