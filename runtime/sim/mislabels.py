@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from dimenet.runtime.errors import InputError
+from dimenet.runtime.rectify.checks import ImageBounds
 
 MISLABEL_PX = (10.0, 50.0)  # the size of a gross mislabel, px
 MAX_MISLABEL_SHARE = 0.5  # beyond, the labels are not a labelling
@@ -43,13 +44,13 @@ def mislabelled(
     radius = rng.uniform(*MISLABEL_PX, n)
     angle = rng.uniform(0.0, 2.0 * np.pi, n)
     offset = radius[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)
-    high = np.array([image_size_px[0] - 0.5, image_size_px[1] - 0.5])
+    image = ImageBounds(image_size_px)
     out = points_2d_px.copy()
     moved = np.zeros(n, bool)
     for i in np.flatnonzero(draw & labelled):
         for step in (offset[i], -offset[i]):
             to = points_2d_px[i] + step
-            if np.all(to >= -0.5) and np.all(to <= high):
+            if np.all(to >= image.low) and np.all(to <= image.high):
                 out[i], moved[i] = to, True
                 break
     return out, moved

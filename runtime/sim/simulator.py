@@ -41,6 +41,7 @@ from dimenet.runtime.geometry import (
     to_camera,
     undistort_points,
 )
+from dimenet.runtime.rectify.checks import ImageBounds
 from dimenet.runtime.rectify.user_camera import DIST_COEFF_COUNTS, MAX_DIST_COEFF
 from dimenet.runtime.sim.image_errors import ImageErrors
 from dimenet.runtime.sim.mislabels import MISLABEL_PX, checked_share, mislabel_rng, mislabelled
@@ -366,7 +367,8 @@ def simulate(
     if dist is not None:
         p2 = distort_points(p2, profile.nominal_K, dist)
     # A label or corner the noise carries off the image is on its border, as a click or a detection is.
-    p2 = np.clip(p2, -0.5, (profile.image_size_px[0] - 0.5, profile.image_size_px[1] - 0.5))
+    image = ImageBounds(profile.image_size_px)
+    p2 = np.clip(p2, image.low, image.high)
     if platform_k:
         meta["platform_k"] = platform_meta(profile)
     return Dataset(
