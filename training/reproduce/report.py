@@ -371,6 +371,7 @@ def plot_eta(t2: dict) -> bytes:
     return _png(fig, plt)
 
 
+STREAM_PLOT = "k_over_time.png"
 STREAM_COLUMNS = ("platform", "per_frame", "temporal", "gyro", "lens_shift", "platform_prior", "platform_temporal")
 STREAM_STYLES = {  # the plot's methods: label, colour
     "per_frame": ("per frame", "tab:orange"),
@@ -400,9 +401,6 @@ def _streams_report(streams: dict) -> list:
     return L + ["", f"![K over time]({STREAM_PLOT})", ""]
 
 
-STREAM_PLOT = "k_over_time.png"
-
-
 def plot_stream(plot: dict) -> bytes:
     """K over time for one recording: the truth, K_c, the platform's K and each method with its ±σ band (where
     narrower than the panel), a panel per parameter."""
@@ -411,19 +409,19 @@ def plot_stream(plot: dict) -> bytes:
     fig, axes = plt.subplots(2, 2, figsize=(10, 6), dpi=100, sharex=True)
     names = ("fx", "fy", "cx", "cy")
     arr = lambda v: np.array(v, dtype=float)  # noqa: E731  (None -> NaN)
-    bands: list = []
+    truth, platform = arr(plot["k_true"]), arr(plot["k_platform"])
+    tracks = {m: (arr(plot["methods"][m]["k"]), arr(plot["methods"][m]["sigma"])) for m in plot["methods"]}
     for j, ax in enumerate(axes.ravel()):
-        lines = [arr(plot["k_true"])[:, j], arr(plot["k_platform"])[:, j], np.array([plot["k_c"][j]])]
+        lines, bands = [truth[:, j], platform[:, j], np.array([plot["k_c"][j]])], []
         for method, (label, colour) in STREAM_STYLES.items():
-            track = plot["methods"].get(method)
-            if track is None:
+            if method not in tracks:
                 continue
-            k, sd = arr(track["k"])[:, j], arr(track["sigma"])[:, j]
+            k, sd = tracks[method][0][:, j], tracks[method][1][:, j]
             lines.append(k)
             bands.append((k, sd, colour))
             ax.plot(t, k, color=colour, lw=0.9, label=label)
-        ax.plot(t, lines[1], color="tab:blue", lw=0.9, ls="--", label="platform K")
-        ax.plot(t, lines[0], color="black", lw=1.2, label="truth")
+        ax.plot(t, platform[:, j], color="tab:blue", lw=0.9, ls="--", label="platform K")
+        ax.plot(t, truth[:, j], color="black", lw=1.2, label="truth")
         ax.axhline(plot["k_c"][j], color="grey", lw=0.8, ls=":", label="K_c")
         low, high = np.nanmin(np.concatenate(lines)), np.nanmax(np.concatenate(lines))
         margin = max(0.3 * (high - low), 5.0)  # the lines in view
@@ -431,7 +429,6 @@ def plot_stream(plot: dict) -> bytes:
         for k, sd, colour in bands:  # a band wider than the view says only that the method does not know
             sd = np.where(2.0 * sd < high - low + 2.0 * margin, sd, np.nan)
             ax.fill_between(t, k - sd, k + sd, color=colour, alpha=0.15, lw=0)
-        bands.clear()
         ax.set_ylabel(f"{names[j]} (px)")
         ax.grid(alpha=0.3)
     for ax in axes[1]:
