@@ -3,8 +3,8 @@
 The compiled core (``dimenet.runtime.native._core``, built from dimenet_*.c and _module*.c beside
 this file by ``pip install .``) computes the feature stage of every encoder
 (``rectify.features.grid_features``), the check stage's error and depth (``frame_error_and_depth``
-below) and the Gauss-Newton pose under a K (``pose_under_k``: ``geometry.pose_step``, measured against
-SQPnP, not on the hot path); the numpy code stays the reference and the fallback. The choice
+below) and stage pnp_k's Gauss-Newton pose under K (``pose_under_k``: ``geometry.pose_step``); the numpy
+code stays the reference and the fallback. The choice
 is made once, at import:
 
 - ``DIMENET_IMPLEMENTATION`` unset (or empty): "c" when the extension imports, else "python" (a

@@ -198,15 +198,16 @@ class Rectifier:
             cand = stages.frame_map(cam, p2, p3, cand, rvec_c0, tvec_c0)
             lap("map")
         if reason is None and cand.rvec is None:
-            reason = stages.frame_pose(p2, p3, cand)
+            reason = stages.frame_pose(p2, p3, cand, cam.k_c, (rvec_c0, tvec_c0))
             lap("pnp_k")
         if refine:
             rvec_c0, tvec_c0 = stages.refined(p2, p3, cam.K_c, rvec_c0, tvec_c0)
             if reason is None and cand.from_pnp:
                 cand.rvec, cand.tvec = stages.refined(p2, p3, cand.K, cand.rvec, cand.tvec)
+                cand.e, cand.stepped = None, False  # polished to the least-squares pose, as K_c's
             e_c = native.frame_error_and_depth(p2, p3, cam.K_c, rvec_c0, tvec_c0)[0]
             lap("refine")
-        cand, reason = stages.frame_check(cam, p2, p3, cand, reason, e_c, (rvec_c0, tvec_c0), p2_image)
+        cand, reason = stages.frame_check(cam, p2, p3, cand, reason, e_c, (rvec_c0, tvec_c0), p2_image, refine)
         lap("check")
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
@@ -304,6 +305,7 @@ class Rectifier:
                 rvec_c0[b], tvec_c0[b] = stages.refined(x, X, cam.K_c, rvec_c0[b], tvec_c0[b])
                 if pending[b] and not cand.from_map[b]:
                     cand.rvec[b], cand.tvec[b] = stages.refined(x, X, cand.K[b], cand.rvec[b], cand.tvec[b])
+                    cand.stepped[b] = False
             e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, cam.K_c, rvec_c0, tvec_c0)
-        e = stages.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0), (infer, poses_i))
+        e = stages.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0), (infer, poses_i), refine)
         return stages.batch_result(cam, cand, fr, e, e_c, (rvec_c0, tvec_c0))

@@ -60,9 +60,10 @@ from dimenet.runtime.rectify.user_camera import PixelMap
 @dataclass
 class Candidate:
     """The K on offer for one frame while the stages run: K (3, 3) and delta_k (4,) px; its pose
-    {W}->{C} (None until solved) and whether PnP solved it (refine may polish it); e (px), its
-    mean error over the frame's points (None until measured); covariance: computes K_cov (None:
-    none); note: why map's K gave way to DIME-Net's (None otherwise)."""
+    {W}->{C} (None until solved), whether pnp_k solved it (refine may polish it) and whether by
+    Gauss-Newton steps from the C0 pose (``stepped``: the check tries SQPnP's pose before it refuses
+    K); e (px), its mean error over the frame's points (None until measured); covariance: computes
+    K_cov (None: none); note: why map's K gave way to DIME-Net's (None otherwise)."""
 
     K: np.ndarray
     delta_k: np.ndarray
@@ -70,6 +71,7 @@ class Candidate:
     rvec: Optional[np.ndarray] = None
     tvec: Optional[np.ndarray] = None
     from_pnp: bool = False
+    stepped: bool = False
     e: Optional[float] = None
     note: Optional[str] = None
 
@@ -79,7 +81,8 @@ class BatchCandidates:
     """``Candidate`` of B frames: K (B, 3, 3), delta_k (B, 4) px, their poses rvec, tvec (B, 3),
     K_cov (B, 4, 4) px^2 or None; reasons: why each frame's candidate was refused (None:
     standing); notes: map's soft fallbacks; from_map (B,) bool: the pose is the MAP fit's own (not
-    PnP's, so refine leaves it, as it does a frame's)."""
+    PnP's, so refine leaves it, as it does a frame's); stepped (B,) bool: the pose is pnp_k's
+    Gauss-Newton steps' (``pose_under``)."""
 
     K: np.ndarray
     delta_k: np.ndarray
@@ -89,6 +92,7 @@ class BatchCandidates:
     reasons: list
     notes: list
     from_map: np.ndarray
+    stepped: np.ndarray
 
     @property
     def standing(self) -> np.ndarray:
@@ -189,8 +193,8 @@ def frame_covariance(spec: ModelSpec, feats: np.ndarray, points_3d, pmd_px: floa
 
 
 def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_c0, e_c0, reasons: list):
-    """The range rule on e_c0 (B,) px and the K-bounds rule of B frames, then SQPnP under each
-    standing K on the frame's valid points (``frame_pose``). The candidates own the batch's state from here:
+    """The range rule on e_c0 (B,) px and the K-bounds rule of B frames, then the pose under each
+    standing K on the frame's valid points (``pose_under``). The candidates own the batch's state from here:
     a copy of ``reasons`` (those of ``batch_inference_poses``), which the later stages write, with the notes."""
     reasons = list(reasons)
     cand = BatchCandidates(
@@ -202,6 +206,7 @@ def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_
         reasons=reasons,
         notes=[None] * len(reasons),
         from_map=np.zeros(len(reasons), bool),
+        stepped=np.zeros(len(reasons), bool),
     )
     far = out_of_range(e_c0, cam.fx_c)
     for b, (x, X) in enumerate(fr.frames):
@@ -211,9 +216,11 @@ def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_
             reasons[b] = implausible_reason(net.delta_k[b], cam.user_k(net.k[b]))
         if reasons[b] is None:
             try:
-                cand.rvec[b], cand.tvec[b] = pnp(x, X, cand.K[b])
+                pose = pose_under(x, X, cam.k_c + net.delta_k[b], net.delta_k[b], (rvec_c0[b], tvec_c0[b]))
             except InputError:
                 reasons[b] = NO_POSE_REASON
+                continue
+            cand.rvec[b], cand.tvec[b], _, cand.stepped[b] = pose
     return cand
 
 
@@ -269,6 +276,7 @@ def batch_maps(cam: ModelCamera, cand: BatchCandidates, net, fr: Frames, infer, 
         fit, cand.notes[b] = _map(cam, x, X, net.k[b], cand.K_cov[b], poses_i[0][b], poses_i[1][b])
         if fit is not None:
             cand.K[b], cand.delta_k[b], cand.K_cov[b] = k_matrix(fit.k), fit.k - cam.k_c, fit.K_cov
+            cand.stepped[b] = False
             if infer is fr.valid:
                 cand.rvec[b], cand.tvec[b], cand.from_map[b] = fit.rvec, fit.tvec, True
             else:
@@ -278,14 +286,41 @@ def batch_maps(cam: ModelCamera, cand: BatchCandidates, net, fr: Frames, infer, 
 # -- pnp_k: the pose under the candidate K (a batch's: in ``batch_candidates``) ------------------
 
 
-def frame_pose(p2, p3, cand: Candidate) -> Optional[str]:
-    """SQPnP pose under the candidate's K into ``cand``; NO_POSE_REASON when there is none."""
+def pose_under(p2, p3, k, delta_k, c0_pose) -> tuple:
+    """The pose {W}->{C} under K = k_matrix(k) (k (4,) px, K_c + ``delta_k``) of one frame's points (px, mm):
+    POSE_STEPS Gauss-Newton steps from the C0 pose ``c0_pose`` (rvec_c0, tvec_c0) (``native.pose_under_k``:
+    Delta K is a few px, so the least-squares pose under K is a short step away), or SQPnP under K where the
+    steps find none; the C0 pose itself where Delta K = 0 (SQPnP's own under K_c). -> (rvec, tvec, e px at it or
+    None where it is not measured (also where a point lies behind the camera there), stepped: whether by the
+    steps). InputError when there is no pose."""
+    rvec_c0, tvec_c0 = c0_pose
+    if not np.count_nonzero(delta_k):
+        return rvec_c0.copy(), tvec_c0.copy(), None, False
     try:
-        cand.rvec, cand.tvec = pnp(p2, p3, cand.K)
+        rvec, tvec, e, depth = native.pose_under_k(p2, p3, k, rvec_c0, tvec_c0)
+    except InputError:
+        return (*pnp(p2, p3, k_matrix(k)), None, False)
+    return rvec, tvec, e if depth > 0 else None, True
+
+
+def frame_pose(p2, p3, cand: Candidate, k_c, c0_pose) -> Optional[str]:
+    """The pose under the candidate's K (``pose_under``; k_c (4,) px) into ``cand``; NO_POSE_REASON when there is
+    none."""
+    try:
+        cand.rvec, cand.tvec, cand.e, cand.stepped = pose_under(p2, p3, k_c + cand.delta_k, cand.delta_k, c0_pose)
     except InputError:
         return NO_POSE_REASON
     cand.from_pnp = True
     return None
+
+
+def sqpnp_pose(p2, p3, K, refine: bool) -> Optional[tuple]:
+    """SQPnP's pose under K (3, 3) px (polished by ``refined`` with ``refine``), or None where there is none."""
+    try:
+        rvec, tvec = pnp(p2, p3, K)
+    except InputError:
+        return None
+    return refined(p2, p3, K, rvec, tvec) if refine else (rvec, tvec)
 
 
 # -- check: the errors and the fallback rules ---------------------------------------------------
@@ -313,38 +348,20 @@ def k_c_solutions(cam: ModelCamera, K, rvec, tvec, c0_pose):
     return same if np.ndim(same) else bool(same)
 
 
-def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c0_pose, p2_image) -> tuple:
-    """e(K) over the frame's points, the cheirality, worse-than-K_c and evidence rules (on the errors the result
-    reports: in the lens's image from ``p2_image`` when the camera has one) and, where e(K) is above
-    STRUCTURE_GATE e(K_c), the structure rule at the C0 pose first (its reason says more than the
-    worse rule's; the mismatch rule's says more than it); on a refusal (``reason``
-    or one of these) K_c's own solution at ``c0_pose``; a candidate that is K_c's own solution
-    (``k_c_solutions``: Delta K = 0) has e = e_c, a tie. -> (the candidate standing, the reason or None)."""
+def frame_check(
+    cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c0_pose, p2_image, refine: bool = False
+) -> tuple:
+    """The rules of ``frame_rules`` on the candidate; where they refuse K at the pose of pnp_k's Gauss-Newton steps
+    (``cand.stepped``), again at SQPnP's pose under K (``sqpnp_pose``, polished with ``refine``), which two other
+    estimators' errors may favour (the steps' least-squares pose against SQPnP's C0 pose); on a refusal (``reason``
+    or one of these) K_c's own solution at ``c0_pose``. -> (the candidate standing, the reason or None)."""
     rvec_c0, tvec_c0 = c0_pose
-    own = (
-        reason is None
-        and not np.count_nonzero(cand.delta_k)
-        and k_c_solutions(cam, cand.K, cand.rvec, cand.tvec, c0_pose)
-    )
-    if own:
-        cand.e = e_c
-    elif reason is None and cand.e is None:
-        cand.e, depth = native.frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
-        if depth <= 0:
-            reason = BEHIND_REASON
     if reason is None:
-        e, e_c_rule = cand.e, e_c
-        if cam.dist_coeffs is not None:  # in model px, as fx_c
-            K_user = cam.K_c_user if own else cand.K if cam.pixels is None else cam.pixels.K_to_user(cand.K)
-            K = np.stack([K_user, cam.K_c_user])
-            image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, tvec_c0))
-            e, e_c_rule = image[:, 0] / cam.user_px
-        if e > STRUCTURE_GATE * e_c_rule and not mismatched(e, e_c_rule, cam.fx_c):
-            reason = frame_structure(cam, p2, p3, c0_pose)
-        if reason is None and loses_to_k_c(e, e_c_rule, cam.fx_c):
-            reason = worse_reason(e, e_c_rule, cam.fx_c, cam.user_px)
-        if reason is None and np.count_nonzero(cand.delta_k) and unproven(e, e_c_rule, len(p2)):
-            reason = unproven_reason(e, e_c_rule, len(p2), cam.user_px)
+        reason = frame_rules(cam, p2, p3, cand, e_c, c0_pose, p2_image)
+        pose = sqpnp_pose(p2, p3, cand.K, refine) if reason is not None and cand.stepped else None
+        if pose is not None:
+            cand = replace(cand, rvec=pose[0], tvec=pose[1], stepped=False, e=None)
+            reason = frame_rules(cam, p2, p3, cand, e_c, c0_pose, p2_image)
     if reason is not None:
         covariance = None if cam.population_cov is None else partial(np.array, cam.population_cov)
         zero = np.zeros(4)
@@ -353,7 +370,54 @@ def frame_check(cam: ModelCamera, p2, p3, cand: Candidate, reason, e_c: float, c
     return cand, reason
 
 
-def batch_errors(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses, inference) -> np.ndarray:
+def frame_rules(cam: ModelCamera, p2, p3, cand: Candidate, e_c: float, c0_pose, p2_image) -> Optional[str]:
+    """e(K) over the frame's points into ``cand`` (where not measured yet), then the cheirality, worse-than-K_c and
+    evidence rules (on the errors the result reports: in the lens's image from ``p2_image`` when the camera has one)
+    and, where e(K) is above STRUCTURE_GATE e(K_c), the structure rule at the C0 pose first (its reason says more
+    than the worse rule's; the mismatch rule's says more than it); a candidate that is K_c's own solution
+    (``k_c_solutions``: Delta K = 0) has e = e_c, a tie. -> the reason K is refused, or None."""
+    rvec_c0, _ = c0_pose
+    own = not np.count_nonzero(cand.delta_k) and k_c_solutions(cam, cand.K, cand.rvec, cand.tvec, c0_pose)
+    if own:
+        cand.e = e_c
+    elif cand.e is None:
+        cand.e, depth = native.frame_error_and_depth(p2, p3, cand.K, cand.rvec, cand.tvec)
+        if depth <= 0:
+            return BEHIND_REASON
+    e, e_c_rule = cand.e, e_c
+    if cam.dist_coeffs is not None:  # in model px, as fx_c
+        K_user = cam.K_c_user if own else cand.K if cam.pixels is None else cam.pixels.K_to_user(cand.K)
+        K = np.stack([K_user, cam.K_c_user])
+        image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, c0_pose[1]))
+        e, e_c_rule = image[:, 0] / cam.user_px
+    reason = None
+    if e > STRUCTURE_GATE * e_c_rule and not mismatched(e, e_c_rule, cam.fx_c):
+        reason = frame_structure(cam, p2, p3, c0_pose)
+    if reason is None and loses_to_k_c(e, e_c_rule, cam.fx_c):
+        reason = worse_reason(e, e_c_rule, cam.fx_c, cam.user_px)
+    if reason is None and np.count_nonzero(cand.delta_k) and unproven(e, e_c_rule, len(p2)):
+        reason = unproven_reason(e, e_c_rule, len(p2), cam.user_px)
+    return reason
+
+
+def batch_errors(
+    cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses, inference, refine: bool = False
+) -> np.ndarray:
+    """``batch_rules`` on the pending frames; where they refuse K at the pose of pnp_k's Gauss-Newton steps
+    (``cand.stepped``), again at SQPnP's pose under K (``sqpnp_pose``, polished with ``refine``), as a frame's
+    ``frame_check``. -> e (B,) px: e(K) at the pose standing (e_c where not pending)."""
+    e = batch_rules(cam, cand, fr, pending, e_c, c0_poses, inference)
+    again = np.zeros_like(pending)
+    for b in np.flatnonzero(pending & cand.stepped & ~cand.standing):
+        pose = sqpnp_pose(*fr.frames[b], cand.K[b], refine)
+        if pose is not None:
+            (cand.rvec[b], cand.tvec[b]), cand.stepped[b], cand.reasons[b], again[b] = pose, False, None, True
+    if again.any():
+        e[again] = batch_rules(cam, cand, fr, again, e_c, c0_poses, inference)[again]
+    return e
+
+
+def batch_rules(cam: ModelCamera, cand: BatchCandidates, fr: Frames, pending, e_c, c0_poses, inference) -> np.ndarray:
     """e(K) over each frame's valid points (e_c where not pending), and the cheirality, worse-than-K_c,
     evidence and (where e(K) is above STRUCTURE_GATE e(K_c)) structure rules into ``cand.reasons`` (on the
     errors the result reports: in the lens's image when the camera has one, K_c's at the C0 poses
