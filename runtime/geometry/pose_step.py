@@ -9,7 +9,7 @@ carried as a unit quaternion between steps (no matrix logarithm, so no branch ne
 Everything is in an order fixed here: elementwise numpy, numpy's pairwise sums (``monomial_gram``),
 Python's float arithmetic and libm (math) for the 6 x 6 solve and the rotation, so that the compiled
 core (runtime/native, ``dimenet_pose_steps``) computes the same pose to the bit (tests/native).
-Where a rule would refuse K at this pose, the rectifier tries SQPnP's (``rectify.stages.frame_check``). The
+Where a rule would refuse K at this pose, the rectifier tries SQPnP's (``rectify.check_stage.frame_check``). The
 figures against SQPnP under K: BENCHMARKS.md ("The pose under K")."""
 
 from __future__ import annotations

@@ -194,7 +194,7 @@ def worse(e, e_c):
     K_c"). The tie-break: e > e_c is worse, and so is a NaN in either; a tie, e == e_c, is not, so the
     candidate stands (K fits the frame's points as well as K_c). A Delta K of 0 ties: K is K_c and its
     pose the C0 pose, and the rectifier takes its e as e_c rather than measure it again through other
-    rounding (``stages.k_c_solutions``). floats -> bool, (B,) arrays -> (B,) bool."""
+    rounding (``check_stage.k_c_solutions``). floats -> bool, (B,) arrays -> (B,) bool."""
     return np.logical_not(e <= e_c)
 
 

@@ -1,9 +1,9 @@
 """Per-frame K rectification at run time: 2D-3D correspondences -> K, pose {W}->{C}.
 
 numpy, OpenCV and ONNX Runtime, and the optional compiled core (``runtime.native``: parts of validate,
-the feature and the check stage's e(K); models_spec/BENCHMARKS.md). ``Rectifier.rectify`` runs one
+the feature, the pose under K and e(K); models_spec/BENCHMARKS.md). ``Rectifier.rectify`` runs one
 frame through named stages (``rectify.stages``, each beside its batch twin; validation in
-``rectify.checks``), each timed into ``timings_us`` under its name:
+``rectify.checks``, the check in ``rectify.check_stage``), each timed into ``timings_us`` under its name:
 
 1. ``validate``: the input rules of ``rectify.checks`` (shapes, >= MIN_POINTS points, finite,
    inside the camera's image, not degenerate);
@@ -15,12 +15,14 @@ frame through named stages (``rectify.stages``, each beside its batch twin; vali
    (``rectify.map_fit``, from the C0 pose turned to the network's principal point) replaces the
    candidate by its K, pose and posterior ``K_cov``; when it fails its checks, the DIME-Net
    candidate stands and ``fallback`` says why;
-6. ``pnp_k``: SQPnP pose under the candidate K (unless map gave one);
+6. ``pnp_k``: the pose under the candidate K (unless map gave one): two Gauss-Newton steps from the
+   C0 pose (``geometry.pose_step``), with e(K) there;
 7. ``refine`` (only with ``refine=True``): cv2.solvePnPRefineLM polish of the PnP poses;
 8. ``check``: mean reprojection errors e(K) and e(K_c) over the given points, the worse rule and,
    where K removes less than half of e(K_c), the structure rule on the residuals under K_c at the
    C0 pose (``geometry.residual_structure``, ``checks.structured``: structure that neither OIS nor
-   corner noise makes, which the network read as OIS); a refused candidate gives way to K_c's own
+   corner noise makes, which the network read as OIS) and the evidence rule; where they refuse K at
+   the steps' pose, again at SQPnP's pose under K; a refused candidate gives way to K_c's own
    solution (``rectify.checks``).
 
 ``rectify_batch`` runs the same stages over B frames at once (the model once for all).
@@ -48,7 +50,7 @@ from dimenet.runtime import native
 from dimenet.runtime.errors import CameraError, InputError
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
 from dimenet.runtime.geometry import solve_pnp_start as pnp
-from dimenet.runtime.rectify import stages
+from dimenet.runtime.rectify import check_stage, stages
 from dimenet.runtime.rectify.checks import real_array, validated_batch, validated_frame
 from dimenet.runtime.rectify.inference import network_k
 from dimenet.runtime.rectify.model import OnnxModel, load_model
@@ -207,7 +209,7 @@ class Rectifier:
                 cand.e, cand.stepped = None, False  # polished to the least-squares pose, as K_c's
             e_c = native.frame_error_and_depth(p2, p3, cam.K_c, rvec_c0, tvec_c0)[0]
             lap("refine")
-        cand, reason = stages.frame_check(cam, p2, p3, cand, reason, e_c, (rvec_c0, tvec_c0), p2_image, refine)
+        cand, reason = check_stage.frame_check(cam, p2, p3, cand, reason, e_c, (rvec_c0, tvec_c0), p2_image, refine)
         lap("check")
         lens = (p2_image, p3, rvec_c0, tvec_c0)
         return stages.frame_result(cam, cand, e_c, lap.timings, reason is not None, lens)
@@ -307,5 +309,5 @@ class Rectifier:
                     cand.rvec[b], cand.tvec[b] = stages.refined(x, X, cand.K[b], cand.rvec[b], cand.tvec[b])
                     cand.stepped[b] = False
             e_c = mean_reprojection_error(fr.points_2d, fr.points_3d, fr.mask, cam.K_c, rvec_c0, tvec_c0)
-        e = stages.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0), (infer, poses_i), refine)
+        e = check_stage.batch_errors(cam, cand, fr, pending, e_c, (rvec_c0, tvec_c0), (infer, poses_i), refine)
         return stages.batch_result(cam, cand, fr, e, e_c, (rvec_c0, tvec_c0))

@@ -1,5 +1,5 @@
 """Stage pnp_k's pose under K: Gauss-Newton steps from the C0 pose (``stages.pose_under``), and SQPnP's pose
-under K tried before a rule refuses K at the steps' (``stages.frame_check``, ``stages.batch_errors``): a frame
+under K tried before a rule refuses K at the steps' (``check_stage.frame_check``, ``check_stage.batch_errors``): a frame
 refused with the steps is refused with SQPnP alone, and every K that stands with SQPnP alone stands with them."""
 
 from __future__ import annotations
