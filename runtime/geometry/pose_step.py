@@ -3,10 +3,11 @@
 The rectifier's pose under the candidate K = K_c + Delta K (stage ``pnp_k``) starts from the C0 pose,
 SQPnP's under K_c: Delta K is a few px, so the least-squares pose under K is a short step away.
 ``pose_steps`` takes POSE_STEPS Gauss-Newton steps of the reprojection error over the pose perturbed
-on the left (``frame_normal_equations``'s 6 pose parameters, from ``monomial_gram``), the rotation
-carried as a unit quaternion between steps (no matrix logarithm, so no branch near pi).
+on the left (``frame_normal_equations``'s 6 pose parameters; the pose block alone, ``pose_normal_equations``:
+40 sums over the points where the monomials' Gram takes 66 and a 10 x 10 product), the rotation carried as a
+unit quaternion between steps (no matrix logarithm, so no branch near pi).
 
-Everything is in an order fixed here: elementwise numpy, numpy's pairwise sums (``monomial_gram``),
+Everything is in an order fixed here: elementwise numpy, numpy's pairwise sums along contiguous rows,
 Python's float arithmetic and libm (math) for the 6 x 6 solve and the rotation, so that the compiled
 core (runtime/native, ``dimenet_pose_steps``) computes the same pose to the bit (tests/native).
 Where a rule would refuse K at this pose, the rectifier tries SQPnP's (``rectify.check_stage.frame_check``). The
@@ -20,7 +21,6 @@ import cv2
 import numpy as np
 
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry.normal_equations import gram_normal_equations, monomial_gram
 from dimenet.runtime.geometry.projection import camera_rows, frame_error_and_depth, k_matrix, pinhole_residuals
 
 # Gauss-Newton steps from the start pose: after 2, e(K) is within 3e-5 px of the converged least-squares
@@ -29,6 +29,16 @@ POSE_STEPS = 2
 # Below this angle (rad) a rotation's quaternion <-> axis-angle use the series (sin x / x ~ 1 - x^2 / 6).
 SMALL_ANGLE = 1e-8
 NO_POSE_STEP = "no Gauss-Newton step: the points fix no pose under K"
+# The pose's Jacobian per point over (w (3) rad, tau (3) mm), perturbed on the left, a = X/Z, b = Y/Z:
+# du/dp = fx g_u, g_u = (-ab, 1 + a^2, -b, 1/Z, 0, -a/Z); dv/dp = fy g_v, g_v = (-1 - b^2, ab, a, 0, 1/Z, -b/Z).
+# ``pose_normal_equations`` stacks the non-zero entries (rows 0-4: g_u at POSE_U, rows 5-9: g_v at POSE_V) and the
+# residuals (rows 10, 11) and sums these products of its rows: the upper triangles of the u and the v block, then
+# each block's rows times its residual.
+POSE_U, POSE_V = (0, 1, 2, 3, 5), (0, 1, 2, 4, 5)
+_U_PAIRS = [(i, j) for i in range(5) for j in range(i, 5)]
+_PAIRS = np.array(
+    [*_U_PAIRS, *[(5 + i, 5 + j) for i, j in _U_PAIRS], *[(i, 10) for i in range(5)], *[(5 + i, 11) for i in range(5)]]
+).T
 
 
 def quaternion(rvec) -> tuple:
@@ -67,11 +77,44 @@ def compose(a, b) -> tuple:
     )
 
 
-def solve_pose_step(JJ: np.ndarray, Jr: np.ndarray) -> list:
-    """The Gauss-Newton step -(JJ[:6, :6])^-1 Jr[:6] by Cholesky (L L^T, rows first to last);
-    InputError when the pose block is not positive definite (or not finite)."""
-    H = JJ[:6, :6].tolist()
-    g = Jr[:6].tolist()
+def pose_normal_equations(rows: np.ndarray, residuals: np.ndarray, fx: float, fy: float) -> tuple[list, list]:
+    """J J^T (6, 6) and J r (6,) of the pose (perturbed on the left) under the focal lengths fx, fy (px) from
+    ``camera_rows`` whose last row holds 1 / Z_C already and the residuals (2, N) px there (``pinhole_residuals``):
+    JJ = fx^2 S_u + fy^2 S_v and Jr = fx R_u + fy R_v, S and R the pairwise sums of the products of g_u, g_v and the
+    residuals (``_PAIRS``), as nested lists of floats."""
+    a, b = np.multiply(rows[:2], rows[2])
+    E = np.empty((12, rows.shape[1]))
+    np.multiply(a, b, out=E[6])
+    np.negative(E[6], out=E[0])
+    np.multiply(a, a, out=E[1])
+    E[1] += 1.0
+    np.negative(b, out=E[2])
+    E[3] = E[8] = rows[2]
+    np.multiply(a, rows[2], out=E[4])
+    np.negative(E[4], out=E[4])
+    np.multiply(b, b, out=E[5])
+    E[5] += 1.0
+    np.negative(E[5], out=E[5])
+    E[7] = a
+    np.multiply(b, rows[2], out=E[9])
+    np.negative(E[9], out=E[9])
+    E[10:] = residuals
+    sums = np.multiply(E[_PAIRS[0]], E[_PAIRS[1]]).sum(1).tolist()
+    S_u, S_v = [[0.0] * 6 for _ in range(6)], [[0.0] * 6 for _ in range(6)]
+    for n, (i, j) in enumerate(_U_PAIRS):
+        S_u[POSE_U[i]][POSE_U[j]] = S_u[POSE_U[j]][POSE_U[i]] = sums[n]
+        S_v[POSE_V[i]][POSE_V[j]] = S_v[POSE_V[j]][POSE_V[i]] = sums[15 + n]
+    R_u, R_v = [0.0] * 6, [0.0] * 6
+    for i in range(5):
+        R_u[POSE_U[i]], R_v[POSE_V[i]] = sums[30 + i], sums[35 + i]
+    fx2, fy2 = fx * fx, fy * fy
+    JJ = [[fx2 * S_u[i][j] + fy2 * S_v[i][j] for j in range(6)] for i in range(6)]
+    return JJ, [fx * R_u[i] + fy * R_v[i] for i in range(6)]
+
+
+def solve_pose_step(H: list, g: list) -> list:
+    """The Gauss-Newton step -H^-1 g of the normal equations H (6, 6), g (6,) (nested lists of floats) by Cholesky
+    (L L^T, rows first to last); InputError when H is not positive definite (or not finite)."""
     L = [[0.0] * 6 for _ in range(6)]
     for i in range(6):
         for j in range(i + 1):
@@ -113,8 +156,7 @@ def pose_steps(points_2d, points_3d, k, rvec, tvec, steps: int = POSE_STEPS) -> 
     for _ in range(steps):
         rows = camera_rows(points_3d, cv2.Rodrigues(r_now)[0].tolist(), t)
         np.divide(1.0, rows[2], out=rows[2])
-        JJ, Jr, _ = gram_normal_equations(monomial_gram(rows, pinhole_residuals(rows, points_2d, K)), fx, fy)
-        step = solve_pose_step(JJ, Jr)
+        step = solve_pose_step(*pose_normal_equations(rows, pinhole_residuals(rows, points_2d, K), fx, fy))
         w = step[:3]
         dR = cv2.Rodrigues(np.array(w))[0].tolist()
         t = [((dR[i][0] * t[0] + dR[i][1] * t[1]) + dR[i][2] * t[2]) + step[3 + i] for i in range(3)]

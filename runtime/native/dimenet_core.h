@@ -132,15 +132,15 @@ int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, do
 /* The most Gauss-Newton steps dimenet_pose_steps takes. */
 #define DIMENET_MAX_POSE_STEPS 64
 
-/* The doubles of scratch dimenet_pose_steps needs for n_points points: 5 n_points. DIMENET_E_ARGUMENT
+/* The doubles of scratch dimenet_pose_steps needs for n_points points: 12 n_points. DIMENET_E_ARGUMENT
  * on an overflow. */
 int dimenet_pose_scratch_doubles(size_t n_points, size_t *n_scratch);
 
 /* The pose under the pinhole k_px (fx, fy, cx, cy) after `steps` (0 to DIMENET_MAX_POSE_STEPS)
  * Gauss-Newton steps of the reprojection error from the start pose (the reference's
  * geometry.pose_step.pose_steps, to the bit): the pose perturbed on the left (X_C -> exp([w]x) X_C +
- * tau), the step -(J J^T)^-1 J r of the pose block of geometry.gram_normal_equations (the monomial Gram
- * of the points at the current pose, numpy's pairwise sums), solved by Cholesky; the rotation carried
+ * tau), the step -(J J^T)^-1 J r of geometry.pose_step.pose_normal_equations (40 products of the pose's
+ * Jacobian rows and the residuals at the current pose, numpy's pairwise sums), solved by Cholesky; the rotation carried
  * as a unit quaternion. points_2d_px (n_points x 2), points_3d_w_mm (n_points x 3); rvec_rad, tvec_mm
  * (3 each) the result (may alias the start); when e_px and depth_mm are both not NULL, the mean
  * reprojection error (px) and the smallest Z_C (mm) at that pose (geometry.frame_error_and_depth, to the

@@ -3,7 +3,6 @@
 #include "dimenet_internal.h"
 
 #include <math.h>
-#include <string.h>
 
 /* -- the pose under K (geometry/pose_step.py) ------------------------------------------------- */
 
@@ -77,14 +76,94 @@ static void pose_compose(const double a[4], const double b[4], double out[4])
     out[3] = ((a[0] * b[3] + a[1] * b[2]) - a[2] * b[1]) + a[3] * b[0];
 }
 
-/* pose_step.solve_pose_step: x = -(JJ[:6, :6])^-1 Jr[:6] by Cholesky (L L^T), 0 when not positive definite. */
-static int pose_solve(const double JJ[100], const double Jr[10], double x[6])
+/* The rows of pose_step.pose_normal_equations's stack E (12 x n): g_u at POSE_U, g_v at POSE_V, the residuals. */
+#define POSE_ROWS 12
+#define POSE_PAIRS 40
+static const int POSE_U[5] = {0, 1, 2, 3, 5}, POSE_V[5] = {0, 1, 2, 4, 5};
+
+/* pose_step._PAIRS: the upper triangles of the u rows (0-4) and the v rows (5-9), then each block's rows times its
+ * residual (row 10, row 11). */
+static void pose_pairs(int first[POSE_PAIRS], int second[POSE_PAIRS])
+{
+    int i, j, n = 0;
+    for (i = 0; i < 5; i++) {
+        for (j = i; j < 5; j++, n++) {
+            first[n] = i, second[n] = j;
+            first[n + 15] = 5 + i, second[n + 15] = 5 + j;
+        }
+    }
+    for (i = 0; i < 5; i++) {
+        first[30 + i] = i, second[30 + i] = 10;
+        first[35 + i] = 5 + i, second[35 + i] = 11;
+    }
+}
+
+/* numpy's pairwise sum of the products x[i] y[i] (each rounded first) of n points: what (x * y).sum() gives. */
+static double pairwise_dot(const double *x, const double *y, size_t n)
+{
+    double r[8], res;
+    size_t i, j;
+    if (n < 8) {
+        res = 0.0;
+        for (i = 0; i < n; i++) {
+            res += x[i] * y[i];
+        }
+        return res;
+    }
+    if (n > PAIRWISE_BLOCK) {
+        size_t n2 = n / 2;
+        n2 -= n2 % 8;
+        return pairwise_dot(x, y, n2) + pairwise_dot(x + n2, y + n2, n - n2);
+    }
+    for (j = 0; j < 8; j++) {
+        r[j] = x[j] * y[j];
+    }
+    for (i = 8; i < n - (n % 8); i += 8) {
+        for (j = 0; j < 8; j++) {
+            r[j] += x[i + j] * y[i + j];
+        }
+    }
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+    for (; i < n; i++) {
+        res += x[i] * y[i];
+    }
+    return res;
+}
+
+/* pose_step.pose_normal_equations from the stack E (POSE_ROWS rows of n, filled by the caller): JJ = fx^2 S_u +
+ * fy^2 S_v (6 x 6) and Jr = fx R_u + fy R_v. */
+static void pose_normal_equations(const double *E, size_t n, double fx, double fy, double JJ[36], double Jr[6])
+{
+    double sums[POSE_PAIRS], S_u[36] = {0.0}, S_v[36] = {0.0}, R_u[6] = {0.0}, R_v[6] = {0.0};
+    double fx2 = fx * fx, fy2 = fy * fy;
+    int first[POSE_PAIRS], second[POSE_PAIRS], i, j, k = 0;
+    pose_pairs(first, second);
+    for (i = 0; i < POSE_PAIRS; i++) {
+        sums[i] = pairwise_dot(E + (size_t)first[i] * n, E + (size_t)second[i] * n, n);
+    }
+    for (i = 0; i < 5; i++) {
+        for (j = i; j < 5; j++, k++) {
+            S_u[POSE_U[i] * 6 + POSE_U[j]] = S_u[POSE_U[j] * 6 + POSE_U[i]] = sums[k];
+            S_v[POSE_V[i] * 6 + POSE_V[j]] = S_v[POSE_V[j] * 6 + POSE_V[i]] = sums[15 + k];
+        }
+        R_u[POSE_U[i]] = sums[30 + i], R_v[POSE_V[i]] = sums[35 + i];
+    }
+    for (i = 0; i < 36; i++) {
+        JJ[i] = fx2 * S_u[i] + fy2 * S_v[i];
+    }
+    for (i = 0; i < 6; i++) {
+        Jr[i] = fx * R_u[i] + fy * R_v[i];
+    }
+}
+
+/* pose_step.solve_pose_step: x = -JJ^-1 Jr (6 x 6) by Cholesky (L L^T), 0 when not positive definite. */
+static int pose_solve(const double JJ[36], const double Jr[6], double x[6])
 {
     double L[36], y[6], s;
     int i, j, k;
     for (i = 0; i < 6; i++) {
         for (j = 0; j <= i; j++) {
-            s = JJ[i * 10 + j];
+            s = JJ[i * 6 + j];
             for (k = 0; k < j; k++) {
                 s -= L[i * 6 + k] * L[j * 6 + k];
             }
@@ -117,10 +196,10 @@ static int pose_solve(const double JJ[100], const double Jr[10], double x[6])
 
 int dimenet_pose_scratch_doubles(size_t n_points, size_t *n_scratch)
 {
-    if (n_scratch == NULL || n_points > ((size_t)-1) / sizeof(double) / 5) {
+    if (n_scratch == NULL || n_points > ((size_t)-1) / sizeof(double) / POSE_ROWS) {
         return DIMENET_E_ARGUMENT;
     }
-    *n_scratch = 5 * n_points;
+    *n_scratch = POSE_ROWS * n_points;
     return DIMENET_OK;
 }
 
@@ -130,12 +209,10 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
                        size_t n_scratch)
 {
     const size_t N = n_points;
-    double fx, fy, cx, cy, q[4], qw[4], qn[4], r[3], t[3], R[9], dR[9], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE];
-    double JJ[100], Jr[10], rss, step[6], t_new[3];
-    double *xs, *ys, *inv_zs, *dus, *dvs;
+    double fx, fy, cx, cy, q[4], qw[4], qn[4], r[3], t[3], R[9], dR[9], JJ[36], Jr[6], step[6], t_new[3];
+    double *E = scratch; /* POSE_ROWS rows of N: pose_step.pose_normal_equations's stack */
     size_t i, need;
     int s, c;
-    dimenet__gram_points p;
 
     if (dimenet_pose_scratch_doubles(N, &need) != DIMENET_OK || k_px == NULL || rvec_start_rad == NULL
         || tvec_start_mm == NULL || rvec_rad == NULL || tvec_mm == NULL || steps < 0
@@ -144,10 +221,6 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
         return DIMENET_E_ARGUMENT;
     }
     fx = k_px[0], fy = k_px[1], cx = k_px[2], cy = k_px[3];
-    xs = ys = inv_zs = dus = dvs = scratch; /* no step: not read (NULL allowed) */
-    if (steps > 0 && N > 0) {
-        ys = xs + N, inv_zs = ys + N, dus = inv_zs + N, dvs = dus + N;
-    }
     for (c = 0; c < 3; c++) {
         r[c] = rvec_start_rad[c];
         t[c] = tvec_start_mm[c];
@@ -155,20 +228,26 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
     pose_quaternion(r, q);
     for (s = 0; s < steps; s++) {
         dimenet__rodrigues(r, R);
-        for (i = 0; i < N; i++) { /* ((R_i0 X + R_i1 Y) + R_i2 Z) + t_i, then fx X / Z + cx - x */
+        for (i = 0; i < N; i++) { /* ((R_i0 X + R_i1 Y) + R_i2 Z) + t_i; a = X / Z, b = Y / Z; then the stack */
             double X = points_3d_w_mm[3 * i], Y = points_3d_w_mm[3 * i + 1], Z = points_3d_w_mm[3 * i + 2];
             double xc = ((X * R[0] + Y * R[1]) + Z * R[2]) + t[0];
             double yc = ((X * R[3] + Y * R[4]) + Z * R[5]) + t[1];
             double zc = ((X * R[6] + Y * R[7]) + Z * R[8]) + t[2];
-            double inv_z = 1.0 / zc;
-            xs[i] = xc, ys[i] = yc, inv_zs[i] = inv_z;
-            dus[i] = ((xc * inv_z) * fx + cx) - points_2d_px[2 * i];
-            dvs[i] = ((yc * inv_z) * fy + cy) - points_2d_px[2 * i + 1];
+            double inv_z = 1.0 / zc, a = xc * inv_z, b = yc * inv_z;
+            E[i] = -(a * b);
+            E[N + i] = a * a + 1.0;
+            E[2 * N + i] = -b;
+            E[3 * N + i] = inv_z;
+            E[4 * N + i] = -(a * inv_z);
+            E[5 * N + i] = -(b * b + 1.0);
+            E[6 * N + i] = a * b;
+            E[7 * N + i] = a;
+            E[8 * N + i] = inv_z;
+            E[9 * N + i] = -(b * inv_z);
+            E[10 * N + i] = (a * fx + cx) - points_2d_px[2 * i];
+            E[11 * N + i] = (b * fy + cy) - points_2d_px[2 * i + 1];
         }
-        memset(&p, 0, sizeof p);
-        p.x = xs, p.y = ys, p.inv_z = inv_zs, p.du = dus, p.dv = dvs;
-        dimenet__gram_of(&p, N, G);
-        dimenet__gram_normal_equations(G, fx, fy, JJ, Jr, &rss);
+        pose_normal_equations(E, N, fx, fy, JJ, Jr);
         if (!pose_solve(JJ, Jr, step)) {
             return DIMENET_E_NO_POSE_STEP;
         }

@@ -345,19 +345,19 @@ static void test_other_specs(void)
 static void test_pose_steps(void)
 {
     enum { N = 320 };
-    static double p2[2 * N], p3[3 * N], scratch[5 * N];
+    static double p2[2 * N], p3[3 * N], scratch[12 * N];
     static const double rvec[3] = {0.12, -0.31, 0.05}, tvec[3] = {12.0, -25.0, 610.0};
     dimenet_feature_spec s = model_spec(0);
     double k[4] = {3059.68, 3059.68, 2023.82, 1508.45}, r0[3], t0[3], r[3], t[3], e = -1.0, depth = -1.0;
     size_t P = 0, i;
     int code, c;
     make_frame(&s, N, rvec, tvec, 0.0, p2, p3);
-    CHECK(dimenet_pose_scratch_doubles(N, &P) == DIMENET_OK && P == 5 * N, "the pose's scratch is 5 N");
+    CHECK(dimenet_pose_scratch_doubles(N, &P) == DIMENET_OK && P == 12 * N, "the pose's scratch is 12 N");
     CHECK(dimenet_pose_scratch_doubles((size_t)-1, &P) == DIMENET_E_ARGUMENT, "an overflowing scratch size");
     for (c = 0; c < 3; c++) {
         r0[c] = rvec[c] + 2e-3, t0[c] = tvec[c] + 1.0;
     }
-    code = dimenet_pose_steps(N, p2, p3, k, r0, t0, 4, r, t, &e, &depth, scratch, 5 * N);
+    code = dimenet_pose_steps(N, p2, p3, k, r0, t0, 4, r, t, &e, &depth, scratch, 12 * N);
     CHECK(code == DIMENET_OK, "four steps from a nearby pose");
     CHECK(e < 1e-9 && depth > 500.0 && depth < 700.0, "the exact frame's error is 0 at a depth of ~610 mm");
     for (c = 0; c < 3; c++) {
@@ -367,23 +367,23 @@ static void test_pose_steps(void)
     CHECK(code == DIMENET_OK && r[0] == rvec[0] && t[2] == tvec[2], "no step: the start pose");
     CHECK(e < 1e-9 && depth > 500.0, "no step, no scratch: the error and depth at the start pose");
     k[2] += 3.0;
-    code = dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 2, r, t, NULL, NULL, scratch, 5 * N);
+    code = dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 2, r, t, NULL, NULL, scratch, 12 * N);
     CHECK(code == DIMENET_OK && fabs(r[1] - rvec[1]) > 1e-5, "3 px in cx turns the pose");
     CHECK(dimenet_pose_steps(0, NULL, NULL, k, rvec, tvec, 1, r, t, NULL, NULL, NULL, 0) == DIMENET_E_NO_POSE_STEP,
           "no points: no step");
     for (i = 0; i < N; i++) { /* every point the same: J J^T singular */
         p3[3 * i] = p3[0], p3[3 * i + 1] = p3[1], p3[3 * i + 2] = p3[2], p2[2 * i] = p2[0], p2[2 * i + 1] = p2[1];
     }
-    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 5 * N) == DIMENET_E_NO_POSE_STEP,
+    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 12 * N) == DIMENET_E_NO_POSE_STEP,
           "one point repeated fixes no pose");
     p2[7] = NAN;
-    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 5 * N) == DIMENET_E_NO_POSE_STEP,
+    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 12 * N) == DIMENET_E_NO_POSE_STEP,
           "a NaN pixel: no step");
-    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 5 * N - 1) == DIMENET_E_ARGUMENT,
+    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 12 * N - 1) == DIMENET_E_ARGUMENT,
           "a short scratch is refused");
-    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, -1, r, t, NULL, NULL, scratch, 5 * N) == DIMENET_E_ARGUMENT,
+    CHECK(dimenet_pose_steps(N, p2, p3, k, rvec, tvec, -1, r, t, NULL, NULL, scratch, 12 * N) == DIMENET_E_ARGUMENT,
           "negative steps are refused");
-    CHECK(dimenet_pose_steps(N, p2, NULL, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 5 * N) == DIMENET_E_ARGUMENT,
+    CHECK(dimenet_pose_steps(N, p2, NULL, k, rvec, tvec, 1, r, t, NULL, NULL, scratch, 12 * N) == DIMENET_E_ARGUMENT,
           "a NULL buffer is refused");
     CHECK(strcmp(dimenet_error_message(DIMENET_E_NO_POSE_STEP), "no Gauss-Newton step: the points fix no pose under K")
               == 0,

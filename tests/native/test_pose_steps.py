@@ -1,8 +1,7 @@
 """The compiled core's pose kernel (``dimenet_pose_steps``) against the numpy reference, to the bit: with no
 step, the check stage's e(K) and depth (``native.frame_error_and_depth``, ``geometry.frame_error_and_depth``);
-with steps, the Gauss-Newton pose under a K from the C0 pose (``geometry.pose_step``), and that pose against
-SQPnP's under K on the bench's frames under each model's own K (measured for stage pnp_k, not used there:
-BENCHMARKS.md, "The pose under K")."""
+with steps, the Gauss-Newton pose under a K from the C0 pose (``geometry.pose_step``, stage pnp_k's), and that pose
+against SQPnP's under K on the bench's frames under each model's own K (BENCHMARKS.md, "The pose under K")."""
 
 from __future__ import annotations
 

@@ -171,7 +171,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     code = dimenet_prior_posterior(jj, spec.pmd_scale_per_px, spec.channel_scale[0], inverse);
     check(known(code) && code != DIMENET_E_ARGUMENT && code != DIMENET_E_BEHIND_CAMERA);
 
-    /* the pose under a K near K_c from the input's pose (scratch: 18 n >= the pose's 5 n), 0 to 3 steps;
+    /* the pose under a K near K_c from the input's pose (scratch: 18 n >= the pose's 12 n), 0 to 3 steps;
      * a failed call leaves its outputs as they were, a bad argument is refused */
     {
         double k[4], r_out[3], t_out[3], before[6], e = -1.0, depth = -1.0;
