@@ -15,11 +15,12 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from dimenet.runtime.errors import ModelError
+from dimenet.runtime.errors import InputError, ModelError
 from dimenet.runtime.formats.dataset import Dataset
 from dimenet.runtime.geometry import MIN_POINTS, k_matrix
 from dimenet.runtime.plugins import entry_points
-from dimenet.runtime.rectify.inference import network_k, network_statistics
+from dimenet.runtime.rectify.features import grid_features
+from dimenet.runtime.rectify.inference import NetworkK, network_k, network_statistics
 from dimenet.runtime.rectify.model import OnnxModel, load_model, load_onnx_model, resolve_model
 from dimenet.runtime.rectify.spec import ModelSpec, ServedCamera
 from dimenet.runtime.rectify.uncertainty import STATISTICS
@@ -29,7 +30,8 @@ from dimenet.runtime.rectify.user_camera import Camera
 @dataclass(frozen=True)
 class KPrediction:
     """Per frame of F: K (F, 3, 3) px (K_c where not predicted); predicted (F,) bool, False
-    when the frame has too few inference points or the prediction is implausible; stats
+    when the frame has too few inference points, no feature (``readable_network_k``) or the prediction
+    is implausible; stats
     (F, 4) the uncertainty statistics of the inference points (NaN where not predicted);
     K_cov (F, 4, 4) px^2 the network's covariance of (fx, fy, cx, cy), None when the spec has
     no uncertainty model (NaN where not predicted)."""
@@ -99,8 +101,8 @@ class Predictor:
         if usable.any():
             sub = frames.select(usable)
             points_2d = sub.points_2d if pixels is None else pixels.points_to_model(sub.points_2d)
-            net = network_k(spec, self.delta_k, points_2d, sub.points_3d, sub.infer_mask)
-            ok = net.plausible
+            net, read = readable_network_k(spec, self.delta_k, points_2d, sub.points_3d, sub.infer_mask)
+            ok = net.plausible & read
             rows = np.flatnonzero(usable)[ok]
             k = net.k[ok] if pixels is None else pixels.k_to_user(net.k[ok])
             K[rows], predicted[rows] = k_matrix(k), True
@@ -141,3 +143,23 @@ def load_predictor(path: str | Path) -> Predictor:
 def load_onnx_predictor(path: str | Path) -> Predictor:
     """Entry point ``onnx`` of ``dimenet.predictors``: a .onnx file as a Predictor."""
     return Predictor.of_model(load_onnx_model(path))
+
+
+def readable_network_k(spec: ModelSpec, delta_k, points_2d, points_3d, mask) -> tuple[NetworkK, np.ndarray]:
+    """``network_k`` of F frames (model px), and which it read (F,) bool: a frame whose feature cannot be formed
+    (an InputError of ``grid_features``: no C0 pose, a point behind the camera at it, a data step with no solution)
+    is left unread, its inference points dropped, where one such frame would fail the F (a training's uncertainty
+    fit draws single planes and sparse points, whose data step can be singular)."""
+    try:
+        return network_k(spec, delta_k, points_2d, points_3d, mask), np.ones(len(mask), bool)
+    except InputError:
+        pass
+    read = np.ones(len(mask), bool)
+    for f in range(len(mask)):
+        try:
+            grid_features(
+                points_2d[f : f + 1], points_3d[f : f + 1], mask[f : f + 1], spec.K_c, spec.image_size, spec.features
+            )
+        except InputError:
+            read[f] = False
+    return network_k(spec, delta_k, points_2d, points_3d, mask & read[:, None]), read
