@@ -147,7 +147,7 @@ def load_onnx_predictor(path: str | Path) -> Predictor:
 
 def readable_network_k(spec: ModelSpec, delta_k, points_2d, points_3d, mask) -> tuple[NetworkK, np.ndarray]:
     """``network_k`` of F frames (model px), and which it read (F,) bool: a frame whose feature cannot be formed
-    (an InputError of ``grid_features``: no C0 pose, a point behind the camera at it, a data step with no solution)
+    (an InputError of ``grid_features``: no C0 pose, or a data step with no solution)
     is left unread, its inference points dropped, where one such frame would fail the F (a training's uncertainty
     fit draws single planes and sparse points, whose data step can be singular)."""
     try:

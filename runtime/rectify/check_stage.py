@@ -79,7 +79,7 @@ def frame_rules(cam: ModelCamera, p2, p3, cand: Candidate, e_c: float, c0_pose, 
     and, where e(K) is above STRUCTURE_GATE e(K_c), the structure rule at the C0 pose first (its reason says more
     than the worse rule's; the mismatch rule's says more than it); a candidate that is K_c's own solution
     (``k_c_solutions``: Delta K = 0) has e = e_c, a tie. -> the reason K is refused, or None."""
-    rvec_c0, _ = c0_pose
+    rvec_c0, tvec_c0 = c0_pose
     own = not np.count_nonzero(cand.delta_k) and k_c_solutions(cam, cand.K, cand.rvec, cand.tvec, c0_pose)
     if own:
         cand.e = e_c
@@ -91,7 +91,7 @@ def frame_rules(cam: ModelCamera, p2, p3, cand: Candidate, e_c: float, c0_pose, 
     if cam.dist_coeffs is not None:  # in model px, as fx_c
         K_user = cam.K_c_user if own else cand.K if cam.pixels is None else cam.pixels.K_to_user(cand.K)
         K = np.stack([K_user, cam.K_c_user])
-        image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, c0_pose[1]))
+        image = cam.image_errors(p2_image[None], p3[None], None, K, (cand.rvec, rvec_c0), (cand.tvec, tvec_c0))
         e, e_c_rule = image[:, 0] / cam.user_px
     reason = None
     if e > STRUCTURE_GATE * e_c_rule and not mismatched(e, e_c_rule, cam.fx_c):

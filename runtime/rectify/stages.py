@@ -204,7 +204,7 @@ def batch_candidates(cam: ModelCamera, fr: Frames, net: NetworkK, rvec_c0, tvec_
             reasons[b] = implausible_reason(net.delta_k[b], cam.user_k(net.k[b]))
         if reasons[b] is None:
             try:
-                pose = pose_under(x, X, cam.k_c + net.delta_k[b], net.delta_k[b], (rvec_c0[b], tvec_c0[b]))
+                pose = pose_under(x, X, net.k[b], net.delta_k[b], (rvec_c0[b], tvec_c0[b]))
             except InputError:
                 reasons[b] = NO_POSE_REASON
                 continue
