@@ -18,6 +18,8 @@ from dimenet.runtime.geometry.spread import spans_3d
 MIN_POINTS = 6
 # Fewest correspondences from which a pose alone is solved (SQPnP and the BPnP layer).
 MIN_POSE_POINTS = 4
+# The largest binary exponent of a finite float64 (2^1024 overflows).
+MAX_EXPONENT = 1023
 
 
 def check_not_degenerate(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
@@ -35,16 +37,21 @@ def check_not_degenerate(points_2d: np.ndarray, points_3d: np.ndarray) -> None:
             raise InputError(f"{name}: all points are collinear; a pose needs points off one line")
 
 
-def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def solve_pnp_start(
+    points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray, unit: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Fast closed-form pose {W}->{C} (SQPnP) for one frame: (N, 2) px, (N, 3) mm -> rvec, tvec (3,).
 
     The 3D points are solved for in a unit of the power of two nearest their RMS norm (exact: the
     scaling changes no mantissa), and tvec scaled back: SQPnP's tolerances are absolute, so a scene
-    in units of 1e-6 mm would otherwise get another pose than the same scene in mm.
+    in units of 1e-6 mm would otherwise get another pose than the same scene in mm. ``unit``: that
+    power of two (mm) when the caller has it (``native.solve_pnp_start``: the compiled core's), else
+    ``power_of_two_unit`` here.
     Raises InputError when OpenCV finds no pose or fails on the input.
     """
     points_3d = np.asarray(points_3d, dtype=np.float64)
-    unit = _power_of_two_unit(points_3d)
+    if unit is None:
+        unit = power_of_two_unit(points_3d)
     try:
         ok, rvec, tvec = cv2.solvePnP(
             points_3d * (1.0 / unit),
@@ -63,11 +70,13 @@ def solve_pnp_start(points_2d: np.ndarray, points_3d: np.ndarray, K: np.ndarray)
     return rvec.ravel(), tvec.ravel() * unit
 
 
-def _power_of_two_unit(points_3d: np.ndarray) -> float:
-    """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite); the
-    points are taken over their largest coordinate first, so 1e300 mm does not overflow. On the hot path
-    (stage pnp_kc): OpenCV's largest |coordinate| (exact, NaN refused by checkRange) and the sum of squares
-    as numpy's mean takes it, then Python's float math: 6 against 19 us at 320 points."""
+def power_of_two_unit(points_3d: np.ndarray) -> float:
+    """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite; at most
+    2^MAX_EXPONENT, the largest finite one); the
+    points are taken over their largest coordinate first, so 1e300 mm does not overflow. OpenCV's
+    largest |coordinate| (exact, NaN refused by checkRange) and numpy's pairwise sum of squares, then
+    Python's float math: the reference of the compiled core's ``dimenet_power_of_two_unit``
+    (models_spec/BENCHMARKS.md has both's us)."""
     if points_3d.size and points_3d.dtype == np.float64 and cv2.checkRange(points_3d)[0]:
         largest = cv2.norm(points_3d, cv2.NORM_INF)
     else:
@@ -77,7 +86,9 @@ def _power_of_two_unit(points_3d: np.ndarray) -> float:
     squares = points_3d / largest
     np.square(squares, out=squares)
     rms = largest * math.sqrt(float(squares.sum()) / squares.size * 3.0)
-    return math.ldexp(1.0, round(math.log2(rms)))
+    if not 0.0 < rms < math.inf:  # a denormal largest coordinate can give 0
+        return 1.0
+    return math.ldexp(1.0, min(round(math.log2(rms)), MAX_EXPONENT))
 
 
 def dlt_camera(points_2d: np.ndarray, points_3d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

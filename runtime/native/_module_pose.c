@@ -1,5 +1,6 @@
 /* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
- * feature stage): pose_steps (dimenet_pose_steps) and frame_checks (dimenet_frame_checks), under the same
+ * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks) and power_of_two_unit
+ * (dimenet_power_of_two_unit), under the same
  * rules as _module.c's (buffers checked, the GIL released in the kernel, no static mutable state). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -153,8 +154,36 @@ done:
     return result;
 }
 
+PyDoc_STRVAR(power_of_two_unit_doc,
+             "power_of_two_unit(points_3d)\n--\n\n"
+             "geometry.pnp.power_of_two_unit to the bit (dimenet_power_of_two_unit), the GIL released: the power of "
+             "two nearest the RMS norm of points_3d (N, 3) float64 mm, C contiguous; 1.0 when that is 0 or not "
+             "finite.");
+
+static PyObject *power_of_two_unit(PyObject *module, PyObject *points_3d)
+{
+    static const Py_ssize_t rows_of_three[2] = {-1, 3};
+    Py_buffer view;
+    double unit = 1.0;
+    int code;
+    (void)module;
+    if (dimenet_py_get_view(points_3d, &view, "points_3d", 'd', 2, rows_of_three, 0) != 0) {
+        return NULL;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    code = dimenet_power_of_two_unit((size_t)view.shape[0] * 3u, (const double *)view.buf, &unit);
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&view);
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, dimenet_error_message(code));
+        return NULL;
+    }
+    return PyFloat_FromDouble(unit);
+}
+
 PyMethodDef dimenet_py_pose_methods[] = {
     {"pose_steps", (PyCFunction)(void (*)(void))pose_steps, METH_FASTCALL, pose_steps_doc},
     {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
+    {"power_of_two_unit", (PyCFunction)power_of_two_unit, METH_O, power_of_two_unit_doc},
     {NULL, NULL, 0, NULL},
 };

@@ -1,4 +1,5 @@
-/* dimenet_checks: the input rules' fast tests of one frame (rectify/checks.py). */
+/* dimenet_checks: the input rules' fast tests of one frame (rectify/checks.py) and the unit of its PnP
+ * (geometry/pnp.py). */
 #include "dimenet_internal.h"
 
 #include <math.h>
@@ -6,47 +7,34 @@
 
 /* -- the input rules' fast tests (rectify/checks.py) ------------------------------------------ */
 
-/* checks.clearly_spread of n points of dims 2 or 3 (row major): the sample covariance in point order. */
-static int clearly_spread(size_t n, const double *p, int dims, double ratio, double absolute)
+/* The running sums of checks.clearly_spread for points of 2 or 3 dims (a 2D point's z is 0, which adds
+ * exact zeros to the trace and the minors): the mean, then the sample covariance, in point order. */
+typedef struct {
+    double mean[3], c00, c01, c02, c11, c12, c22, scale;
+} spread_sums;
+
+static inline void spread_first(spread_sums *s, double x, double y, double z)
 {
-    double mean[3] = {0.0, 0.0, 0.0}, C[9], scale = 1.0, trace, minors;
-    size_t i;
-    int a, b;
-    for (i = 0; i < n; i++) {
-        for (a = 0; a < dims; a++) {
-            double v = p[i * (size_t)dims + (size_t)a];
-            mean[a] += v;
-            scale = fabs(v) > scale ? fabs(v) : scale;
-        }
-    }
-    for (a = 0; a < dims; a++) {
-        mean[a] /= (double)n;
-    }
-    for (a = 0; a < 9; a++) {
-        C[a] = 0.0;
-    }
-    for (i = 0; i < n; i++) {
-        double d[3];
-        for (a = 0; a < dims; a++) {
-            d[a] = p[i * (size_t)dims + (size_t)a] - mean[a];
-        }
-        for (a = 0; a < dims; a++) {
-            for (b = a; b < dims; b++) {
-                C[a * 3 + b] += d[a] * d[b];
-            }
-        }
-    }
-    for (a = 0; a < 9; a++) {
-        C[a] /= (double)n;
-    }
-    if (dims == 2) {
-        trace = C[0] + C[4];
-        minors = C[0] * C[4] - C[1] * C[1];
-    } else {
-        trace = C[0] + C[4] + C[8];
-        minors = (C[0] * C[4] - C[1] * C[1]) + (C[0] * C[8] - C[2] * C[2]) + (C[4] * C[8] - C[5] * C[5]);
-    }
-    return minors > 3.0 * ratio * (trace * trace) && trace > (double)dims * absolute * (scale * scale);
+    s->mean[0] += x, s->mean[1] += y, s->mean[2] += z;
+    s->scale = fabs(x) > s->scale ? fabs(x) : s->scale;
+    s->scale = fabs(y) > s->scale ? fabs(y) : s->scale;
+    s->scale = fabs(z) > s->scale ? fabs(z) : s->scale;
+}
+
+static inline void spread_second(spread_sums *s, double x, double y, double z)
+{
+    x -= s->mean[0], y -= s->mean[1], z -= s->mean[2];
+    s->c00 += x * x, s->c01 += x * y, s->c02 += x * z, s->c11 += y * y, s->c12 += y * z, s->c22 += z * z;
+}
+
+/* checks.clearly_spread from the sums of n points of ``dims`` dims. */
+static int clearly_spread(const spread_sums *s, size_t n, int dims, double ratio, double absolute)
+{
+    double nn = (double)n, c00 = s->c00 / nn, c01 = s->c01 / nn, c02 = s->c02 / nn, c11 = s->c11 / nn;
+    double c12 = s->c12 / nn, c22 = s->c22 / nn;
+    double trace = c00 + c11 + c22;
+    double minors = (c00 * c11 - c01 * c01) + (c00 * c22 - c02 * c02) + (c11 * c22 - c12 * c12);
+    return minors > 3.0 * ratio * (trace * trace) && trace > (double)dims * absolute * (s->scale * s->scale);
 }
 
 int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, const double *points_2d_px,
@@ -54,27 +42,99 @@ int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, cons
                          double spread_ratio, double spread_absolute, unsigned *result)
 {
     const double high_x = width_px - 0.5, high_y = height_px - 0.5;
+    spread_sums s2 = {{0.0, 0.0, 0.0}, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0};
+    spread_sums s3 = s2;
     size_t i;
-    unsigned out = 0u;
+    int inside = 1;
     if (n_points < 1 || points_2d_image_px == NULL || points_2d_px == NULL || points_3d_w_mm == NULL
         || result == NULL) {
         return DIMENET_E_ARGUMENT;
     }
-    for (i = 0; i < n_points && out == 0u; i++) {
+    for (i = 0; i < n_points; i++) { /* the bounds, and the means of the two point sets side by side */
         double x = points_2d_image_px[2 * i], y = points_2d_image_px[2 * i + 1];
-        const double *X = points_3d_w_mm + 3 * i;
-        if (!(x >= -0.5 && x <= high_x && y >= -0.5 && y <= high_y)) {
-            out = DIMENET_CHECK_OUTSIDE;
-        }
-        if (!(X[0] >= -max_coordinate && X[0] < max_coordinate && X[1] >= -max_coordinate && X[1] < max_coordinate
-              && X[2] >= -max_coordinate && X[2] < max_coordinate)) {
-            out = DIMENET_CHECK_OUTSIDE;
-        }
+        const double *X = points_3d_w_mm + 3 * i, *p = points_2d_px + 2 * i;
+        inside &= x >= -0.5 && x <= high_x && y >= -0.5 && y <= high_y && X[0] >= -max_coordinate
+                  && X[0] < max_coordinate && X[1] >= -max_coordinate && X[1] < max_coordinate
+                  && X[2] >= -max_coordinate && X[2] < max_coordinate;
+        spread_first(&s2, p[0], p[1], 0.0);
+        spread_first(&s3, X[0], X[1], X[2]);
     }
-    if (out == 0u && !(clearly_spread(n_points, points_3d_w_mm, 3, spread_ratio, spread_absolute)
-                       && clearly_spread(n_points, points_2d_px, 2, spread_ratio, spread_absolute))) {
-        out = DIMENET_CHECK_NOT_SPREAD;
+    if (!inside) {
+        *result = DIMENET_CHECK_OUTSIDE;
+        return DIMENET_OK;
     }
-    *result = out;
+    for (i = 0; i < 3; i++) {
+        s2.mean[i] /= (double)n_points;
+        s3.mean[i] /= (double)n_points;
+    }
+    for (i = 0; i < n_points; i++) {
+        const double *X = points_3d_w_mm + 3 * i, *p = points_2d_px + 2 * i;
+        spread_second(&s2, p[0], p[1], 0.0);
+        spread_second(&s3, X[0], X[1], X[2]);
+    }
+    *result = clearly_spread(&s3, n_points, 3, spread_ratio, spread_absolute)
+                      && clearly_spread(&s2, n_points, 2, spread_ratio, spread_absolute)
+                  ? 0u
+                  : DIMENET_CHECK_NOT_SPREAD;
+    return DIMENET_OK;
+}
+
+/* -- the PnP's unit (geometry.pnp.power_of_two_unit) ------------------------------------------ */
+
+/* numpy's pairwise sum of (a[i] / largest)^2 over n values (np.square(a / largest).sum()): each leaf
+ * block of at most PAIRWISE_BLOCK squares is written out and summed as numpy sums it. */
+static double scaled_squares_sum(const double *a, size_t n, double largest)
+{
+    double block[PAIRWISE_BLOCK];
+    size_t i;
+    if (n > PAIRWISE_BLOCK) {
+        size_t n2 = n / 2;
+        n2 -= n2 % 8;
+        return scaled_squares_sum(a, n2, largest) + scaled_squares_sum(a + n2, n - n2, largest);
+    }
+    for (i = 0; i < n; i++) {
+        double v = a[i] / largest;
+        block[i] = v * v;
+    }
+    return dimenet__pairwise_sum(block, n);
+}
+
+/* The largest binary exponent of a finite double (geometry.pnp.MAX_EXPONENT). */
+#define MAX_EXPONENT 1023
+
+/* Python's round() of a float to an integral value: halves to even. */
+static double python_round(double x)
+{
+    double rounded = round(x);
+    if (fabs(x - rounded) == 0.5) {
+        rounded = 2.0 * round(x / 2.0);
+    }
+    return rounded;
+}
+
+int dimenet_power_of_two_unit(size_t n_values, const double *points_3d_w_mm, double *unit_mm)
+{
+    double largest = 0.0, rms;
+    size_t i;
+    if ((n_values > 0 && points_3d_w_mm == NULL) || unit_mm == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (i = 0; i < n_values; i++) {
+        double v = fabs(points_3d_w_mm[i]);
+        if (v != v) {
+            largest = v;
+            break;
+        }
+        largest = v > largest ? v : largest;
+    }
+    *unit_mm = 1.0;
+    if (!(largest > 0.0 && largest < HUGE_VAL)) {
+        return DIMENET_OK;
+    }
+    rms = largest * sqrt(scaled_squares_sum(points_3d_w_mm, n_values, largest) / (double)n_values * 3.0);
+    if (rms > 0.0 && rms < HUGE_VAL) { /* a denormal largest coordinate can give 0 */
+        double exponent = python_round(log2(rms));
+        *unit_mm = ldexp(1.0, exponent > MAX_EXPONENT ? MAX_EXPONENT : (int)exponent);
+    }
     return DIMENET_OK;
 }

@@ -167,7 +167,41 @@ static void gram_add(double d[GRAM_UPPER], const double *q, size_t stride)
     }
 }
 
-/* numpy's pairwise sum (pairwise_sum above) of each of the 66 products over n points (8 <= n <= 128):
+/* numpy's pairwise sum of a contiguous float64 run (pairwise_sum_DOUBLE): what a.sum() gives. */
+double dimenet__pairwise_sum(const double *a, size_t n)
+{
+    if (n < 8) {
+        double res = 0.0;
+        size_t i;
+        for (i = 0; i < n; i++) {
+            res += a[i];
+        }
+        return res;
+    }
+    if (n <= PAIRWISE_BLOCK) {
+        double r[8], res;
+        size_t i, j;
+        for (j = 0; j < 8; j++) {
+            r[j] = a[j];
+        }
+        for (i = 8; i < n - (n % 8); i += 8) {
+            for (j = 0; j < 8; j++) {
+                r[j] += a[i + j];
+            }
+        }
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) {
+            res += a[i];
+        }
+        return res;
+    } else {
+        size_t n2 = n / 2;
+        n2 -= n2 % 8;
+        return dimenet__pairwise_sum(a, n2) + dimenet__pairwise_sum(a + n2, n - n2);
+    }
+}
+
+/* numpy's pairwise sum (dimenet__pairwise_sum above) of each of the 66 products over n points (8 <= n <= 128):
  * lanes[m * stride + i] monomial m of point i. The eight partial sums of a product (points j, j + 8,
  * j + 16, ...) stay in registers over the block, each rounded as in numpy's loop. */
 static void gram_block(const double *lanes, size_t stride, size_t n, double out[GRAM_UPPER])

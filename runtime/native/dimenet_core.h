@@ -170,6 +170,13 @@ int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, cons
                          const double *points_3d_w_mm, double width_px, double height_px, double max_coordinate,
                          double spread_ratio, double spread_absolute, unsigned *result);
 
+/* geometry.pnp.power_of_two_unit, to the bit: the power of two nearest the RMS norm of the points (mm; the
+ * n_values / 3 rows of points_3d_w_mm, any n_values), by which a PnP solver's absolute tolerances see every
+ * scene at the same size; 1 when that norm is 0 or not finite (a NaN or inf among the values included), at
+ * most 2^1023.
+ * *unit_mm the result. DIMENET_E_ARGUMENT for a NULL pointer. */
+int dimenet_power_of_two_unit(size_t n_values, const double *points_3d_w_mm, double *unit_mm);
+
 /* The text of an error code (the reference's InputError message where it has one); never NULL. */
 const char *dimenet_error_message(int code);
 

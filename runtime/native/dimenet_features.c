@@ -93,40 +93,6 @@ int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, s
 
 /* -- numpy's sums ----------------------------------------------------------------------------- */
 
-/* numpy's pairwise sum of a contiguous float64 run (pairwise_sum_DOUBLE): what a.sum() gives. */
-static double pairwise_sum(const double *a, size_t n)
-{
-    if (n < 8) {
-        double res = 0.0;
-        size_t i;
-        for (i = 0; i < n; i++) {
-            res += a[i];
-        }
-        return res;
-    }
-    if (n <= PAIRWISE_BLOCK) {
-        double r[8], res;
-        size_t i, j;
-        for (j = 0; j < 8; j++) {
-            r[j] = a[j];
-        }
-        for (i = 8; i < n - (n % 8); i += 8) {
-            for (j = 0; j < 8; j++) {
-                r[j] += a[i + j];
-            }
-        }
-        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-        for (; i < n; i++) {
-            res += a[i];
-        }
-        return res;
-    } else {
-        size_t n2 = n / 2;
-        n2 -= n2 % 8;
-        return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
-    }
-}
-
 /* numpy's sum of a run under a where= mask: each run of kept values pairwise, the runs in order. */
 static double masked_sum(const double *a, const unsigned char *mask, size_t n)
 {
@@ -139,7 +105,7 @@ static double masked_sum(const double *a, const unsigned char *mask, size_t n)
         }
         for (j = i; j < n && mask[j]; j++) {
         }
-        res += pairwise_sum(a + i, j - i);
+        res += dimenet__pairwise_sum(a + i, j - i);
         i = j;
     }
     return res;
@@ -164,7 +130,7 @@ static double dot10(const double a[10], const double b[10])
     for (k = 0; k < 10; k++) {
         products[k] = a[k] * b[k];
     }
-    return pairwise_sum(products, 10);
+    return dimenet__pairwise_sum(products, 10);
 }
 
 /* A x, each row as dot10 (geometry.normal_equations._matvec). */
@@ -376,14 +342,14 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
     if (cells == 1) { /* numpy's sum over the points' axis (pairwise; under a mask, run by run) */
         for (k = 0; k < C; k++) {
             const double *row = rows + (size_t)channel[k] * N;
-            sums[k] = mask == NULL ? pairwise_sum(row, N) : masked_sum(row, mask, N);
+            sums[k] = mask == NULL ? dimenet__pairwise_sum(row, N) : masked_sum(row, mask, N);
         }
         counts[0] = (double)n_used;
     }
 
     /* the cell means times the channels' scales (with depth_mm: times depth factor ^ exponent) */
     if (spec->depth_mm > 0.0) {
-        double z_sum = pairwise_sum(depths, N); /* the unused points' depths are 0 (np.where) */
+        double z_sum = dimenet__pairwise_sum(depths, N); /* the unused points' depths are 0 (np.where) */
         double factor = z_sum > 0 ? spec->depth_mm * (double)n_used / z_sum : 1.0;
         for (k = 0; k < C; k++) {
             multiplier[k] = spec->channel_scale[k] * pow(factor, DEPTH_EXPONENT[spec->channels[k]]);

@@ -15,6 +15,9 @@ typedef struct {
     const double *x, *y, *inv_z, *du, *dv;
 } dimenet__gram_points;
 
+/* numpy's pairwise sum of a contiguous float64 run (pairwise_sum_DOUBLE): what a.sum() gives. */
+double dimenet__pairwise_sum(const double *a, size_t n);
+
 /* OpenCV's Rodrigues (cv::Rodrigues, vector to matrix). */
 void dimenet__rodrigues(const double rvec[3], double R[9]);
 

@@ -49,7 +49,7 @@ from numpy.typing import ArrayLike
 from dimenet.runtime import native
 from dimenet.runtime.errors import CameraError, InputError
 from dimenet.runtime.geometry import k_matrix, k_params, mean_reprojection_error
-from dimenet.runtime.geometry import solve_pnp_start as pnp
+from dimenet.runtime.native import solve_pnp_start as pnp
 from dimenet.runtime.rectify import check_stage, stages
 from dimenet.runtime.rectify.checks import real_array, validated_batch, validated_frame
 from dimenet.runtime.rectify.inference import network_k

@@ -25,7 +25,7 @@ from dimenet.runtime.geometry import (
     k_matrix,
     min_depths,
 )
-from dimenet.runtime.geometry import solve_pnp_start as pnp
+from dimenet.runtime.native import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import (
     NO_POSE_REASON,
     Frames,

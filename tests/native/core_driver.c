@@ -430,10 +430,27 @@ static void test_frame_checks(void)
           "a NULL buffer is refused");
 }
 
+/* The PnP's unit: the power of two nearest the RMS norm; 1 for zero or non-finite points; bad arguments. */
+static void test_power_of_two_unit(void)
+{
+    double p3[12] = {300.0, 0.0, 0.0, 0.0, 300.0, 0.0, 0.0, 0.0, 300.0, -300.0, 0.0, 0.0}, unit = 0.0;
+    CHECK(dimenet_power_of_two_unit(12, p3, &unit) == DIMENET_OK && unit == 256.0, "RMS norm 300 mm: 256");
+    p3[0] = 400.0, p3[4] = 400.0, p3[8] = 400.0, p3[9] = -400.0;
+    CHECK(dimenet_power_of_two_unit(12, p3, &unit) == DIMENET_OK && unit == 512.0, "RMS norm 400 mm: 512");
+    p3[5] = INFINITY;
+    CHECK(dimenet_power_of_two_unit(12, p3, &unit) == DIMENET_OK && unit == 1.0, "an inf coordinate: 1");
+    p3[5] = NAN;
+    CHECK(dimenet_power_of_two_unit(12, p3, &unit) == DIMENET_OK && unit == 1.0, "a NaN coordinate: 1");
+    CHECK(dimenet_power_of_two_unit(0, NULL, &unit) == DIMENET_OK && unit == 1.0, "no points: 1");
+    CHECK(dimenet_power_of_two_unit(12, NULL, &unit) == DIMENET_E_ARGUMENT, "a NULL buffer is refused");
+    CHECK(dimenet_power_of_two_unit(12, p3, NULL) == DIMENET_E_ARGUMENT, "a NULL result is refused");
+}
+
 int main(void)
 {
     test_pose_steps();
     test_frame_checks();
+    test_power_of_two_unit();
     test_sizes();
     test_exact_frame(0);
     test_exact_frame(1);

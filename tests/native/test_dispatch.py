@@ -98,9 +98,11 @@ def test_the_hot_path_and_grid_features_run_the_compiled_core(monkeypatch):
         x, X, _, rvec, tvec = random_frames(np.random.default_rng(1), frames=2, points=60, noise_px=0.5)
         rect.rectify(x[0], X[0])
         grid_features(x, X, None, K_TEST, IMAGE, FeatureSpec(), poses=(rvec, tvec))
-        # validation's fast tests, the feature, the check stage's e(K) when the frame keeps its K
-        assert spy.calls[:2] == ["frame_checks", "frame_features"] and spy.calls[-1] == "grid_features"
-        assert set(spy.calls[2:-1]) <= {"pose_steps"}
+        # validation's fast tests, the PnP's unit, the feature, then the pose steps and the check stage's e(K)
+        # (and SQPnP's unit again where a rule refuses K at the steps' pose)
+        assert spy.calls[:3] == ["frame_checks", "power_of_two_unit", "frame_features"]
+        assert spy.calls[-1] == "grid_features"
+        assert set(spy.calls[3:-1]) <= {"pose_steps", "power_of_two_unit"}
 
 
 @compiled

@@ -50,14 +50,14 @@ def test_pnp_start_is_unit_equivariant():
 def test_the_pnp_unit_of_extreme_coordinates_warns_of_nothing():
     import warnings
 
-    from dimenet.runtime.geometry.pnp import _power_of_two_unit
+    from dimenet.runtime.geometry.pnp import power_of_two_unit
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert _power_of_two_unit(np.full((4, 3), 1e300)) == 2.0 ** round(np.log2(np.sqrt(3) * 1e300))
-        assert _power_of_two_unit(np.full((4, 3), 1e-300)) == 2.0 ** round(np.log2(np.sqrt(3) * 1e-300))
-        assert _power_of_two_unit(np.zeros((4, 3))) == 1.0
-        assert _power_of_two_unit(np.full((4, 3), np.inf)) == 1.0
+        assert power_of_two_unit(np.full((4, 3), 1e300)) == 2.0 ** round(np.log2(np.sqrt(3) * 1e300))
+        assert power_of_two_unit(np.full((4, 3), 1e-300)) == 2.0 ** round(np.log2(np.sqrt(3) * 1e-300))
+        assert power_of_two_unit(np.zeros((4, 3))) == 1.0
+        assert power_of_two_unit(np.full((4, 3), np.inf)) == 1.0
 
 
 def test_a_singular_hessian_is_an_error_not_a_zero_step():

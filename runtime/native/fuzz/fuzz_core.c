@@ -210,6 +210,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
                                     &verdict);
         check(n == 0 ? code == DIMENET_E_ARGUMENT : (code == DIMENET_OK && verdict <= DIMENET_CHECK_NOT_SPREAD));
     }
+    /* the PnP's unit: a power of two (1 for no or non-finite points) for any values */
+    {
+        double unit = 0.0;
+        int exponent;
+        check(dimenet_power_of_two_unit(3 * n, p3, &unit) == DIMENET_OK);
+        check(frexp(unit, &exponent) == 0.5 && unit > 0.0 && isfinite(unit));
+    }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
 }
