@@ -405,7 +405,8 @@ class Frames:
     """A validated batch: points_2d (B, P, 2) px (the model's pinhole pixels) and points_3d (B, P, 3)
     mm float64; valid and infer (B, P) bool; mask: valid, or None when every point is valid; frames:
     each frame's valid points; invariants_3d: ``covariance_invariants_batch`` of the valid 3D
-    points; points_2d_image: the points as given (the user's pixels, distorted by the lens)."""
+    points (None: not computed, the caller's to compute when it needs them); points_2d_image: the points
+    as given (the user's pixels, distorted by the lens)."""
 
     points_2d: np.ndarray
     points_3d: np.ndarray
@@ -413,16 +414,26 @@ class Frames:
     infer: np.ndarray
     mask: Optional[np.ndarray]
     frames: list
-    invariants_3d: tuple
+    invariants_3d: Optional[tuple]
     points_2d_image: np.ndarray
 
 
 def validated_batch(
-    image: ImageBounds, to_model: Callable[..., np.ndarray], points_2d, points_3d, valid, infer_mask
+    image: ImageBounds,
+    to_model: Callable[..., np.ndarray],
+    points_2d,
+    points_3d,
+    valid,
+    infer_mask,
+    *,
+    exact_map: bool = False,
 ) -> Frames:
     """The input rules on B frames (those of ``validated_frame`` on each frame's valid points, and
     infer_mask a subset of valid), the 2D points mapped by ``to_model`` (the user's pixels -> the
-    model's pinhole pixels) before the spread rule, or InputError naming the first unusable frame."""
+    model's pinhole pixels) before the spread rule, or InputError naming the first unusable frame.
+    ``exact_map`` (``to_model`` raises nothing): with every point valid, the compiled core tests each
+    frame's image, range and spread in one call (``native.core.frame_checks``; the exact rules decide and
+    word what it refuses), and the Frames' invariants_3d are left to the caller (None)."""
     p2 = real_array(points_2d, "points_2d", "(B, P, 2)", 3, 2)
     p3 = real_array(points_3d, "points_3d", "(B, P, 3)", 3, 3)
     if p3.shape[:2] != p2.shape[:2]:
@@ -439,6 +450,21 @@ def validated_batch(
         raise InputError(f"frame {b}: {int(counts[b])} valid points, rectification needs at least {MIN_POINTS}")
     every = bool(valid.all())
     mask = None if every else valid
+    if exact_map and every and native.core is not None:
+        p2_image, p2 = p2, to_model(p2, valid)
+        failed = [
+            native.core.frame_checks(
+                p2_image[b], p2[b], p3[b], image.width, image.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE
+            )
+            for b in range(len(p2))
+        ]
+        for b in (b for b, f in enumerate(failed) if f == 1):  # the first frame outside, then the first not spread
+            image.raise_bad_values(p2_image[b], p3[b], True, f"frame {b}: ")
+        for b in (b for b, f in enumerate(failed) if f == 2):
+            in_frame(b, check_not_degenerate, p2[b], p3[b])
+        frames = [(p2[b], p3[b]) for b in range(len(p2))]
+        _check_distinct(frames)
+        return Frames(p2, p3, valid, infer, mask, frames, None, p2_image)
     inside = (
         all_inside(image, p2, p3)
         if every
@@ -453,10 +479,15 @@ def validated_batch(
     spread = spread_3d & spread_frames(p2, mask)[0]
     for b in np.flatnonzero(~spread):
         in_frame(b, check_spread, *frames[b])
+    _check_distinct(frames)
+    return Frames(p2, p3, valid, infer, mask, frames, invariants_3d, p2_image)
+
+
+def _check_distinct(frames: list) -> None:
+    """InputError naming the first of a batch's frames ((x, X) valid points) with too few distinct points."""
     for b, (x, X) in enumerate(frames):
         distinct = too_few_distinct(x, X, MIN_POINTS)
         if distinct is not None:
             raise InputError(
                 f"frame {b}: {distinct} distinct valid points of {len(x)}: rectification needs at least {MIN_POINTS}"
             )
-    return Frames(p2, p3, valid, infer, mask, frames, invariants_3d, p2_image)

@@ -284,7 +284,8 @@ class Rectifier:
         the first unusable frame.
         """
         cam = self._cam
-        fr = validated_batch(cam.image, cam.to_model, points_2d, points_3d, valid, infer_mask)
+        exact_map = cam.dist_coeffs is None
+        fr = validated_batch(cam.image, cam.to_model, points_2d, points_3d, valid, infer_mask, exact_map=exact_map)
         rvec_c0, tvec_c0 = stages.batch_c0_poses(cam, fr)
         infer, poses_i, reasons = stages.batch_inference_poses(cam, fr, rvec_c0, tvec_c0)
         net = network_k(cam.spec, self.model.delta_k, fr.points_2d, fr.points_3d, infer, tuple(poses_i))

@@ -220,8 +220,8 @@ def batch_covariances(cam: ModelCamera, cand: BatchCandidates, net, fr: Frames, 
         return
     features = cam.spec.features
     if pmd_px is not None:
-        known = (pmd_px[pending], tuple(a[pending] for a in fr.invariants_3d))
-        stats = network_statistics(net, pending, infer, fr.points_3d, features, *known)
+        invariants = None if fr.invariants_3d is None else tuple(a[pending] for a in fr.invariants_3d)
+        stats = network_statistics(net, pending, infer, fr.points_3d, features, pmd_px[pending], invariants)
     else:
         stats = network_statistics(net, pending, infer, fr.points_3d, features)
     cand.K_cov[pending] = cam.spec.uncertainty.covariance(stats)

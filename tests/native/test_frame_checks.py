@@ -1,7 +1,7 @@
 """The input rules' fast tests in the compiled core (``native.core.frame_checks``, ``validated_frame``'s with
 a camera without a lens) against the numpy rules: the same verdict (all_inside, clearly_spread) on the bench's
 2000 frames and both models' golden frames, and the same accepted frames and InputError messages on hostile
-ones."""
+ones, alone and in a batch."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from dimenet.runtime.rectify.checks import (
     SPREAD_RATIO,
     ImageBounds,
     all_inside,
+    validated_batch,
     validated_frame,
     well_spread,
 )
@@ -89,3 +90,27 @@ def test_validated_frame_accepts_and_refuses_alike(case):
         assert out["python"] == out["c"], case
     else:
         assert all(np.array_equal(a, b) for a, b in zip(out["python"], out["c"])), case
+
+
+@pytest.mark.parametrize("case", sorted(hostile_frames()))
+def test_validated_batch_accepts_and_refuses_alike(case):
+    # the hostile frame third in a batch of ordinary ones; and after a frame that is not spread, so the
+    # first frame outside is named before it, as the numpy rules name them
+    frames = hostile_frames()
+    for before in ("ordinary", "collinear 3D points"):
+        batch = [frames["ordinary"], frames[before], frames[case], frames["ordinary"]]
+        x, X = (np.stack([f[i] for f in batch]) for i in (0, 1))
+        valid = np.ones(x.shape[:2], bool)
+        out = {}
+        for exact_map, name in ((False, "python"), (True, "c")):
+            with native.using(name):
+                try:
+                    fr = validated_batch(IMAGE, lambda p, valid=True: p, x, X, valid, None, exact_map=exact_map)
+                    pairs = [a for pair in fr.frames for a in pair]
+                    out[name] = (fr.points_2d, fr.points_3d, fr.points_2d_image, *pairs)
+                except InputError as exc:
+                    out[name] = str(exc)
+        if isinstance(out["python"], str):
+            assert out["python"] == out["c"], (case, before)
+        else:
+            assert all(np.array_equal(a, b) for a, b in zip(out["python"], out["c"])), (case, before)
