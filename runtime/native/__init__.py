@@ -3,8 +3,9 @@
 The compiled core (``dimenet.runtime.native._core``, built from dimenet_*.c and _module*.c beside
 this file by ``pip install .``) computes the feature stage of every encoder
 (``rectify.features.grid_features``), the check stage's error and depth (``frame_error_and_depth``
-below) and stage pnp_k's Gauss-Newton pose under K (``pose_under_k``: ``geometry.pose_step``); the numpy
-code stays the reference and the fallback. The choice
+below), stage pnp_k's Gauss-Newton pose under K (``pose_under_k``: ``geometry.pose_step``), SQPnP's unit
+(``solve_pnp_start``) and validation's fast tests (``rectify.checks``); the numpy code stays the reference and
+the fallback. The choice
 is made once, at import:
 
 - ``DIMENET_IMPLEMENTATION`` unset (or empty): "c" when the extension imports, else "python" (a
