@@ -105,6 +105,9 @@ def test_libfuzzer_finds_nothing_in_a_short_run(tmp_path):
         pytest.skip("this clang has no libFuzzer runtime")
     fuzzer = _build(tmp_path, "fuzz_core", [NATIVE / "fuzz" / "fuzz_core.c", *CORE], flags, compiler="clang")
     done = subprocess.run(
-        [str(fuzzer), "-runs=5000", "-seed=49", str(tmp_path)], capture_output=True, text=True, timeout=120
+        [str(fuzzer), "-runs=5000", "-seed=49", f"-artifact_prefix={tmp_path}/", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert done.returncode == 0 and "Done 5000 runs" in done.stderr, done.stderr[-2000:]
