@@ -72,8 +72,8 @@ def solve_pnp_start(
 
 def power_of_two_unit(points_3d: np.ndarray) -> float:
     """The power of two nearest the RMS norm of (N, 3) points (1 when that is 0 or not finite; at most
-    2^MAX_EXPONENT, the largest finite one); the
-    points are taken over their largest coordinate first, so 1e300 mm does not overflow. OpenCV's
+    2^MAX_EXPONENT, the largest finite one); the points are taken over their largest coordinate first, so
+    1e300 mm does not overflow. OpenCV's
     largest |coordinate| (exact, NaN refused by checkRange) and numpy's pairwise sum of squares, then
     Python's float math: the reference of the compiled core's ``dimenet_power_of_two_unit``
     (models_spec/BENCHMARKS.md has both's us)."""

@@ -128,7 +128,7 @@ def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, f
 def solve_pnp_start(points_2d, points_3d, K) -> tuple[np.ndarray, np.ndarray]:
     """``geometry.solve_pnp_start`` (SQPnP's pose {W}->{C} under K (3, 3) px of points_2d (N, 2) px and
     points_3d (N, 3) mm -> rvec, tvec (3,)) with its unit (``geometry.pnp.power_of_two_unit``) from the running
-    implementation, the same to the bit: 0.6 against 5 us at 320 points (BENCHMARKS.md). InputError when
+    implementation, the same to the bit: 1.4 against 5.1 us at 320 points (BENCHMARKS.md). InputError when
     there is no pose."""
     if core is None or not (isinstance(points_3d, np.ndarray) and points_3d.dtype == np.float64):
         return _solve_pnp_start_reference(points_2d, points_3d, K)

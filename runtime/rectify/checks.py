@@ -361,6 +361,15 @@ def in_frame(b: int, call, *args):
         raise InputError(f"frame {b}: {exc}") from None
 
 
+def fast_checks(image: ImageBounds, points_2d_image, points_2d, points_3d) -> int:
+    """The compiled core's fast tests of one frame (``native.core.frame_checks``, which must be built): 0, or 1 (a
+    value not finite, a point outside ``image`` or the coordinate range) or 2 (not clearly spread), for its points
+    as given and in the model's pixels (N, 2) px and its (N, 3) mm, float64 C-contiguous."""
+    return native.core.frame_checks(
+        points_2d_image, points_2d, points_3d, image.width, image.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE
+    )
+
+
 def validated_frame(
     image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d, *, exact_map: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Optional[tuple]]:
@@ -379,9 +388,7 @@ def validated_frame(
         raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
     if exact_map and native.core is not None:
         p2_model = to_model(p2)
-        failed = native.core.frame_checks(
-            p2, p2_model, p3, image.width, image.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE
-        )
+        failed = fast_checks(image, p2, p2_model, p3)
         if failed == 1:
             image.raise_bad_values(p2, p3, True, "")
         if failed == 2:
@@ -452,12 +459,7 @@ def validated_batch(
     mask = None if every else valid
     if exact_map and every and native.core is not None:
         p2_image, p2 = p2, to_model(p2, valid)
-        failed = [
-            native.core.frame_checks(
-                p2_image[b], p2[b], p3[b], image.width, image.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE
-            )
-            for b in range(len(p2))
-        ]
+        failed = [fast_checks(image, p2_image[b], p2[b], p3[b]) for b in range(len(p2))]
         for b in (b for b, f in enumerate(failed) if f == 1):  # the first frame outside, then the first not spread
             image.raise_bad_values(p2_image[b], p3[b], True, f"frame {b}: ")
         for b in (b for b, f in enumerate(failed) if f == 2):
