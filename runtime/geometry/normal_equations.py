@@ -5,13 +5,13 @@ perturbed on the left of X_C, formed from nine per-point monomials instead of J 
 (tests/geometry/test_least_squares.py holds them equal to the core's; the speed against the core's
 Jacobian: models_spec/BENCHMARKS.md).
 
-The products the feature's data step reads (``monomial_gram``, ``gram_normal_equations``,
-``prior_step``) are elementwise products summed by numpy in an order it fixes (a pairwise sum along
+The products the feature's data step and mode map's step read (``monomial_gram``, ``frame_normal_equations``,
+``gram_normal_equations``, ``prior_step``) are elementwise products summed by numpy in an order it fixes (a pairwise sum along
 a contiguous row, or a sum over an outer axis, first to last), not BLAS products, whose summation
 order and fused multiply-adds depend on the machine's kernel: the data step's Hessian can have a
 condition number near 1e9 (a single plane), so one last-bit change anywhere moves its inputs by 1e-7.
-In this order the compiled core (runtime/native/dimenet_core.c, the Gram and its normal equations)
-computes the same numbers to the bit."""
+In this order the compiled core (runtime/native/dimenet_core.c, the Gram, its normal equations and the prior
+step) computes the same numbers to the bit."""
 
 from __future__ import annotations
 
@@ -67,6 +67,11 @@ def monomial_gram(xy_inv_z: np.ndarray, residuals: np.ndarray) -> np.ndarray:
     a fixed order for 4 to 5 times Q Q^T's time, models_spec/BENCHMARKS.md)."""
     Q = _monomials(xy_inv_z)
     Q[9:] = residuals
+    return _gram(Q)
+
+
+def _gram(Q: np.ndarray) -> np.ndarray:
+    """(11, 11) Q Q^T of the monomials and residuals Q (11, N), each upper entry numpy's pairwise sum."""
     upper = np.empty(len(_GRAM_ROWS))
     for block in _GRAM_BLOCKS:
         upper[block] = np.multiply(Q[_GRAM_ROWS[block]], Q[_GRAM_COLS[block]]).sum(1)
@@ -102,14 +107,14 @@ def frame_normal_equations(
     exp([w]x) X_C + tau, so R -> exp([w]x) R, t -> exp([w]x) t + tau), returns J J^T (10, 10),
     J r (10,), r.r (px^2) and r (2, N) px (the u residuals, then the v residuals): one N-long
     product of the (11, N) monomials and residuals with themselves (as ``monomial_gram``'s)
-    instead of forming J.
+    instead of forming J, in ``monomial_gram``'s order (the compiled core's map step follows it to the bit).
     """
     fx, fy, cx, cy = k
     Q = _monomials(xy_inv_z)
-    r = np.multiply(Q[1:3], ((fx,), (fy,)), out=Q[9:])  # the residuals from a, b in place: mode map's hot path
+    r = np.multiply(Q[1:3], ((fx,), (fy,)), out=Q[9:])  # the residuals from a, b in place
     r += ((cx,), (cy,))
     r -= points_2d.T
-    return (*gram_normal_equations(Q @ Q.T, fx, fy), r)
+    return (*gram_normal_equations(_gram(Q), fx, fy), r)
 
 
 def prior_step(
@@ -127,17 +132,17 @@ def prior_step(
     weight = _noise_weight(rss, n_residuals - 6, noise_floor_px)
     # |r - J^T step|^2 of the linearised step, from the 10x10 normal equations (the products in a fixed
     # order: the module docstring).
-    step = _matvec(prior_posterior(JJ, k_precision, weight), Jr) * weight
+    step = matvec(prior_posterior(JJ, k_precision, weight), Jr) * weight
     step_JJ = _products(step[:, None], JJ, JJ.shape).sum(0)
     rss_step = rss - 2.0 * float(np.multiply(step, Jr).sum()) + float(np.multiply(step_JJ, step).sum())
     weight = _noise_weight(rss_step, n_residuals - 10, noise_floor_px)
     cov = prior_posterior(JJ, k_precision, weight)
-    step = _matvec(cov, Jr)
+    step = matvec(cov, Jr)
     step *= -weight
     return step, cov, weight
 
 
-def _matvec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+def matvec(A: np.ndarray, x: np.ndarray) -> np.ndarray:
     """A (n, n) times x (n,): each row's products summed by numpy's pairwise sum (not BLAS)."""
     return _products(A, x, A.shape).sum(1)
 

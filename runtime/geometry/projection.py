@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from dimenet.runtime.geometry.rotation import rotation_matrices, rvec_to_matrix
+from dimenet.runtime.geometry.rotation import rotated, rotation_matrices, rvec_to_matrix
 
 # Smallest depth (mm) a point may have in front of the camera and still be projected.
 MIN_DEPTH_MM = 1e-6
@@ -69,11 +69,11 @@ def project(points_3d: np.ndarray, K: np.ndarray, rvec: np.ndarray, tvec: np.nda
 
 def camera_xy_inverse_depth(points_3d: np.ndarray, R: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """One frame's {W} points (N, 3) mm -> (3, N) rows X_C, Y_C (mm) and 1 / Z_C (1/mm) of the
-    {C} points X_C = R X + t, R (3, 3) (the layout of the grid feature's point rows 2-4)."""
-    Xc = R @ points_3d.T
-    Xc += tvec.reshape(3, 1)
-    np.divide(1.0, Xc[2], out=Xc[2])
-    return Xc
+    {C} points X_C = R X + t, R (3, 3) (the layout of the grid feature's point rows 2-4), in
+    ``camera_rows``'s order."""
+    rows = camera_rows(points_3d, R, tvec)
+    np.divide(1.0, rows[2], out=rows[2])
+    return rows
 
 
 def reprojection_residuals(
@@ -206,11 +206,7 @@ def frame_error_and_depth(points_2d, points_3d, K, rvec, tvec) -> tuple[float, f
 def camera_rows(points_3d: np.ndarray, R, t) -> np.ndarray:
     """(3, N) X_C, Y_C, Z_C (mm) of one frame's (N, 3) {W} points at the pose R (3, 3), t (3,):
     ((R_i0 X + R_i1 Y) + R_i2 Z) + t_i, elementwise (the compiled core's order)."""
-    R, P = np.asarray(R, dtype=np.float64), np.array(points_3d.T, dtype=np.float64)  # coordinate rows
-    rows = np.multiply(R[:, :1], P[0])
-    products = np.multiply(R[:, 1:2], P[1])
-    rows += products
-    rows += np.multiply(R[:, 2:], P[2], out=products)
+    rows = rotated(R, np.array(points_3d.T, dtype=np.float64))  # of the coordinate rows
     rows += np.reshape(t, (3, 1))
     return rows
 

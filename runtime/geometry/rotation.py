@@ -54,8 +54,21 @@ def matrix_to_rvec(R: np.ndarray) -> np.ndarray:
     return out.reshape(R.shape[:-2] + (3,))
 
 
+def rotated(R, P: np.ndarray) -> np.ndarray:
+    """R (3, 3) times P (3, M), each entry ((R_i0 P_0j + R_i1 P_1j) + R_i2 P_2j) elementwise: the compiled
+    core's order (a BLAS product's summation order and fused multiply-adds depend on the machine)."""
+    R = np.asarray(R, dtype=np.float64)
+    out = np.multiply(R[:, :1], P[0])
+    out += np.multiply(R[:, 1:2], P[1])
+    out += np.multiply(R[:, 2:], P[2])
+    return out
+
+
 def left_update(R: np.ndarray, tvec: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pose {W}->{C}, rotation matrix R (3, 3) and tvec (3,) mm, after the left perturbation
-    (w rad, tau mm) of ``frame_normal_equations``: (exp([w]x) R, exp([w]x) t + tau)."""
-    dR = cv2.Rodrigues(w)[0]
-    return dR @ R, dR @ tvec + tau
+    (w rad, tau mm) of ``frame_normal_equations``: (exp([w]x) R, exp([w]x) t + tau), the products in
+    ``rotated``'s order."""
+    dR = cv2.Rodrigues(np.asarray(w, dtype=np.float64))[0]
+    t = rotated(dR, np.reshape(tvec, (3, 1))).ravel()
+    t += tau
+    return rotated(dR, R), t

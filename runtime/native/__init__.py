@@ -32,6 +32,7 @@ from dimenet.runtime.errors import DimenetError
 from dimenet.runtime.geometry import frame_error_and_depth as _frame_error_and_depth_reference
 from dimenet.runtime.geometry import k_matrix
 from dimenet.runtime.geometry import solve_pnp_start as _solve_pnp_start_reference
+from dimenet.runtime.geometry.map_step import map_steps as _map_steps_reference
 from dimenet.runtime.geometry.pose_step import POSE_STEPS
 from dimenet.runtime.geometry.pose_step import pose_under_k as _pose_under_k_reference
 
@@ -143,6 +144,27 @@ def error_at_pnp(points_2d, points_3d, K) -> float:
     """One frame's mean reprojection error (px) under K (3, 3) at its PnP pose (``geometry.solve_pnp_start``),
     ``frame_error_and_depth`` in the running implementation; InputError when there is no pose."""
     return frame_error_and_depth(points_2d, points_3d, K, *solve_pnp_start(points_2d, points_3d, K))[0]
+
+
+def map_steps(
+    points_2d, points_3d, k_prior, precision, rvec, tvec, turn, noise_px, noise_floor_px, iterations
+) -> tuple:
+    """``geometry.map_step.map_steps`` (one frame's MAP Gauss-Newton steps over (pose, K): the arguments and the
+    result are its) in the running implementation, the same numbers to the bit; the core takes one step
+    (``dimenet_map_step``), more steps run in numpy. InputError when the Hessian is not positive definite."""
+    if core is None or iterations != 1:
+        return _map_steps_reference(
+            points_2d, points_3d, k_prior, precision, rvec, tvec, turn, noise_px, noise_floor_px, iterations
+        )
+    p2, p3 = (np.ascontiguousarray(a, np.float64) for a in (points_2d, points_3d))
+    k_prior, precision, rvec, tvec = (np.ascontiguousarray(a, np.float64) for a in (k_prior, precision, rvec, tvec))
+    turn = None if turn is None else np.ascontiguousarray(turn, np.float64)
+    noise = -1.0 if noise_px is None else max(float(noise_px), noise_floor_px)  # the reference's floor; < 0: none
+    k, R, tvec_out, cov, residuals = np.empty(4), np.empty((3, 3)), np.empty(3), np.empty((10, 10)), np.empty_like(p2)
+    weight, steps = core.map_step(
+        p2, p3, k_prior, precision, rvec, tvec, turn, noise, noise_floor_px, k, R, tvec_out, cov, residuals
+    )
+    return k, R, tvec_out, cov, weight, residuals, steps
 
 
 def _core_call(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out) -> tuple[float, float]:

@@ -1,6 +1,6 @@
 /* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
- * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks) and power_of_two_unit
- * (dimenet_power_of_two_unit), under the same
+ * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks), power_of_two_unit
+ * (dimenet_power_of_two_unit) and map_step (dimenet_map_step), under the same
  * rules as _module.c's (buffers checked, the GIL released in the kernel, no static mutable state). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -181,7 +181,91 @@ static PyObject *power_of_two_unit(PyObject *module, PyObject *points_3d)
     return PyFloat_FromDouble(unit);
 }
 
+PyDoc_STRVAR(map_step_doc,
+             "map_step(points_2d, points_3d, k_prior, precision, rvec, tvec, turn, noise_px, noise_floor_px, k_out, "
+             "R_out, tvec_out, cov_out, residuals_out)\n--\n\n"
+             "Mode map's Gauss-Newton step (dimenet_map_step; geometry.map_step.map_steps with one step, to the bit), "
+             "the GIL released: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, N >= 1; k_prior (4,) px and "
+             "precision (4, 4) px^-2 the prior on K; rvec, tvec (3,) the start pose, turned first by turn (3,) rad "
+             "(None: not turned); noise_px the 2D noise std (< 0: the frame's estimate), floored at noise_floor_px. "
+             "Writes k_out (4,), R_out (3, 3), tvec_out (3,), cov_out (10, 10) and residuals_out (N, 2), all "
+             "float64; returns (weight 1 / s^2 px^-2, steps 0 or 1). InputError when the points fix no pose; "
+             "TypeError or ValueError for arrays of the wrong type or shape.");
+
+static PyObject *map_step(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    /* the arrays, in argument order; turn (6) may be None; 7 and 8 are the two floats */
+    static const int ARRAY_ARGS[12] = {0, 1, 2, 3, 4, 5, 6, 9, 10, 11, 12, 13};
+    static const char *const names[12] = {"points_2d", "points_3d", "k_prior", "precision", "rvec", "tvec",
+                                          "turn",      "k_out",     "R_out",   "tvec_out",  "cov_out", "residuals_out"};
+    static const char ndims[12] = {2, 2, 1, 2, 1, 1, 1, 1, 2, 1, 2, 2};
+    Py_buffer views[12];
+    int held[12] = {0}, code = DIMENET_OK, i, steps = 0;
+    double noise_px, noise_floor_px, weight = 0.0, *scratch = NULL;
+    size_t n_scratch = 0;
+    Py_ssize_t N;
+    PyObject *result = NULL;
+
+    if (nargs != 14) {
+        PyErr_Format(PyExc_TypeError, "map_step takes 14 arguments, got %zd", nargs);
+        return NULL;
+    }
+    noise_px = PyFloat_AsDouble(args[7]);
+    noise_floor_px = PyFloat_AsDouble(args[8]);
+    if (PyErr_Occurred()) {
+        return NULL;
+    }
+    for (i = 0; i < 12; i++) {
+        Py_ssize_t any[2] = {-1, -1};
+        if (i == 6 && args[6] == Py_None) {
+            continue;
+        }
+        if (dimenet_py_get_view(args[ARRAY_ARGS[i]], &views[i], names[i], 'd', ndims[i], any, i >= 7) != 0) {
+            goto done;
+        }
+        held[i] = 1;
+    }
+    N = views[0].shape[0];
+    if (N < 1 || views[0].shape[1] != 2 || views[1].shape[0] != N || views[1].shape[1] != 3
+        || views[2].shape[0] != 4 || views[3].shape[0] != 4 || views[3].shape[1] != 4 || views[4].shape[0] != 3
+        || views[5].shape[0] != 3 || (held[6] && views[6].shape[0] != 3) || views[7].shape[0] != 4
+        || views[8].shape[0] != 3 || views[8].shape[1] != 3 || views[9].shape[0] != 3 || views[10].shape[0] != 10
+        || views[10].shape[1] != 10 || views[11].shape[0] != N || views[11].shape[1] != 2) {
+        PyErr_SetString(PyExc_ValueError, "map_step: points_2d (N, 2) with N >= 1, points_3d (N, 3), k_prior (4,), "
+                                          "precision (4, 4), rvec, tvec, turn (3,), k_out (4,), R_out (3, 3), "
+                                          "tvec_out (3,), cov_out (10, 10) and residuals_out (N, 2) expected");
+        goto done;
+    }
+    if (dimenet_map_scratch_doubles((size_t)N, &n_scratch) != DIMENET_OK
+        || (scratch = (double *)PyMem_RawMalloc(n_scratch * sizeof(double))) == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    code = dimenet_map_step((size_t)N, (const double *)views[0].buf, (const double *)views[1].buf,
+                            (const double *)views[2].buf, (const double *)views[3].buf, (const double *)views[4].buf,
+                            (const double *)views[5].buf, held[6] ? (const double *)views[6].buf : NULL, noise_px,
+                            noise_floor_px, (double *)views[7].buf, (double *)views[8].buf, (double *)views[9].buf,
+                            (double *)views[10].buf, &weight, (double *)views[11].buf, &steps, scratch, n_scratch);
+    Py_END_ALLOW_THREADS
+    if (code != DIMENET_OK) {
+        PyErr_SetString(code == DIMENET_E_ARGUMENT ? PyExc_ValueError : dimenet_py_state_of(module)->input_error,
+                        dimenet_error_message(code));
+        goto done;
+    }
+    result = Py_BuildValue("(di)", weight, steps);
+done:
+    PyMem_RawFree(scratch);
+    for (i = 11; i >= 0; i--) {
+        if (held[i]) {
+            PyBuffer_Release(&views[i]);
+        }
+    }
+    return result;
+}
+
 PyMethodDef dimenet_py_pose_methods[] = {
+    {"map_step", (PyCFunction)(void (*)(void))map_step, METH_FASTCALL, map_step_doc},
     {"pose_steps", (PyCFunction)(void (*)(void))pose_steps, METH_FASTCALL, pose_steps_doc},
     {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
     {"power_of_two_unit", (PyCFunction)power_of_two_unit, METH_O, power_of_two_unit_doc},

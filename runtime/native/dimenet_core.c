@@ -110,22 +110,53 @@ static int cholesky_inverse(double *a, int n, double *inverse)
     return 1;
 }
 
-int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, double weight_per_px2,
-                            double inverse[100])
+double dimenet__python_square(double x)
+{
+    volatile double two = 2.0;
+    return pow(x, two);
+}
+
+double dimenet__noise_weight(double rss, long dof, double floor_px)
+{
+    double v = rss / (double)(dof > 1 ? dof : 1);
+    double floor2 = dimenet__python_square(floor_px);
+    if (floor2 > v) {
+        v = floor2;
+    }
+    return 1.0 / v;
+}
+
+double dimenet__dot(const double *a, const double *b, int n)
+{
+    double products[10];
+    int k;
+    for (k = 0; k < n; k++) {
+        products[k] = a[k] * b[k];
+    }
+    return dimenet__pairwise_sum(products, (size_t)n);
+}
+
+void dimenet__matvec(const double *A, const double *x, int n, double *y)
+{
+    int i;
+    for (i = 0; i < n; i++) {
+        y[i] = dimenet__dot(A + n * i, x, n);
+    }
+}
+
+int dimenet__prior_posterior(const double jj[100], const double k_precision_per_px2[16], double weight_per_px2,
+                             double inverse[100])
 {
     /* geometry.prior_posterior: H = JJ weight, + the precision on the K block; D = diag(H)^-1/2;
      * the inverse is D (D H D)^-1 D. */
     double H[100], d[10];
     int i, j;
-    if (jj == NULL || inverse == NULL) {
-        return DIMENET_E_ARGUMENT;
-    }
     for (i = 0; i < 100; i++) {
         H[i] = jj[i] * weight_per_px2;
     }
     for (i = 6; i < 10; i++) {
-        for (j = 6; j < 10; j++) { /* np.eye(4) / prior_var: 0.0 off the diagonal, added as numpy does */
-            H[i * 10 + j] += (i == j) ? k_precision_per_px2 : 0.0;
+        for (j = 6; j < 10; j++) {
+            H[i * 10 + j] += k_precision_per_px2[(i - 6) * 4 + j - 6];
         }
     }
     for (i = 0; i < 10; i++) {
@@ -150,6 +181,55 @@ int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, do
             inverse[i * 10 + j] *= d[i] * d[j];
         }
     }
+    return DIMENET_OK;
+}
+
+int dimenet_prior_posterior(const double jj[100], double k_precision_per_px2, double weight_per_px2,
+                            double inverse[100])
+{
+    double precision[16] = {0.0}; /* np.eye(4) / prior_var: 0.0 off the diagonal, added as numpy does */
+    int k;
+    if (jj == NULL || inverse == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (k = 0; k < 4; k++) {
+        precision[5 * k] = k_precision_per_px2;
+    }
+    return dimenet__prior_posterior(jj, precision, weight_per_px2, inverse);
+}
+
+int dimenet__prior_step(const double JJ[100], const double Jr[10], double rss, long n_residuals,
+                        const double k_precision_per_px2[16], double noise_floor_px, double step[10], double cov[100],
+                        double *weight_per_px2)
+{
+    /* geometry.prior_step: the noise weight of the pose-only fit, then of the linearised step's residuals */
+    double JJ_step[10], rss_step, weight = dimenet__noise_weight(rss, n_residuals - 6, noise_floor_px);
+    int code = dimenet__prior_posterior(JJ, k_precision_per_px2, weight, cov), i, k;
+    if (code != DIMENET_OK) {
+        return code;
+    }
+    dimenet__matvec(cov, Jr, 10, step);
+    for (k = 0; k < 10; k++) {
+        step[k] *= weight;
+    }
+    for (k = 0; k < 10; k++) { /* step @ JJ: np.multiply(step[:, None], JJ).sum(0), first to last */
+        double s = 0.0;
+        for (i = 0; i < 10; i++) {
+            s += step[i] * JJ[i * 10 + k];
+        }
+        JJ_step[k] = s;
+    }
+    rss_step = rss - 2.0 * dimenet__dot(step, Jr, 10) + dimenet__dot(JJ_step, step, 10);
+    weight = dimenet__noise_weight(rss_step, n_residuals - 10, noise_floor_px);
+    code = dimenet__prior_posterior(JJ, k_precision_per_px2, weight, cov);
+    if (code != DIMENET_OK) {
+        return code;
+    }
+    dimenet__matvec(cov, Jr, 10, step);
+    for (k = 0; k < 10; k++) {
+        step[k] *= -weight;
+    }
+    *weight_per_px2 = weight;
     return DIMENET_OK;
 }
 

@@ -152,6 +152,27 @@ int dimenet_pose_steps(size_t n_points, const double *points_2d_px, const double
                        double rvec_rad[3], double tvec_mm[3], double *e_px, double *depth_mm, double *scratch,
                        size_t n_scratch);
 
+/* The doubles of scratch dimenet_map_step needs for n_points points: 9 n_points. DIMENET_E_ARGUMENT on an
+ * overflow. */
+int dimenet_map_scratch_doubles(size_t n_points, size_t *n_scratch);
+
+/* Mode map's Gauss-Newton step (the reference's geometry.map_step.map_steps with one step, to the bit): the
+ * MAP cost sum |pi(k, R X + t) - x|^2 / s^2 + (k - k_prior)^T P (k - k_prior) over (pose, k) from k_prior_px
+ * (fx, fy, cx, cy) and the start pose rvec_start_rad, tvec_start_mm {W}->{C} turned first by turn_rad (3;
+ * NULL: not turned), P = k_precision_per_px2 (4 x 4, row major). s^2 is noise_px^2 floored at
+ * noise_floor_px^2, or with noise_px < 0 the frame's own estimate (geometry.prior_step). The step is taken
+ * when it does not raise the cost: *steps 1, k_px, R_w_to_c (3 x 3 row major), tvec_mm and residuals_px
+ * (n_points x 2: u, v) there; else *steps 0 and the start's (k_prior, the turned pose). cov (10 x 10) is
+ * the inverse Gauss-Newton Hessian at the start over (w rad, tau mm, fx, fy, cx, cy px), *weight_per_px2
+ * 1 / s^2. points_2d_px (n_points x 2), points_3d_w_mm (n_points x 3), n_points >= 1. scratch: n_scratch >=
+ * dimenet_map_scratch_doubles's. Returns DIMENET_OK, DIMENET_E_ARGUMENT, DIMENET_E_HESSIAN_DIAGONAL or
+ * DIMENET_E_NOT_POSITIVE_DEFINITE (the points fix no pose; the outputs then unspecified). */
+int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *points_3d_w_mm,
+                     const double k_prior_px[4], const double k_precision_per_px2[16], const double rvec_start_rad[3],
+                     const double tvec_start_mm[3], const double turn_rad[3], double noise_px, double noise_floor_px,
+                     double k_px[4], double R_w_to_c[9], double tvec_mm[3], double cov[100], double *weight_per_px2,
+                     double *residuals_px, int *steps, double *scratch, size_t n_scratch);
+
 /* Bits of dimenet_frame_checks' result. */
 #define DIMENET_CHECK_OUTSIDE 1u     /* a value not finite, a 2D point outside the image or a 3D coordinate
                                         outside [-max_coordinate, max_coordinate) */

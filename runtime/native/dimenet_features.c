@@ -15,15 +15,6 @@
 #define STEP_CLIP_REL 0.05
 #define STEP_NOISE_FLOOR_PX 0.1
 #define STEP_VARIANCE_FLOOR 1e-30
-/* x^2 as the reference's Python computes it: libm's pow(x, 2.0), which is not always x * x's rounding
- * (glibc's pow is within 0.52 ulp, not correctly rounded). The exponent is read through a volatile so
- * that the compiler does not turn the call into x * x. */
-static double python_square(double x)
-{
-    volatile double two = 2.0;
-    return pow(x, two);
-}
-
 /* Scratch doubles per point: the point rows (6), its depth (1), its monomials (11). */
 #define SCRATCH_PER_POINT 18
 /* -- sizes ------------------------------------------------------------------------------------ */
@@ -111,73 +102,23 @@ static double masked_sum(const double *a, const unsigned char *mask, size_t n)
     return res;
 }
 
-/* geometry.normal_equations._noise_weight: 1 / max(rss / max(dof, 1), floor^2) (Python's max). */
-static double noise_weight(double rss, long dof, double floor_px)
-{
-    double v = rss / (double)(dof > 1 ? dof : 1);
-    double floor2 = python_square(floor_px);
-    if (floor2 > v) {
-        v = floor2;
-    }
-    return 1.0 / v;
-}
-
-/* a . b of two 10-vectors: numpy's pairwise sum of the products (np.multiply(a, b).sum()). */
-static double dot10(const double a[10], const double b[10])
-{
-    double products[10];
-    int k;
-    for (k = 0; k < 10; k++) {
-        products[k] = a[k] * b[k];
-    }
-    return dimenet__pairwise_sum(products, 10);
-}
-
-/* A x, each row as dot10 (geometry.normal_equations._matvec). */
-static void matvec10(const double A[100], const double x[10], double y[10])
-{
-    int i;
-    for (i = 0; i < 10; i++) {
-        y[i] = dot10(A + 10 * i, x);
-    }
-}
-
 /* rectify.features.gram_inputs' data step for one frame: geometry.prior_step, then _step_inputs. */
 static int data_step(const double *G, size_t n, double fx_c, double fy_c, double pmd_scale, double out[8])
 {
-    double prior_var = python_square(STEP_PRIOR_REL * fx_c);
-    double clip_px = STEP_CLIP_REL * fx_c, precision = 1.0 / prior_var;
-    double JJ[100], Jr[10], rss, inv[100], step[10], JJ_step[10], weight, rss_step;
-    long n_residuals = (long)(2 * n);
+    double prior_var = dimenet__python_square(STEP_PRIOR_REL * fx_c);
+    double clip_px = STEP_CLIP_REL * fx_c, precision[16] = {0.0};
+    double JJ[100], Jr[10], rss, inv[100], step[10], weight;
     int code, k;
+    for (k = 0; k < 4; k++) { /* np.eye(4) / prior_var */
+        precision[5 * k] = 1.0 / prior_var;
+    }
     dimenet__gram_normal_equations(G, fx_c, fy_c, JJ, Jr, &rss);
-    /* prior_step: the noise weight of the pose-only fit, then of the linearised step's residuals */
-    weight = noise_weight(rss, n_residuals - 6, STEP_NOISE_FLOOR_PX);
-    code = dimenet_prior_posterior(JJ, precision, weight, inv);
+    code = dimenet__prior_step(JJ, Jr, rss, (long)(2 * n), precision, STEP_NOISE_FLOOR_PX, step, inv, &weight);
     if (code != DIMENET_OK) {
         return code;
     }
-    matvec10(inv, Jr, step);
-    for (k = 0; k < 10; k++) {
-        step[k] *= weight;
-    }
-    for (k = 0; k < 10; k++) { /* step @ JJ: np.multiply(step[:, None], JJ).sum(0), first to last */
-        int i;
-        double s = 0.0;
-        for (i = 0; i < 10; i++) {
-            s += step[i] * JJ[i * 10 + k];
-        }
-        JJ_step[k] = s;
-    }
-    rss_step = rss - 2.0 * dot10(step, Jr) + dot10(JJ_step, step);
-    weight = noise_weight(rss_step, n_residuals - 10, STEP_NOISE_FLOOR_PX);
-    code = dimenet_prior_posterior(JJ, precision, weight, inv);
-    if (code != DIMENET_OK) {
-        return code;
-    }
-    matvec10(inv, Jr, step);
     for (k = 0; k < 4; k++) { /* _step_inputs: the clipped Delta K times the PMD's scale (Python's min, max) */
-        double d = step[6 + k] * -weight;
+        double d = step[6 + k];
         if (-clip_px > d) {
             d = -clip_px;
         }

@@ -30,4 +30,30 @@ void dimenet__gram_of(const dimenet__gram_points *p, size_t n, double G[DIMENET_
 /* geometry.gram_normal_equations: JJ (10 x 10), Jr (10) and the residuals' sum of squares from the Gram G. */
 void dimenet__gram_normal_equations(const double *G, double fx, double fy, double JJ[100], double Jr[10], double *rss);
 
+/* x^2 as the reference's Python computes it: libm's pow(x, 2.0), which is not always x * x's rounding
+ * (glibc's pow is within 0.52 ulp, not correctly rounded); the exponent is read through a volatile so that
+ * the compiler does not turn the call into x * x. */
+double dimenet__python_square(double x);
+
+/* geometry.normal_equations._noise_weight: 1 / max(rss / max(dof, 1), floor^2) (Python's max). */
+double dimenet__noise_weight(double rss, long dof, double floor_px);
+
+/* a . b of two n-vectors, n <= 10: numpy's pairwise sum of the products (np.multiply(a, b).sum()). */
+double dimenet__dot(const double *a, const double *b, int n);
+
+/* y = A x, A (n x n) row major, each row as dimenet__dot (geometry.normal_equations.matvec). */
+void dimenet__matvec(const double *A, const double *x, int n, double *y);
+
+/* geometry.prior_posterior: dimenet_prior_posterior with a full prior precision (4 x 4 px^-2, row major). */
+int dimenet__prior_posterior(const double jj[100], const double k_precision_per_px2[16], double weight_per_px2,
+                             double inverse[100]);
+
+/* geometry.prior_step: the step (10, the update of w rad, tau mm, fx, fy, cx, cy px), cov (10 x 10) and the
+ * data weight 1 / s^2 (px^-2) of the normal equations JJ, Jr, rss over n_residuals residuals with the prior's
+ * precision (4 x 4 px^-2), the noise floored at noise_floor_px. DIMENET_E_HESSIAN_DIAGONAL,
+ * DIMENET_E_NOT_POSITIVE_DEFINITE. */
+int dimenet__prior_step(const double JJ[100], const double Jr[10], double rss, long n_residuals,
+                        const double k_precision_per_px2[16], double noise_floor_px, double step[10], double cov[100],
+                        double *weight_per_px2);
+
 #endif

@@ -8,7 +8,7 @@ where k_net, Sigma (4x4, px^2) are the network's Delta K mean and covariance (ad
 and s^2 (px^2) the frame's 2D noise variance (``geometry.prior_step``'s, floored at
 NOISE_FLOOR_PX^2).
 ITERATIONS Gauss-Newton steps from k_net and the C0 pose (the PnP pose under K_c) turned to
-k_net's principal point (``turned_to_principal_point``), with the analytic normal equations
+k_net's principal point (``geometry.map_step.principal_point_turn``), with the analytic normal equations
 (``geometry.frame_normal_equations``, the pose perturbed on the left); a step that does not
 lower the cost ends the fit. The posterior covariance of k is the K block of the inverse
 Gauss-Newton Hessian at the last linearisation, widened per parameter for the network's
@@ -27,17 +27,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
-from dimenet.runtime.geometry import (
-    camera_xy_inverse_depth,
-    frame_normal_equations,
-    frame_residuals,
-    k_matrix,
-    left_update,
-    prior_posterior,
-    prior_step,
-    solve_pnp_start,
-)
+from dimenet.runtime.geometry import solve_pnp_start
+from dimenet.runtime.geometry.map_step import principal_point_turn
 from dimenet.runtime.rectify.results import Fallback
 from dimenet.runtime.rectify.spec import frame_within_bounds
 from dimenet.runtime.rectify.uncertainty import Uncertainty
@@ -80,43 +73,19 @@ def map_fit(
     """MAP (K, pose) of one frame: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, float64;
     k_net (4,) px the network's K; K_cov_net (4, 4) px^2 its covariance; rvec, tvec a start pose
     {W}->{C}, the PnP pose under K_start (3, 3) px (e.g. the C0 pose under K_c), first turned
-    to k_net's principal point by ``turned_to_principal_point`` (None: the pose is k_net's
+    to k_net's principal point by ``principal_point_turn`` (None: the pose is k_net's
     own); iterations >= 1 Gauss-Newton steps at most; uncertainty: the network's, whose
     ``map_covariance`` widens K_cov (None: the independent-errors posterior); noise_px: the frame's
     2D noise std when it is known (the evaluation's prior oracle), else (None) estimated from the
-    frame's residuals by ``prior_step``."""
+    frame's residuals by ``prior_step``. One step (``ITERATIONS``) runs in the compiled core where it
+    is (``native.map_steps``), the same numbers to the bit as ``geometry.map_step``'s."""
     precision = cv2.invert(K_cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
     k_net = np.asarray(k_net, dtype=np.float64)
-    R, tvec = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).ravel()
-    k = k_net
-    if K_start is not None:
-        R, tvec = turned_to_principal_point(R, tvec, K_start, k_net)
-    JJ, Jr, rss, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
-    if noise_px is None:
-        _, cov, weight = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=NOISE_FLOOR_PX)
-    else:
-        weight = 1.0 / max(float(noise_px), NOISE_FLOOR_PX) ** 2
-        cov = prior_posterior(JJ, precision, weight)
-    cost, residuals, steps = weight * rss, None, 0
-    for it in range(iterations):
-        g = Jr * weight
-        if it:  # the prior's gradient, zero at the start k = k_net
-            g[6:] += precision @ (k - k_net)
-        step = cov @ g
-        step *= -1.0
-        k_new = k + step[6:]
-        R_new, tvec_new = left_update(R, tvec, step[:3], step[3:6])
-        res = frame_residuals(points_2d, points_3d, k_matrix(k_new), R_new, tvec_new)
-        d = k_new - k_net
-        cost_new = weight * float(np.vdot(res, res)) + float(d @ precision @ d)
-        if not cost_new <= cost:
-            break
-        k, R, tvec, cost, residuals, steps = k_new, R_new, tvec_new, cost_new, res, steps + 1
-        if it + 1 < iterations:
-            JJ, Jr, _, r = frame_normal_equations(camera_xy_inverse_depth(points_3d, R, tvec), points_2d, k)
-            cov = prior_posterior(JJ, precision, weight)
-    if residuals is None:
-        residuals = np.ascontiguousarray(r.T)
+    rvec, tvec = np.asarray(rvec, dtype=np.float64).ravel(), np.asarray(tvec, dtype=np.float64).ravel()
+    turn = None if K_start is None else principal_point_turn(K_start, k_net)
+    k, R, tvec, cov, weight, residuals, steps = native.map_steps(
+        points_2d, points_3d, k_net, precision, rvec, tvec, turn, noise_px, NOISE_FLOOR_PX, iterations
+    )
     K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
     noise_px = weight**-0.5
     if uncertainty is not None:
@@ -130,19 +99,6 @@ def map_fit(
         steps=steps,
         noise_px=noise_px,
     )
-
-
-def turned_to_principal_point(
-    R: np.ndarray, tvec: np.ndarray, K_from: np.ndarray, k_to: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The pose {W}->{C} (R (3, 3), tvec (3,) mm) turned so that under k_to (4,) px its pixels
-    are, to first order, where they were under K_from (3, 3) px up to scale: moving the principal
-    point from c_from to c_to shifts the normalised coordinates by d = (c_from - c_to) / f_to,
-    as the rotation by (-d_y, d_x, 0) rad does. (The scale f_from / f_to the step fits alone:
-    moving the depth to match it too changes nothing measurable.)"""
-    fx, fy, cx, cy = k_to.tolist()
-    turn = cv2.Rodrigues(np.array([(cy - K_from[1, 2]) / fy, (K_from[0, 2] - cx) / fx, 0.0]))[0]
-    return turn @ R, turn @ tvec
 
 
 def map_rectify(

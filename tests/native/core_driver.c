@@ -390,6 +390,76 @@ static void test_pose_steps(void)
           "the message is the reference's");
 }
 
+/* Mode map's step: an exact frame with the prior at its K and the start at its pose stays there; a prior
+ * 4 px off in cx with a vague precision is pulled back by the frame; a known noise weighs the data by
+ * 1 / s^2; hostile and bad arguments give codes. */
+static void test_map_step(void)
+{
+    enum { N = 320 };
+    static double p2[2 * N], p3[3 * N], scratch[9 * N], residuals[2 * N];
+    static const double rvec[3] = {0.12, -0.31, 0.05}, tvec[3] = {12.0, -25.0, 610.0};
+    dimenet_feature_spec s = model_spec(0);
+    double k[4] = {3059.68, 3059.68, 2023.82, 1508.45}, prior[4], precision[16] = {0.0}, out_k[4], R[9], t[3];
+    double cov[100], weight = 0.0, Rs[9], turn[3] = {0.0, 0.0, 0.0};
+    size_t S = 0, i;
+    int steps = -1, c;
+    make_frame(&s, N, rvec, tvec, 0.0, p2, p3);
+    for (c = 0; c < 4; c++) {
+        precision[5 * c] = 1e-6, prior[c] = k[c];
+    }
+    CHECK(dimenet_map_scratch_doubles(N, &S) == DIMENET_OK && S == 9 * N, "the map step's scratch is 9 N");
+    CHECK(dimenet_map_scratch_doubles((size_t)-1, &S) == DIMENET_E_ARGUMENT, "an overflowing scratch size");
+    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &steps, scratch, 9 * N)
+              == DIMENET_OK,
+          "the exact frame's step");
+    rotation(rvec, Rs);
+    for (c = 0; c < 4; c++) {
+        CHECK(near(out_k[c], k[c], 1e-6), "the exact frame keeps its K");
+    }
+    for (c = 0; c < 9; c++) {
+        CHECK(near(R[c], Rs[c], 1e-9), "the exact frame keeps its pose");
+    }
+    CHECK(near(weight, 100.0, 1e-12), "no residuals: the noise floor 0.1 px weighs the data");
+    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, turn, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &steps, scratch, 9 * N)
+                  == DIMENET_OK
+              && near(out_k[2], k[2], 1e-6),
+          "a zero turn changes nothing");
+    prior[2] += 4.0;
+    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, 0.5, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &steps, scratch, 9 * N)
+              == DIMENET_OK,
+          "a prior 4 px off in cx");
+    CHECK(steps == 1 && fabs(out_k[2] - k[2]) < 0.4, "the frame pulls cx back");
+    CHECK(weight == 4.0, "a known noise of 0.5 px: weight 4");
+    for (i = 0; i < 2 * N; i++) {
+        CHECK(fabs(residuals[i]) < 1.0, "the residuals at the step are small");
+    }
+    CHECK(cov[66] > 0.0 && cov[66] < 1.0 / 1e-6, "the posterior of fx is tighter than the prior");
+    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &steps, scratch, 9 * N - 1)
+              == DIMENET_E_ARGUMENT,
+          "a short scratch is refused");
+    CHECK(dimenet_map_step(0, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &steps, scratch, 9 * N)
+              == DIMENET_E_ARGUMENT,
+          "no points are refused");
+    CHECK(dimenet_map_step(N, p2, p3, NULL, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &steps, scratch, 9 * N)
+              == DIMENET_E_ARGUMENT,
+          "a NULL prior is refused");
+    for (i = 0; i < N; i++) { /* every point the same: no pose */
+        p3[3 * i] = p3[0], p3[3 * i + 1] = p3[1], p3[3 * i + 2] = p3[2], p2[2 * i] = p2[0], p2[2 * i + 1] = p2[1];
+    }
+    for (c = 0; c < 16; c++) {
+        precision[c] = 0.0;
+    }
+    c = dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                         residuals, &steps, scratch, 9 * N);
+    CHECK(c == DIMENET_E_NOT_POSITIVE_DEFINITE || c == DIMENET_E_HESSIAN_DIAGONAL, "one point repeated fixes no pose");
+}
+
 /* The input rules' fast tests: a frame inside and spread; a pixel outside, a NaN, a coordinate at the
  * range's end; collinear points; bad arguments. */
 static void test_frame_checks(void)
@@ -449,6 +519,7 @@ static void test_power_of_two_unit(void)
 int main(void)
 {
     test_pose_steps();
+    test_map_step();
     test_frame_checks();
     test_power_of_two_unit();
     test_sizes();

@@ -203,6 +203,37 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 0, r_out, t_out, &e, &depth, NULL, 0);
         check(code == DIMENET_OK); /* no step cannot fail */
     }
+    /* mode map's step from a prior near K_c (a precision made of the input, possibly not positive definite)
+     * and the input's pose, turned or not, with a known or estimated noise; exact buffers; any values give a
+     * known code, no points or a short scratch are refused */
+    {
+        double prior[4], precision[16], turn[3], k_out[4], R[9], t_out[3], cov[100], weight = 0.0, noise;
+        double *residuals = (double *)malloc(sizeof(double) * (2 * n + 1));
+        size_t M = 0;
+        int steps = -1;
+        prior[0] = spec.K_c_px[0] + number(&b, raw, -50.0, 50.0);
+        prior[1] = spec.K_c_px[4] + number(&b, raw, -50.0, 50.0);
+        prior[2] = spec.K_c_px[2] + number(&b, raw, -50.0, 50.0);
+        prior[3] = spec.K_c_px[5] + number(&b, raw, -50.0, 50.0);
+        for (i = 0; i < 16; i++) {
+            precision[i] = i % 5 == 0 ? number(&b, raw, 0.0, 1.0) : number(&b, raw, -1e-3, 1e-3);
+        }
+        for (i = 0; i < 3; i++) {
+            turn[i] = number(&b, raw, -0.01, 0.01);
+        }
+        noise = take(&b) % 2u ? -1.0 : number(&b, raw, 0.0, 3.0);
+        check(residuals != NULL && dimenet_map_scratch_doubles(n, &M) == DIMENET_OK && M <= S);
+        code = dimenet_map_step(n, p2, p3, prior, precision, rvec, tvec, take(&b) % 2u ? turn : NULL, noise, 0.1,
+                                k_out, R, t_out, cov, &weight, residuals, &steps, scratch, M);
+        check(n == 0 ? code == DIMENET_E_ARGUMENT
+                     : (code == DIMENET_OK || code == DIMENET_E_HESSIAN_DIAGONAL
+                        || code == DIMENET_E_NOT_POSITIVE_DEFINITE));
+        check(code != DIMENET_OK || steps == 0 || steps == 1);
+        check(n == 0 || dimenet_map_step(n, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, k_out, R, t_out,
+                                         cov, &weight, residuals, &steps, scratch, M - 1)
+                            == DIMENET_E_ARGUMENT);
+        free(residuals);
+    }
     /* the input rules' fast tests: a verdict for any values, a refusal of no points */
     {
         unsigned verdict = 99u;

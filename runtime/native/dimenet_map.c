@@ -1,0 +1,138 @@
+/* dimenet_map: mode map's Gauss-Newton step over (pose, K) with the network's prior on K
+ * (geometry/map_step.py, map_steps with one step), to the bit: every product in the reference's fixed order. */
+#include "dimenet_internal.h"
+
+#include <math.h>
+#include <string.h>
+
+/* Scratch doubles per point: X_C, Y_C, 1/Z_C and the residuals at the start (5), the residuals at the step
+ * (2) and their squares (2). */
+#define MAP_SCRATCH_PER_POINT 9
+
+int dimenet_map_scratch_doubles(size_t n_points, size_t *n_scratch)
+{
+    if (n_scratch == NULL || n_points > ((size_t)-1) / sizeof(double) / MAP_SCRATCH_PER_POINT) {
+        return DIMENET_E_ARGUMENT;
+    }
+    *n_scratch = MAP_SCRATCH_PER_POINT * n_points;
+    return DIMENET_OK;
+}
+
+/* geometry.rotated: A (3 x 3) times B (3 x m, row major), ((A_i0 B_0j + A_i1 B_1j) + A_i2 B_2j). */
+static void rotated(const double A[9], const double *B, int m, double *out)
+{
+    int i, j;
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < m; j++) {
+            out[i * m + j] = (A[3 * i] * B[j] + A[3 * i + 1] * B[m + j]) + A[3 * i + 2] * B[2 * m + j];
+        }
+    }
+}
+
+/* geometry.camera_rows, 1 / Z_C and geometry.pinhole_residuals (no skew) of the points at the pose (R, t)
+ * under k: x, y, inv_z (may be NULL: not kept), du, dv (n each). */
+static void pinhole_rows(size_t n, const double *p2, const double *p3, const double R[9], const double t[3],
+                         const double k[4], double *x, double *y, double *inv_z, double *du, double *dv)
+{
+    size_t i;
+    for (i = 0; i < n; i++) {
+        double X = p3[3 * i], Y = p3[3 * i + 1], Z = p3[3 * i + 2];
+        double xc = ((R[0] * X + R[1] * Y) + R[2] * Z) + t[0];
+        double yc = ((R[3] * X + R[4] * Y) + R[5] * Z) + t[1];
+        double iz = 1.0 / (((R[6] * X + R[7] * Y) + R[8] * Z) + t[2]);
+        du[i] = ((xc * iz) * k[0] + k[2]) - p2[2 * i];
+        dv[i] = ((yc * iz) * k[1] + k[3]) - p2[2 * i + 1];
+        if (inv_z != NULL) {
+            x[i] = xc, y[i] = yc, inv_z[i] = iz;
+        }
+    }
+}
+
+int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *points_3d_w_mm,
+                     const double k_prior_px[4], const double k_precision_per_px2[16], const double rvec_start_rad[3],
+                     const double tvec_start_mm[3], const double turn_rad[3], double noise_px, double noise_floor_px,
+                     double k_px[4], double R_w_to_c[9], double tvec_mm[3], double cov[100], double *weight_per_px2,
+                     double *residuals_px, int *steps, double *scratch, size_t n_scratch)
+{
+    const size_t N = n_points;
+    double R0[9], R[9], t[3], T[9], G[DIMENET_GRAM_SIZE * DIMENET_GRAM_SIZE], JJ[100], Jr[10], rss, step[10];
+    double weight, dR[9], R_new[9], t_new[3], k_new[4], d[4], Pd[4], cost, cost_new;
+    double *x, *y, *inv_z, *du, *dv, *du_new, *dv_new, *squares;
+    size_t need = 0, i;
+    int code, k, taken;
+    dimenet__gram_points points;
+
+    if (dimenet_map_scratch_doubles(N, &need) != DIMENET_OK || N < 1 || points_2d_px == NULL
+        || points_3d_w_mm == NULL || k_prior_px == NULL || k_precision_per_px2 == NULL || rvec_start_rad == NULL
+        || tvec_start_mm == NULL || k_px == NULL || R_w_to_c == NULL || tvec_mm == NULL || cov == NULL
+        || weight_per_px2 == NULL || residuals_px == NULL || steps == NULL || scratch == NULL || n_scratch < need) {
+        return DIMENET_E_ARGUMENT;
+    }
+    x = scratch, y = x + N, inv_z = y + N, du = inv_z + N, dv = du + N;
+    du_new = dv + N, dv_new = du_new + N, squares = dv_new + N;
+
+    /* the start pose, turned (map_fit.turned_to_principal_point) */
+    dimenet__rodrigues(rvec_start_rad, R0);
+    if (turn_rad != NULL) {
+        dimenet__rodrigues(turn_rad, T);
+        rotated(T, R0, 3, R);
+        rotated(T, tvec_start_mm, 1, t);
+    } else {
+        memcpy(R, R0, sizeof R);
+        memcpy(t, tvec_start_mm, sizeof t);
+    }
+    /* frame_normal_equations at (k_prior, the start pose), then prior_step or the known noise's posterior */
+    pinhole_rows(N, points_2d_px, points_3d_w_mm, R, t, k_prior_px, x, y, inv_z, du, dv);
+    points.lanes = NULL, points.stride = 0;
+    points.x = x, points.y = y, points.inv_z = inv_z, points.du = du, points.dv = dv;
+    dimenet__gram_of(&points, N, G);
+    dimenet__gram_normal_equations(G, k_prior_px[0], k_prior_px[1], JJ, Jr, &rss);
+    if (noise_px < 0.0) {
+        code = dimenet__prior_step(JJ, Jr, rss, (long)(2 * N), k_precision_per_px2, noise_floor_px, step, cov,
+                                   &weight);
+    } else { /* 1 / max(noise_px, floor) ** 2 (Python's max) */
+        weight = 1.0 / dimenet__python_square(noise_floor_px > noise_px ? noise_floor_px : noise_px);
+        code = dimenet__prior_posterior(JJ, k_precision_per_px2, weight, cov);
+        if (code == DIMENET_OK) {
+            dimenet__matvec(cov, Jr, 10, step);
+            for (k = 0; k < 10; k++) {
+                step[k] *= -weight;
+            }
+        }
+    }
+    if (code != DIMENET_OK) {
+        return code;
+    }
+    cost = weight * rss;
+
+    /* the step: k + step[6:], the pose by geometry.left_update; its cost with the prior's term */
+    for (k = 0; k < 4; k++) {
+        k_new[k] = k_prior_px[k] + step[6 + k];
+        d[k] = k_new[k] - k_prior_px[k];
+    }
+    dimenet__rodrigues(step, dR);
+    rotated(dR, R, 3, R_new);
+    rotated(dR, t, 1, t_new);
+    for (k = 0; k < 3; k++) {
+        t_new[k] += step[3 + k];
+    }
+    pinhole_rows(N, points_2d_px, points_3d_w_mm, R_new, t_new, k_new, NULL, NULL, NULL, du_new, dv_new);
+    for (i = 0; i < N; i++) { /* np.multiply(res, res).ravel().sum(): the u row, then the v row */
+        squares[i] = du_new[i] * du_new[i];
+        squares[N + i] = dv_new[i] * dv_new[i];
+    }
+    dimenet__matvec(k_precision_per_px2, d, 4, Pd);
+    cost_new = weight * dimenet__pairwise_sum(squares, 2 * N) + dimenet__dot(d, Pd, 4);
+    taken = cost_new <= cost;
+
+    memcpy(k_px, taken ? k_new : k_prior_px, 4 * sizeof(double));
+    memcpy(R_w_to_c, taken ? R_new : R, sizeof R);
+    memcpy(tvec_mm, taken ? t_new : t, sizeof t);
+    for (i = 0; i < N; i++) {
+        residuals_px[2 * i] = taken ? du_new[i] : du[i];
+        residuals_px[2 * i + 1] = taken ? dv_new[i] : dv[i];
+    }
+    *weight_per_px2 = weight;
+    *steps = taken;
+    return DIMENET_OK;
+}
