@@ -6,8 +6,8 @@ perturbed on the left of X_C, formed from nine per-point monomials instead of J 
 Jacobian: models_spec/BENCHMARKS.md).
 
 The products the feature's data step and mode map's step read (``monomial_gram``, ``frame_normal_equations``,
-``gram_normal_equations``, ``prior_step``) are elementwise products summed by numpy in an order it fixes (a pairwise sum along
-a contiguous row, or a sum over an outer axis, first to last), not BLAS products, whose summation
+``gram_normal_equations``, ``prior_step``) are elementwise products summed by numpy in an order it fixes (a
+pairwise sum along a contiguous row, or a sum over an outer axis, first to last), not BLAS products, whose summation
 order and fused multiply-adds depend on the machine's kernel: the data step's Hessian can have a
 condition number near 1e9 (a single plane), so one last-bit change anywhere moves its inputs by 1e-7.
 In this order the compiled core (runtime/native/dimenet_core.c, the Gram, its normal equations and the prior
