@@ -200,9 +200,11 @@ def test_the_export_command_writes_the_full_graph_and_the_golden_set(tmp_path, c
     assert [i.name for i in ort.InferenceSession(str(out)).get_inputs()] == list(INPUTS)
     assert main(["export", "default", "--golden", str(tmp_path / "golden")]) == 0
     written = json.loads((tmp_path / "golden" / "golden.json").read_text())
-    # The committed set is this release's (but for the last bits, which vary between runs; ΔK, K and
-    # sigma to 1e-6 px or 1e-8 of their size).
-    assert_json_close(written, json.loads(GOLDEN.read_text()), rtol=1e-8, atol=1e-6)
+    # The committed set is this release's, but for the last bits, which vary between machines: the simulator's
+    # points by ~1e-12 px (numpy's and libm's SIMD paths differ between CPUs), which a planar frame's
+    # ill-conditioned pose amplifies to ~2e-6 px in Delta K (galaxy-s8-planar-1, on another host than the
+    # set's). So the outputs are held to the set's parity bound, PARITY_PX, and 1e-8 of their size.
+    assert_json_close(written, json.loads(GOLDEN.read_text()), rtol=1e-8, atol=PARITY_PX)
     for args, words in (
         (["export", "default", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
         (["export", "any-scene", "--out", str(tmp_path / "m.onnx")], "--graph mlp exports a RUN_DIR"),
