@@ -7,7 +7,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from dimenet.runtime.geometry.normal_equations import frame_normal_equations, matvec, prior_posterior, prior_step
+from dimenet.runtime.geometry.normal_equations import (
+    frame_normal_equations,
+    matvec,
+    posterior_step,
+    prior_posterior,
+    prior_step,
+)
 from dimenet.runtime.geometry.projection import camera_rows, camera_xy_inverse_depth, k_matrix, pinhole_residuals
 from dimenet.runtime.geometry.rotation import left_update, rotated
 
@@ -43,8 +49,7 @@ def map_steps(
         step, cov, weight = prior_step(JJ, Jr, rss, r.size, precision, noise_floor_px=noise_floor_px)
     else:
         weight = 1.0 / max(float(noise_px), noise_floor_px) ** 2
-        cov = prior_posterior(JJ, precision, weight)
-        step = matvec(cov, Jr) * -weight
+        step, cov = posterior_step(JJ, Jr, precision, weight)
     cost, residuals, steps = weight * rss, None, 0
     for it in range(iterations):
         if it:  # the gradient with the prior's term, zero at the start k = k_net

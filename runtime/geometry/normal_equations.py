@@ -136,10 +136,18 @@ def prior_step(
     step_JJ = _products(step[:, None], JJ, JJ.shape).sum(0)
     rss_step = rss - 2.0 * float(np.multiply(step, Jr).sum()) + float(np.multiply(step_JJ, step).sum())
     weight = _noise_weight(rss_step, n_residuals - 10, noise_floor_px)
+    return (*posterior_step(JJ, Jr, k_precision, weight), weight)
+
+
+def posterior_step(
+    JJ: np.ndarray, Jr: np.ndarray, k_precision: np.ndarray, weight: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``prior_step``'s step at a known data weight 1 / s^2 (px^-2): (step (10,) = -weight cov J r, cov (10, 10)
+    ``prior_posterior``'s)."""
     cov = prior_posterior(JJ, k_precision, weight)
     step = matvec(cov, Jr)
     step *= -weight
-    return step, cov, weight
+    return step, cov
 
 
 def matvec(A: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -126,21 +126,42 @@ double dimenet__noise_weight(double rss, long dof, double floor_px)
     return 1.0 / v;
 }
 
-double dimenet__dot(const double *a, const double *b, int n)
+double dimenet__pairwise_dot(const double *x, const double *y, size_t n)
 {
-    double products[10];
-    int k;
-    for (k = 0; k < n; k++) {
-        products[k] = a[k] * b[k];
+    double r[8], res;
+    size_t i, j;
+    if (n < 8) {
+        res = 0.0;
+        for (i = 0; i < n; i++) {
+            res += x[i] * y[i];
+        }
+        return res;
     }
-    return dimenet__pairwise_sum(products, (size_t)n);
+    if (n > PAIRWISE_BLOCK) {
+        size_t n2 = n / 2;
+        n2 -= n2 % 8;
+        return dimenet__pairwise_dot(x, y, n2) + dimenet__pairwise_dot(x + n2, y + n2, n - n2);
+    }
+    for (j = 0; j < 8; j++) {
+        r[j] = x[j] * y[j];
+    }
+    for (i = 8; i < n - (n % 8); i += 8) {
+        for (j = 0; j < 8; j++) {
+            r[j] += x[i + j] * y[i + j];
+        }
+    }
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+    for (; i < n; i++) {
+        res += x[i] * y[i];
+    }
+    return res;
 }
 
 void dimenet__matvec(const double *A, const double *x, int n, double *y)
 {
     int i;
     for (i = 0; i < n; i++) {
-        y[i] = dimenet__dot(A + n * i, x, n);
+        y[i] = dimenet__pairwise_dot(A + n * i, x, (size_t)n);
     }
 }
 
@@ -219,17 +240,23 @@ int dimenet__prior_step(const double JJ[100], const double Jr[10], double rss, l
         }
         JJ_step[k] = s;
     }
-    rss_step = rss - 2.0 * dimenet__dot(step, Jr, 10) + dimenet__dot(JJ_step, step, 10);
+    rss_step = rss - 2.0 * dimenet__pairwise_dot(step, Jr, 10) + dimenet__pairwise_dot(JJ_step, step, 10);
     weight = dimenet__noise_weight(rss_step, n_residuals - 10, noise_floor_px);
-    code = dimenet__prior_posterior(JJ, k_precision_per_px2, weight, cov);
+    *weight_per_px2 = weight;
+    return dimenet__posterior_step(JJ, Jr, k_precision_per_px2, weight, step, cov);
+}
+
+int dimenet__posterior_step(const double JJ[100], const double Jr[10], const double k_precision_per_px2[16],
+                            double weight_per_px2, double step[10], double cov[100])
+{
+    int code = dimenet__prior_posterior(JJ, k_precision_per_px2, weight_per_px2, cov), k;
     if (code != DIMENET_OK) {
         return code;
     }
     dimenet__matvec(cov, Jr, 10, step);
     for (k = 0; k < 10; k++) {
-        step[k] *= -weight;
+        step[k] *= -weight_per_px2;
     }
-    *weight_per_px2 = weight;
     return DIMENET_OK;
 }
 

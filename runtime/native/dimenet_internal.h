@@ -38,10 +38,10 @@ double dimenet__python_square(double x);
 /* geometry.normal_equations._noise_weight: 1 / max(rss / max(dof, 1), floor^2) (Python's max). */
 double dimenet__noise_weight(double rss, long dof, double floor_px);
 
-/* a . b of two n-vectors, n <= 10: numpy's pairwise sum of the products (np.multiply(a, b).sum()). */
-double dimenet__dot(const double *a, const double *b, int n);
+/* numpy's pairwise sum of the products x[i] y[i] (each rounded first) of n values: what (x * y).sum() gives. */
+double dimenet__pairwise_dot(const double *x, const double *y, size_t n);
 
-/* y = A x, A (n x n) row major, each row as dimenet__dot (geometry.normal_equations.matvec). */
+/* y = A x, A (n x n) row major, each row as dimenet__pairwise_dot (geometry.normal_equations.matvec). */
 void dimenet__matvec(const double *A, const double *x, int n, double *y);
 
 /* geometry.prior_posterior: dimenet_prior_posterior with a full prior precision (4 x 4 px^-2, row major). */
@@ -55,5 +55,10 @@ int dimenet__prior_posterior(const double jj[100], const double k_precision_per_
 int dimenet__prior_step(const double JJ[100], const double Jr[10], double rss, long n_residuals,
                         const double k_precision_per_px2[16], double noise_floor_px, double step[10], double cov[100],
                         double *weight_per_px2);
+
+/* geometry.normal_equations.posterior_step: cov (10 x 10), dimenet__prior_posterior's, and the step -weight cov Jr
+ * (10) at a known data weight (px^-2). DIMENET_E_HESSIAN_DIAGONAL, DIMENET_E_NOT_POSITIVE_DEFINITE. */
+int dimenet__posterior_step(const double JJ[100], const double Jr[10], const double k_precision_per_px2[16],
+                            double weight_per_px2, double step[10], double cov[100]);
 
 #endif

@@ -92,13 +92,7 @@ int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *
                                    &weight);
     } else { /* 1 / max(noise_px, floor) ** 2 (Python's max) */
         weight = 1.0 / dimenet__python_square(noise_floor_px > noise_px ? noise_floor_px : noise_px);
-        code = dimenet__prior_posterior(JJ, k_precision_per_px2, weight, cov);
-        if (code == DIMENET_OK) {
-            dimenet__matvec(cov, Jr, 10, step);
-            for (k = 0; k < 10; k++) {
-                step[k] *= -weight;
-            }
-        }
+        code = dimenet__posterior_step(JJ, Jr, k_precision_per_px2, weight, step, cov);
     }
     if (code != DIMENET_OK) {
         return code;
@@ -122,7 +116,7 @@ int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *
         squares[N + i] = dv_new[i] * dv_new[i];
     }
     dimenet__matvec(k_precision_per_px2, d, 4, Pd);
-    cost_new = weight * dimenet__pairwise_sum(squares, 2 * N) + dimenet__dot(d, Pd, 4);
+    cost_new = weight * dimenet__pairwise_sum(squares, 2 * N) + dimenet__pairwise_dot(d, Pd, 4);
     taken = cost_new <= cost;
 
     memcpy(k_px, taken ? k_new : k_prior_px, 4 * sizeof(double));

@@ -98,38 +98,6 @@ static void pose_pairs(int first[POSE_PAIRS], int second[POSE_PAIRS])
     }
 }
 
-/* numpy's pairwise sum of the products x[i] y[i] (each rounded first) of n points: what (x * y).sum() gives. */
-static double pairwise_dot(const double *x, const double *y, size_t n)
-{
-    double r[8], res;
-    size_t i, j;
-    if (n < 8) {
-        res = 0.0;
-        for (i = 0; i < n; i++) {
-            res += x[i] * y[i];
-        }
-        return res;
-    }
-    if (n > PAIRWISE_BLOCK) {
-        size_t n2 = n / 2;
-        n2 -= n2 % 8;
-        return pairwise_dot(x, y, n2) + pairwise_dot(x + n2, y + n2, n - n2);
-    }
-    for (j = 0; j < 8; j++) {
-        r[j] = x[j] * y[j];
-    }
-    for (i = 8; i < n - (n % 8); i += 8) {
-        for (j = 0; j < 8; j++) {
-            r[j] += x[i + j] * y[i + j];
-        }
-    }
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-    for (; i < n; i++) {
-        res += x[i] * y[i];
-    }
-    return res;
-}
-
 /* pose_step.pose_normal_equations from the stack E (POSE_ROWS rows of n, filled by the caller): JJ = fx^2 S_u +
  * fy^2 S_v (6 x 6) and Jr = fx R_u + fy R_v. */
 static void pose_normal_equations(const double *E, size_t n, double fx, double fy, double JJ[36], double Jr[6])
@@ -139,7 +107,7 @@ static void pose_normal_equations(const double *E, size_t n, double fx, double f
     int first[POSE_PAIRS], second[POSE_PAIRS], i, j, k = 0;
     pose_pairs(first, second);
     for (i = 0; i < POSE_PAIRS; i++) {
-        sums[i] = pairwise_dot(E + (size_t)first[i] * n, E + (size_t)second[i] * n, n);
+        sums[i] = dimenet__pairwise_dot(E + (size_t)first[i] * n, E + (size_t)second[i] * n, n);
     }
     for (i = 0; i < 5; i++) {
         for (j = i; j < 5; j++, k++) {
