@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 # Below this smallest over largest singular value of the centred 3D points, they count as one
@@ -14,20 +13,25 @@ RIG_VIEW_RATIO = 0.1
 # Largest |3D coordinate| dimenet accepts, in the points' unit (1e12 mm is 10^6 km): beyond it
 # the covariance invariants of point sets overflow float64.
 MAX_COORDINATE = 1e12
-_COVARIANCE = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE  # sample covariance of row points
+# The covariance's entries covariance_invariants sums, by dimension: the (row, column) pairs of its upper triangle.
+PAIRS = {2: ([0, 0, 1], [0, 1, 1]), 3: ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])}
 
 
 def covariance_invariants(points: np.ndarray) -> tuple[float, float, float]:
-    """Trace, sum of principal 2x2 minors and determinant of the sample covariance of one
-    frame's (N, D) float64 C-contiguous points, D = 2 or 3 (units^2, ^4, ^(2D); OpenCV's
-    covariance, then floats)."""
-    C = cv2.calcCovarMatrix(points, None, _COVARIANCE)[0].tolist()  # symmetric
-    if len(C) == 2:
-        (a, b), (_, d) = C
+    """Trace, sum of principal 2x2 minors and determinant of the sample covariance (1 / n) of one
+    frame's (N, D) float64 points, D = 2 or 3 (units^2, ^4, ^(2D)), every sum in point order (np.cumsum's
+    last row: the mean, then the centred products), which the compiled core's ``dimenet_frame_checks``
+    follows to the bit for D = 3."""
+    n, pairs = len(points), PAIRS[points.shape[1]]
+    with np.errstate(over="ignore", invalid="ignore"):  # huge points overflow to inf or NaN: not clearly spread
+        centred = points - np.cumsum(points, axis=0)[-1] / n
+        covariance = (np.cumsum(centred[:, pairs[0]] * centred[:, pairs[1]], axis=0)[-1] / n).tolist()
+    if points.shape[1] == 2:
+        a, b, d = covariance
         return a + d, a * d - b * b, a * d - b * b
-    (a, b, c), (_, d, e), (_, _, f) = C
-    det = a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)
-    return a + d + f, a * d - b * b + a * f - c * c + d * f - e * e, det
+    a, b, c, d, e, f = covariance
+    det = (a * (d * f - e * e) - b * (b * f - e * c)) + c * (b * e - d * c)
+    return (a + d) + f, ((a * d - b * b) + (a * f - c * c)) + (d * f - e * e), det
 
 
 def covariance_invariants_batch(points: np.ndarray, mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

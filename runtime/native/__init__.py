@@ -147,24 +147,31 @@ def error_at_pnp(points_2d, points_3d, K) -> float:
 
 
 def map_steps(
-    points_2d, points_3d, k_prior, precision, rvec, tvec, turn, noise_px, noise_floor_px, iterations
+    points_2d, points_3d, k_prior, K_cov_prior, rvec, tvec, turn, noise_px, noise_floor_px, iterations
 ) -> tuple:
     """``geometry.map_step.map_steps`` (one frame's MAP Gauss-Newton steps over (pose, K): the arguments and the
     result are its) in the running implementation, the same numbers to the bit; the core takes one step
-    (``dimenet_map_step``), more steps run in numpy. InputError when the Hessian is not positive definite."""
+    (``dimenet_map_step``), more steps run in numpy. InputError when the prior's covariance or the Hessian is not
+    positive definite."""
     if core is None or iterations != 1:
         return _map_steps_reference(
-            points_2d, points_3d, k_prior, precision, rvec, tvec, turn, noise_px, noise_floor_px, iterations
+            points_2d, points_3d, k_prior, K_cov_prior, rvec, tvec, turn, noise_px, noise_floor_px, iterations
         )
-    p2, p3 = (np.ascontiguousarray(a, np.float64) for a in (points_2d, points_3d))
-    k_prior, precision, rvec, tvec = (np.ascontiguousarray(a, np.float64) for a in (k_prior, precision, rvec, tvec))
-    turn = None if turn is None else np.ascontiguousarray(turn, np.float64)
     noise = -1.0 if noise_px is None else max(float(noise_px), noise_floor_px)  # the reference's floor; < 0: none
-    k, R, tvec_out, cov, residuals = np.empty(4), np.empty((3, 3)), np.empty(3), np.empty((10, 10)), np.empty_like(p2)
-    weight, steps = core.map_step(
-        p2, p3, k_prior, precision, rvec, tvec, turn, noise, noise_floor_px, k, R, tvec_out, cov, residuals
+    k, R, tvec_out, cov, residuals = (
+        np.empty(4),
+        np.empty((3, 3)),
+        np.empty(3),
+        np.empty((10, 10)),
+        np.empty((len(points_2d), 2)),
     )
-    return k, R, tvec_out, cov, weight, residuals, steps
+    arrays = (points_2d, points_3d, k_prior, K_cov_prior, rvec, tvec, turn)
+    try:  # the arrays as they come (the rectifier's are float64, C-contiguous)
+        weight, e, depth, steps = core.map_step(*arrays, noise, noise_floor_px, k, R, tvec_out, cov, residuals)
+    except TypeError:  # another type or layout: as numpy would take them
+        arrays = [None if a is None else np.ascontiguousarray(a, np.float64) for a in arrays]
+        weight, e, depth, steps = core.map_step(*arrays, noise, noise_floor_px, k, R, tvec_out, cov, residuals)
+    return k, R, tvec_out, cov, weight, residuals, e, depth, steps
 
 
 def _core_call(points_2d, points_3d, K, rvec, tvec, steps, rvec_out, tvec_out) -> tuple[float, float]:

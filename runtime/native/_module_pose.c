@@ -1,7 +1,7 @@
 /* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
  * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks), power_of_two_unit
- * (dimenet_power_of_two_unit) and map_step (dimenet_map_step), under the same
- * rules as _module.c's (buffers checked, the GIL released in the kernel, no static mutable state). */
+ * (dimenet_power_of_two_unit), occupied_cells (dimenet_occupied_cells) and map_step (dimenet_map_step), under
+ * the same rules as _module.c's (buffers checked, the GIL released in the kernel, no static mutable state). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -102,15 +102,16 @@ PyDoc_STRVAR(frame_checks_doc,
              "frame_checks(points_2d_image, points_2d, points_3d, width_px, height_px, max_coordinate, spread_ratio, "
              "spread_absolute)\n--\n\n"
              "The input rules' fast tests on one frame (dimenet_frame_checks), the GIL released: points_2d_image "
-             "and points_2d (N, 2) px (as given; in the model's pixels), points_3d (N, 3) mm, N >= 1. Returns 0, "
-             "or 1 (a point not finite or outside the image or the coordinate range), or 2 (not clearly spread).");
+             "and points_2d (N, 2) px (as given; in the model's pixels), points_3d (N, 3) mm, N >= 1. Returns (the "
+             "verdict: 0, or 1 (a point not finite or outside the image or the coordinate range), or 2 (not clearly "
+             "spread); the 3D points' geometry.covariance_invariants to the bit, NaN with the verdict 1).");
 
 static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     static const char *const names[] = {"points_2d_image", "points_2d", "points_3d"};
     Py_buffer views[3];
     int n_views = 0, code, i;
-    double numbers[5];
+    double numbers[5], invariants[3];
     unsigned flags = 0u;
     PyObject *result = NULL;
     (void)module;
@@ -140,13 +141,13 @@ static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_
     Py_BEGIN_ALLOW_THREADS
     code = dimenet_frame_checks((size_t)views[0].shape[0], (const double *)views[0].buf,
                                 (const double *)views[1].buf, (const double *)views[2].buf, numbers[0], numbers[1],
-                                numbers[2], numbers[3], numbers[4], &flags);
+                                numbers[2], numbers[3], numbers[4], &flags, invariants);
     Py_END_ALLOW_THREADS
     if (code != DIMENET_OK) {
         PyErr_SetString(PyExc_ValueError, dimenet_error_message(code));
         goto done;
     }
-    result = PyLong_FromUnsignedLong(flags);
+    result = Py_BuildValue("(k(ddd))", (unsigned long)flags, invariants[0], invariants[1], invariants[2]);
 done:
     while (n_views > 0) {
         PyBuffer_Release(&views[--n_views]);
@@ -181,27 +182,66 @@ static PyObject *power_of_two_unit(PyObject *module, PyObject *points_3d)
     return PyFloat_FromDouble(unit);
 }
 
+PyDoc_STRVAR(occupied_cells_doc,
+             "occupied_cells(grid, n_channels)\n--\n\n"
+             "rectify.uncertainty.occupied_cells of one frame (dimenet_occupied_cells): the cells of grid (cells x "
+             "n_channels,) float64, C contiguous, with a channel that is not 0.");
+
+static PyObject *occupied_cells(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const Py_ssize_t any[1] = {-1};
+    Py_buffer view;
+    Py_ssize_t n_channels;
+    size_t occupied = 0;
+    int code = DIMENET_E_ARGUMENT;
+    (void)module;
+    if (nargs != 2) {
+        PyErr_Format(PyExc_TypeError, "occupied_cells takes 2 arguments, got %zd", nargs);
+        return NULL;
+    }
+    n_channels = PyLong_AsSsize_t(args[1]);
+    if (n_channels == -1 && PyErr_Occurred()) {
+        return NULL;
+    }
+    if (dimenet_py_get_view(args[0], &view, "grid", 'd', 1, any, 0) != 0) {
+        return NULL;
+    }
+    if (n_channels >= 1 && view.shape[0] % n_channels == 0) {
+        Py_BEGIN_ALLOW_THREADS
+        code = dimenet_occupied_cells((size_t)(view.shape[0] / n_channels), (size_t)n_channels,
+                                      (const double *)view.buf, &occupied);
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&view);
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, "occupied_cells: n_channels >= 1 dividing the grid's length expected");
+        return NULL;
+    }
+    return PyLong_FromSize_t(occupied);
+}
+
 PyDoc_STRVAR(map_step_doc,
-             "map_step(points_2d, points_3d, k_prior, precision, rvec, tvec, turn, noise_px, noise_floor_px, k_out, "
+             "map_step(points_2d, points_3d, k_prior, k_cov_prior, rvec, tvec, turn, noise_px, noise_floor_px, k_out, "
              "R_out, tvec_out, cov_out, residuals_out)\n--\n\n"
              "Mode map's Gauss-Newton step (dimenet_map_step; geometry.map_step.map_steps with one step, to the bit), "
              "the GIL released: points_2d (N, 2) px, points_3d (N, 3) mm in {W}, N >= 1; k_prior (4,) px and "
-             "precision (4, 4) px^-2 the prior on K; rvec, tvec (3,) the start pose, turned first by turn (3,) rad "
+             "k_cov_prior (4, 4) px^2 the prior on K; rvec, tvec (3,) the start pose, turned first by turn (3,) rad "
              "(None: not turned); noise_px the 2D noise std (< 0: the frame's estimate), floored at noise_floor_px. "
              "Writes k_out (4,), R_out (3, 3), tvec_out (3,), cov_out (10, 10) and residuals_out (N, 2), all "
-             "float64; returns (weight 1 / s^2 px^-2, steps 0 or 1). InputError when the points fix no pose; "
-             "TypeError or ValueError for arrays of the wrong type or shape.");
+             "float64; returns (weight 1 / s^2 px^-2, e px the residuals' mean norm and the smallest depth mm at the "
+             "result, steps 0 or 1). InputError when the prior's covariance is not positive definite or the points "
+             "fix no pose; TypeError or ValueError for arrays of the wrong type or shape.");
 
 static PyObject *map_step(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     /* the arrays, in argument order; turn (6) may be None; 7 and 8 are the two floats */
     static const int ARRAY_ARGS[12] = {0, 1, 2, 3, 4, 5, 6, 9, 10, 11, 12, 13};
-    static const char *const names[12] = {"points_2d", "points_3d", "k_prior", "precision", "rvec", "tvec",
+    static const char *const names[12] = {"points_2d", "points_3d", "k_prior", "k_cov_prior", "rvec", "tvec",
                                           "turn",      "k_out",     "R_out",   "tvec_out",  "cov_out", "residuals_out"};
     static const char ndims[12] = {2, 2, 1, 2, 1, 1, 1, 1, 2, 1, 2, 2};
     Py_buffer views[12];
     int held[12] = {0}, code = DIMENET_OK, i, steps = 0;
-    double noise_px, noise_floor_px, weight = 0.0, *scratch = NULL;
+    double noise_px, noise_floor_px, weight = 0.0, e = 0.0, depth = 0.0, *scratch = NULL;
     size_t n_scratch = 0;
     Py_ssize_t N;
     PyObject *result = NULL;
@@ -232,7 +272,7 @@ static PyObject *map_step(PyObject *module, PyObject *const *args, Py_ssize_t na
         || views[8].shape[0] != 3 || views[8].shape[1] != 3 || views[9].shape[0] != 3 || views[10].shape[0] != 10
         || views[10].shape[1] != 10 || views[11].shape[0] != N || views[11].shape[1] != 2) {
         PyErr_SetString(PyExc_ValueError, "map_step: points_2d (N, 2) with N >= 1, points_3d (N, 3), k_prior (4,), "
-                                          "precision (4, 4), rvec, tvec, turn (3,), k_out (4,), R_out (3, 3), "
+                                          "k_cov_prior (4, 4), rvec, tvec, turn (3,), k_out (4,), R_out (3, 3), "
                                           "tvec_out (3,), cov_out (10, 10) and residuals_out (N, 2) expected");
         goto done;
     }
@@ -246,14 +286,15 @@ static PyObject *map_step(PyObject *module, PyObject *const *args, Py_ssize_t na
                             (const double *)views[2].buf, (const double *)views[3].buf, (const double *)views[4].buf,
                             (const double *)views[5].buf, held[6] ? (const double *)views[6].buf : NULL, noise_px,
                             noise_floor_px, (double *)views[7].buf, (double *)views[8].buf, (double *)views[9].buf,
-                            (double *)views[10].buf, &weight, (double *)views[11].buf, &steps, scratch, n_scratch);
+                            (double *)views[10].buf, &weight, (double *)views[11].buf, &e, &depth, &steps, scratch,
+                            n_scratch);
     Py_END_ALLOW_THREADS
     if (code != DIMENET_OK) {
         PyErr_SetString(code == DIMENET_E_ARGUMENT ? PyExc_ValueError : dimenet_py_state_of(module)->input_error,
                         dimenet_error_message(code));
         goto done;
     }
-    result = Py_BuildValue("(di)", weight, steps);
+    result = Py_BuildValue("(dddi)", weight, e, depth, steps);
 done:
     PyMem_RawFree(scratch);
     for (i = 11; i >= 0; i--) {
@@ -269,5 +310,6 @@ PyMethodDef dimenet_py_pose_methods[] = {
     {"pose_steps", (PyCFunction)(void (*)(void))pose_steps, METH_FASTCALL, pose_steps_doc},
     {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
     {"power_of_two_unit", (PyCFunction)power_of_two_unit, METH_O, power_of_two_unit_doc},
+    {"occupied_cells", (PyCFunction)(void (*)(void))occupied_cells, METH_FASTCALL, occupied_cells_doc},
     {NULL, NULL, 0, NULL},
 };

@@ -27,23 +27,32 @@ static inline void spread_second(spread_sums *s, double x, double y, double z)
     s->c00 += x * x, s->c01 += x * y, s->c02 += x * z, s->c11 += y * y, s->c12 += y * z, s->c22 += z * z;
 }
 
-/* checks.clearly_spread from the sums of n points of ``dims`` dims. */
-static int clearly_spread(const spread_sums *s, size_t n, int dims, double ratio, double absolute)
+/* geometry.covariance_invariants from the sums of n points: the trace, the sum of the principal 2 x 2 minors and
+ * the determinant of their sample covariance (1 / n), as the reference groups them. */
+static void spread_invariants(const spread_sums *s, size_t n, double invariants[3])
 {
     double nn = (double)n, c00 = s->c00 / nn, c01 = s->c01 / nn, c02 = s->c02 / nn, c11 = s->c11 / nn;
     double c12 = s->c12 / nn, c22 = s->c22 / nn;
-    double trace = c00 + c11 + c22;
-    double minors = (c00 * c11 - c01 * c01) + (c00 * c22 - c02 * c02) + (c11 * c22 - c12 * c12);
-    return minors > 3.0 * ratio * (trace * trace) && trace > (double)dims * absolute * (s->scale * s->scale);
+    invariants[0] = (c00 + c11) + c22;
+    invariants[1] = ((c00 * c11 - c01 * c01) + (c00 * c22 - c02 * c02)) + (c11 * c22 - c12 * c12);
+    invariants[2] = (c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02)) + c02 * (c01 * c12 - c11 * c02);
+}
+
+/* checks.clearly_spread from the trace and minors of ``dims``-dimensional points and their largest |coordinate|. */
+static int clearly_spread(const double invariants[3], double scale, int dims, double ratio, double absolute)
+{
+    double trace = invariants[0], minors = invariants[1];
+    return minors > 3.0 * ratio * (trace * trace) && trace > (double)dims * absolute * (scale * scale);
 }
 
 int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, const double *points_2d_px,
                          const double *points_3d_w_mm, double width_px, double height_px, double max_coordinate,
-                         double spread_ratio, double spread_absolute, unsigned *result)
+                         double spread_ratio, double spread_absolute, unsigned *result, double invariants_3d[3])
 {
     const double high_x = width_px - 0.5, high_y = height_px - 0.5;
     spread_sums s2 = {{0.0, 0.0, 0.0}, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0};
     spread_sums s3 = s2;
+    double invariants_2d[3], invariants[3];
     size_t i;
     int inside = 1;
     if (n_points < 1 || points_2d_image_px == NULL || points_2d_px == NULL || points_3d_w_mm == NULL
@@ -59,6 +68,9 @@ int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, cons
         spread_first(&s2, p[0], p[1], 0.0);
         spread_first(&s3, X[0], X[1], X[2]);
     }
+    if (invariants_3d != NULL) {
+        invariants_3d[0] = invariants_3d[1] = invariants_3d[2] = NAN;
+    }
     if (!inside) {
         *result = DIMENET_CHECK_OUTSIDE;
         return DIMENET_OK;
@@ -72,10 +84,15 @@ int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, cons
         spread_second(&s2, p[0], p[1], 0.0);
         spread_second(&s3, X[0], X[1], X[2]);
     }
-    *result = clearly_spread(&s3, n_points, 3, spread_ratio, spread_absolute)
-                      && clearly_spread(&s2, n_points, 2, spread_ratio, spread_absolute)
+    spread_invariants(&s3, n_points, invariants);
+    spread_invariants(&s2, n_points, invariants_2d);
+    *result = clearly_spread(invariants, s3.scale, 3, spread_ratio, spread_absolute)
+                      && clearly_spread(invariants_2d, s2.scale, 2, spread_ratio, spread_absolute)
                   ? 0u
                   : DIMENET_CHECK_NOT_SPREAD;
+    if (invariants_3d != NULL) {
+        memcpy(invariants_3d, invariants, sizeof invariants);
+    }
     return DIMENET_OK;
 }
 

@@ -16,6 +16,7 @@ static const char *const MESSAGES[] = {
     "the points fix no pose: the Gauss-Newton Hessian has a zero or non-finite diagonal",
     "the points fix no pose: the Gauss-Newton Hessian is not positive definite",
     "no Gauss-Newton step: the points fix no pose under K",
+    "the prior's covariance of K is not positive definite",
 };
 
 const char *dimenet_error_message(int code)
@@ -60,9 +61,27 @@ void dimenet__rodrigues(const double rvec[3], double R[9])
     }
 }
 
-/* OpenCV's Cholesky inverse (cv::invert with DECOMP_CHOLESKY: hal::Cholesky64f on a copy, the right
- * hand side the identity): 0 when a pivot falls below DBL_EPSILON. a (n x n) is overwritten. */
-static int cholesky_inverse(double *a, int n, double *inverse)
+void dimenet__norm_add(dimenet__norm_sum *sum, double norm)
+{
+    sum->lanes[sum->n % 4] = norm;
+    if (sum->n % 4 == 3) {
+        sum->total += ((sum->lanes[0] + sum->lanes[1]) + sum->lanes[2]) + sum->lanes[3];
+    }
+    sum->n++;
+}
+
+double dimenet__norm_mean(const dimenet__norm_sum *sum)
+{
+    double total = sum->total;
+    size_t c;
+    for (c = 0; c < sum->n % 4; c++) {
+        total += sum->lanes[c];
+    }
+    return total / (double)sum->n;
+}
+
+/* OpenCV's Cholesky inverse (hal::Cholesky64f on a copy of a, the right hand side the identity). */
+int dimenet__cholesky_inverse(double *a, int n, double *inverse)
 {
     double *L = a, s, t;
     int i, j, k;
@@ -194,7 +213,7 @@ int dimenet__prior_posterior(const double jj[100], const double k_precision_per_
             H[i * 10 + j] = H[i * 10 + j] * (d[i] * d[j]);
         }
     }
-    if (!cholesky_inverse(H, 10, inverse)) {
+    if (!dimenet__cholesky_inverse(H, 10, inverse)) {
         return DIMENET_E_NOT_POSITIVE_DEFINITE;
     }
     for (i = 0; i < 10; i++) {

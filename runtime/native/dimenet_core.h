@@ -37,6 +37,7 @@ extern "C" {
 #define DIMENET_E_NOT_POSITIVE_DEFINITE 4 /* the data step's Hessian is not positive definite */
 #define DIMENET_E_NO_POSE_STEP 5      /* dimenet_pose_steps: a step's pose block is not positive definite,
                                          or the pose is not finite */
+#define DIMENET_E_PRIOR_COVARIANCE 6  /* dimenet_map_step: the prior's covariance is not positive definite */
 
 /* A point's raw channels, in the reference's CHANNELS order: the projection model discrepancy (PMD)
  * dx, dy = K_c proj(X_C0) - x (px), then X_C0, Y_C0 (mm) and 1 / Z_C0 (1/mm). */
@@ -114,6 +115,11 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
                            const double tvec_w_to_c0_mm[3], unsigned flags, double *features, size_t n_features,
                            double *point_rows, double *scratch, size_t n_scratch, dimenet_frame_stats *stats);
 
+/* rectify.uncertainty.occupied_cells of one frame: of the n_cells cells of its grid feature (n_cells x
+ * n_channels, cell by cell, channels inside), those with a channel that is not 0 (a NaN counts). *occupied the
+ * count. DIMENET_E_ARGUMENT for a NULL pointer, no channel or a size that overflows. */
+int dimenet_occupied_cells(size_t n_cells, size_t n_channels, const double *grid, size_t *occupied);
+
 /* The monomial Gram (DIMENET_GRAM_SIZE x DIMENET_GRAM_SIZE, row major) Q Q^T of n_points points, Q the
  * monomials 1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z (a = X/Z, b = Y/Z) and the residuals r_u, r_v of each:
  * x_c0_mm, y_c0_mm, inv_z_c0_per_mm the points in {C} (n_points each), residual_u_px, residual_v_px
@@ -159,19 +165,23 @@ int dimenet_map_scratch_doubles(size_t n_points, size_t *n_scratch);
 /* Mode map's Gauss-Newton step (the reference's geometry.map_step.map_steps with one step, to the bit): the
  * MAP cost sum |pi(k, R X + t) - x|^2 / s^2 + (k - k_prior)^T P (k - k_prior) over (pose, k) from k_prior_px
  * (fx, fy, cx, cy) and the start pose rvec_start_rad, tvec_start_mm {W}->{C} turned first by turn_rad (3;
- * NULL: not turned), P = k_precision_per_px2 (4 x 4, row major). s^2 is noise_px^2 floored at
- * noise_floor_px^2, or with noise_px < 0 the frame's own estimate (geometry.prior_step). The step is taken
- * when it does not raise the cost: *steps 1, k_px, R_w_to_c (3 x 3 row major), tvec_mm and residuals_px
- * (n_points x 2: u, v) there; else *steps 0 and the start's (k_prior, the turned pose). cov (10 x 10) is
- * the inverse Gauss-Newton Hessian at the start over (w rad, tau mm, fx, fy, cx, cy px), *weight_per_px2
- * 1 / s^2. points_2d_px (n_points x 2), points_3d_w_mm (n_points x 3), n_points >= 1. scratch: n_scratch >=
- * dimenet_map_scratch_doubles's. Returns DIMENET_OK, DIMENET_E_ARGUMENT, DIMENET_E_HESSIAN_DIAGONAL or
- * DIMENET_E_NOT_POSITIVE_DEFINITE (the points fix no pose; the outputs then unspecified). */
+ * NULL: not turned), P the inverse of the prior's covariance k_cov_prior_px2 (4 x 4, row major; its lower
+ * triangle is read, as OpenCV's Cholesky inverse reads it). s^2 is noise_px^2 floored at noise_floor_px^2, or
+ * with noise_px < 0 the frame's own estimate (geometry.prior_step). The step is taken when it does not raise
+ * the cost: *steps 1, k_px, R_w_to_c (3 x 3 row major), tvec_mm and residuals_px (n_points x 2: u, v) there;
+ * else *steps 0 and the start's (k_prior, the turned pose). At that result, *e_px is the residuals' mean norm
+ * (geometry.frame_mean_norm) and *depth_mm the smallest Z_C (NaN when one is NaN). cov (10 x 10) is the
+ * inverse Gauss-Newton Hessian at the start over (w rad, tau mm, fx, fy, cx, cy px), *weight_per_px2 1 / s^2.
+ * points_2d_px (n_points x 2), points_3d_w_mm (n_points x 3), n_points >= 1. scratch: n_scratch >=
+ * dimenet_map_scratch_doubles's. Returns DIMENET_OK, DIMENET_E_ARGUMENT, DIMENET_E_PRIOR_COVARIANCE (its
+ * Cholesky factorisation fails), DIMENET_E_HESSIAN_DIAGONAL or DIMENET_E_NOT_POSITIVE_DEFINITE (the points fix
+ * no pose); the outputs are unspecified on an error. */
 int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *points_3d_w_mm,
-                     const double k_prior_px[4], const double k_precision_per_px2[16], const double rvec_start_rad[3],
+                     const double k_prior_px[4], const double k_cov_prior_px2[16], const double rvec_start_rad[3],
                      const double tvec_start_mm[3], const double turn_rad[3], double noise_px, double noise_floor_px,
                      double k_px[4], double R_w_to_c[9], double tvec_mm[3], double cov[100], double *weight_per_px2,
-                     double *residuals_px, int *steps, double *scratch, size_t n_scratch);
+                     double *residuals_px, double *e_px, double *depth_mm, int *steps, double *scratch,
+                     size_t n_scratch);
 
 /* Bits of dimenet_frame_checks' result. */
 #define DIMENET_CHECK_OUTSIDE 1u     /* a value not finite, a 2D point outside the image or a 3D coordinate
@@ -185,11 +195,13 @@ int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *
  * [-max_coordinate, max_coordinate); points_2d_px (n_points x 2, the model's pixels) and points_3d_w_mm
  * clearly spread: with T the trace and S the sum of principal 2 x 2 minors of their sample covariance
  * (1 / n), S > 3 spread_ratio T^2 and T > D spread_absolute scale^2, scale = max(|coordinate|, 1)
- * (a sufficient test, taken in point order: not OpenCV's covariance to the bit). *result: 0 or the
- * DIMENET_CHECK_* bits. DIMENET_E_ARGUMENT for a NULL pointer or n_points < 1. */
+ * (a sufficient test). *result: 0 or the DIMENET_CHECK_* bits. invariants_3d (may be NULL): the trace, the
+ * sum of principal 2 x 2 minors and the determinant of the 3D points' sample covariance (mm^2, mm^4, mm^6;
+ * geometry.covariance_invariants to the bit: sums in point order) when the points are inside (the result is
+ * not DIMENET_CHECK_OUTSIDE), else NaN. DIMENET_E_ARGUMENT for a NULL pointer or n_points < 1. */
 int dimenet_frame_checks(size_t n_points, const double *points_2d_image_px, const double *points_2d_px,
                          const double *points_3d_w_mm, double width_px, double height_px, double max_coordinate,
-                         double spread_ratio, double spread_absolute, unsigned *result);
+                         double spread_ratio, double spread_absolute, unsigned *result, double invariants_3d[3]);
 
 /* geometry.pnp.power_of_two_unit, to the bit: the power of two nearest the RMS norm of the points (mm; the
  * n_values / 3 rows of points_3d_w_mm, any n_values), by which a PnP solver's absolute tolerances see every

@@ -82,6 +82,21 @@ int dimenet_scratch_doubles(const dimenet_feature_spec *spec, size_t n_points, s
     return DIMENET_OK;
 }
 
+int dimenet_occupied_cells(size_t n_cells, size_t n_channels, const double *grid, size_t *occupied)
+{
+    size_t cell, c, count = 0;
+    if (grid == NULL || occupied == NULL || n_channels < 1 || n_cells > ((size_t)-1) / n_channels) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (cell = 0; cell < n_cells; cell++) {
+        for (c = 0; c < n_channels && grid[cell * n_channels + c] == 0.0; c++) {
+        }
+        count += c < n_channels;
+    }
+    *occupied = count;
+    return DIMENET_OK;
+}
+
 /* -- numpy's sums ----------------------------------------------------------------------------- */
 
 /* numpy's sum of a run under a where= mask: each run of kept values pairwise, the runs in order. */

@@ -21,6 +21,24 @@ double dimenet__pairwise_sum(const double *a, size_t n);
 /* OpenCV's Rodrigues (cv::Rodrigues, vector to matrix). */
 void dimenet__rodrigues(const double rvec[3], double R[9]);
 
+/* OpenCV's Cholesky inverse (cv::invert with DECOMP_CHOLESKY: hal::Cholesky64f on a copy, the right hand side
+ * the identity) of a (n x n, row major; its lower triangle is read, then overwritten): 0 when a pivot falls below
+ * DBL_EPSILON. */
+int dimenet__cholesky_inverse(double *a, int n, double *inverse);
+
+/* geometry.frame_mean_norm's sum: the norms added in OpenCV's sumElems order (four lanes, each block of four
+ * summed ((l0 + l1) + l2) + l3 into the total, then the last norms one by one). */
+typedef struct {
+    double lanes[4], total;
+    size_t n;
+} dimenet__norm_sum;
+
+/* Adds one norm (px) to the sum (started as {{0}, 0, 0}). */
+void dimenet__norm_add(dimenet__norm_sum *sum, double norm);
+
+/* The mean of the norms added, px (their total over their count). */
+double dimenet__norm_mean(const dimenet__norm_sum *sum);
+
 /* The monomials q of one point (geometry.normal_equations._monomials), then its residuals, into q[m * stride]. */
 void dimenet__monomials(double x_mm, double y_mm, double inv_z, double du_px, double dv_px, double *q, size_t stride);
 

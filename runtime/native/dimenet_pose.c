@@ -12,9 +12,9 @@
 static void pose_error_and_depth(size_t N, const double *p2, const double *p3, const double k[4], const double r[3],
                                  const double t[3], double *e_px, double *depth_mm)
 {
-    double R[9], norms[4], norm_sum = 0.0, depth = HUGE_VAL;
+    double R[9], depth = HUGE_VAL;
+    dimenet__norm_sum norms = {{0.0}, 0.0, 0};
     size_t i;
-    int c;
     dimenet__rodrigues(r, R);
     for (i = 0; i < N; i++) {
         double X = p3[3 * i], Y = p3[3 * i + 1], Z = p3[3 * i + 2];
@@ -26,15 +26,9 @@ static void pose_error_and_depth(size_t N, const double *p2, const double *p3, c
         if (zc < depth || zc != zc) {
             depth = depth != depth ? depth : zc;
         }
-        norms[i % 4] = sqrt(du * du + dv * dv);
-        if (i % 4 == 3) {
-            norm_sum += ((norms[0] + norms[1]) + norms[2]) + norms[3];
-        }
+        dimenet__norm_add(&norms, sqrt(du * du + dv * dv));
     }
-    for (c = 0; c < (int)(N % 4); c++) {
-        norm_sum += norms[c];
-    }
-    *e_px = norm_sum / (double)N;
+    *e_px = dimenet__norm_mean(&norms);
     *depth_mm = depth;
 }
 

@@ -361,10 +361,11 @@ def in_frame(b: int, call, *args):
         raise InputError(f"frame {b}: {exc}") from None
 
 
-def fast_checks(image: ImageBounds, points_2d_image, points_2d, points_3d) -> int:
+def fast_checks(image: ImageBounds, points_2d_image, points_2d, points_3d) -> tuple[int, tuple]:
     """The compiled core's fast tests of one frame (``native.core.frame_checks``, which must be built): 0, or 1 (a
     value not finite, a point outside ``image`` or the coordinate range) or 2 (not clearly spread), for its points
-    as given and in the model's pixels (N, 2) px and its (N, 3) mm, float64 C-contiguous."""
+    as given and in the model's pixels (N, 2) px and its (N, 3) mm, float64 C-contiguous; with the
+    ``covariance_invariants`` of the 3D points (NaN with 1)."""
     return native.core.frame_checks(
         points_2d_image, points_2d, points_3d, image.width, image.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE
     )
@@ -372,13 +373,13 @@ def fast_checks(image: ImageBounds, points_2d_image, points_2d, points_3d) -> in
 
 def validated_frame(
     image: ImageBounds, to_model: Callable[[np.ndarray], np.ndarray], points_2d, points_3d, *, exact_map: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, Optional[tuple]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
     """The input rules on one frame: its points as float64 (N, 2) px as given, the same mapped by
     ``to_model`` (the user's pixels -> the model's pinhole pixels) before the spread rule, and (N, 3)
-    mm, with the ``covariance_invariants`` of the 3D points (None: not computed, the caller's to
-    compute when it needs them); or InputError naming the problem. ``exact_map``: ``to_model`` raises
-    nothing (no lens), so the compiled core may test the image, the range and the spread in one call
-    after it (``native.core.frame_checks``; the exact rules decide and word what it refuses)."""
+    mm, with the ``covariance_invariants`` of the 3D points; or InputError naming the problem.
+    ``exact_map``: ``to_model`` raises nothing (no lens), so the compiled core may test the image, the
+    range and the spread in one call after it (``native.core.frame_checks``, which also gives the
+    invariants; the exact rules decide and word what it refuses)."""
     p2 = real_array(points_2d, "points_2d", "(N, 2) or (N, 1, 2)", 2, 2, opencv=True)
     p3 = real_array(points_3d, "points_3d", "(N, 3) or (N, 1, 3)", 2, 3, opencv=True)
     n = len(p2)
@@ -388,7 +389,7 @@ def validated_frame(
         raise InputError(f"{n} points: rectification needs at least {MIN_POINTS}")
     if exact_map and native.core is not None:
         p2_model = to_model(p2)
-        failed = fast_checks(image, p2, p2_model, p3)
+        failed, invariants_3d = fast_checks(image, p2, p2_model, p3)
         if failed == 1:
             image.raise_bad_values(p2, p3, True, "")
         if failed == 2:
@@ -396,7 +397,7 @@ def validated_frame(
         distinct = too_few_distinct(p2_model, p3, MIN_POINTS)
         if distinct is not None:
             raise InputError(f"{distinct} distinct points of {n}: rectification needs at least {MIN_POINTS}")
-        return p2, p2_model, p3, None
+        return p2, p2_model, p3, invariants_3d
     if not all_inside(image, p2, p3):
         image.raise_bad_values(p2, p3, True, "")
     p2_image, p2 = p2, to_model(p2)
@@ -459,7 +460,7 @@ def validated_batch(
     mask = None if every else valid
     if exact_map and every and native.core is not None:
         p2_image, p2 = p2, to_model(p2, valid)
-        failed = [fast_checks(image, p2_image[b], p2[b], p3[b]) for b in range(len(p2))]
+        failed = [fast_checks(image, p2_image[b], p2[b], p3[b])[0] for b in range(len(p2))]
         for b in (b for b, f in enumerate(failed) if f == 1):  # the first frame outside, then the first not spread
             image.raise_bad_values(p2_image[b], p3[b], True, f"frame {b}: ")
         for b in (b for b, f in enumerate(failed) if f == 2):

@@ -44,15 +44,18 @@ NOISE_FLOOR_PX = 0.1
 @dataclass(frozen=True)
 class MapFit:
     """k (4,) px (fx, fy, cx, cy); rvec (3,) rad, tvec (3,) mm {W}->{C}; K_cov (4, 4) px^2 the
-    posterior covariance; residuals (N, 2) px at the result; steps: the Gauss-Newton steps
-    taken (0: the first step would have raised the cost, the result is the start); noise_px:
-    the frame's 2D noise std s the data term was weighted with."""
+    posterior covariance; residuals (N, 2) px at the result, e_px their mean norm and depth_mm the
+    smallest Z_C (mm) there; steps: the Gauss-Newton steps taken (0: the first step would have
+    raised the cost, the result is the start); noise_px: the frame's 2D noise std s the data term
+    was weighted with."""
 
     k: np.ndarray
     rvec: np.ndarray
     tvec: np.ndarray
     K_cov: np.ndarray
     residuals: np.ndarray
+    e_px: float
+    depth_mm: float
     steps: int
     noise_px: float
 
@@ -78,13 +81,13 @@ def map_fit(
     ``map_covariance`` widens K_cov (None: the independent-errors posterior); noise_px: the frame's
     2D noise std when it is known (the evaluation's prior oracle), else (None) estimated from the
     frame's residuals by ``prior_step``. One step (``ITERATIONS``) runs in the compiled core where it
-    is (``native.map_steps``), the same numbers to the bit as ``geometry.map_step``'s."""
-    precision = cv2.invert(K_cov_net, flags=cv2.DECOMP_CHOLESKY)[1]
+    is (``native.map_steps``), the same numbers to the bit as ``geometry.map_step``'s. InputError when
+    K_cov_net or the Hessian is not positive definite."""
     k_net = np.asarray(k_net, dtype=np.float64)
     rvec, tvec = np.asarray(rvec, dtype=np.float64).ravel(), np.asarray(tvec, dtype=np.float64).ravel()
     turn = None if K_start is None else principal_point_turn(K_start, k_net)
-    k, R, tvec, cov, weight, residuals, steps = native.map_steps(
-        points_2d, points_3d, k_net, precision, rvec, tvec, turn, noise_px, NOISE_FLOOR_PX, iterations
+    k, R, tvec, cov, weight, residuals, e_px, depth_mm, steps = native.map_steps(
+        points_2d, points_3d, k_net, K_cov_net, rvec, tvec, turn, noise_px, NOISE_FLOOR_PX, iterations
     )
     K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
     noise_px = weight**-0.5
@@ -96,6 +99,8 @@ def map_fit(
         tvec=tvec,
         K_cov=K_cov,
         residuals=residuals,
+        e_px=e_px,
+        depth_mm=depth_mm,
         steps=steps,
         noise_px=noise_px,
     )
@@ -130,6 +135,6 @@ def map_rectify(
         return None, Fallback("map_no_step", "the MAP step did not lower the cost")
     if not frame_within_bounds(result.k.tolist(), k_bounds.tolist()):
         return None, Fallback("map_implausible", "the MAP K is implausible (outside the model's K_bounds)")
-    if (points_3d @ cv2.Rodrigues(result.rvec)[0][2] + result.tvec[2]).min() <= 0:
+    if not result.depth_mm > 0:
         return None, Fallback("map_behind_camera", "a point lies behind the camera at the MAP pose")
     return result, None

@@ -175,7 +175,11 @@ def frame_candidate(cam: ModelCamera, delta_k, feats, points_3d, e_c: float, inv
 def frame_covariance(spec: ModelSpec, feats: np.ndarray, points_3d, pmd_px: float, invariants_3d=None):
     """The network's 4x4 covariance (px^2) of one frame from its (1, D) feature, its (N, 3) points, mean
     PMD (px) and the ``covariance_invariants`` of its 3D points (None: computed here)."""
-    cells = occupied_cells(feats[:, : spec.features.grid_size], len(spec.features.channels))[0]
+    grid, n_channels = feats[0, : spec.features.grid_size], len(spec.features.channels)
+    if native.core is not None:  # 0.6 against 6.8 us (models_spec/BENCHMARKS.md); the same count
+        cells = native.core.occupied_cells(grid, n_channels)
+    else:
+        cells = int(occupied_cells(grid[None], n_channels)[0])
     invariants_3d = covariance_invariants(points_3d) if invariants_3d is None else invariants_3d
     return spec.uncertainty.frame_covariance(len(points_3d), cells, pmd_px, thickness(*invariants_3d))
 
@@ -251,7 +255,7 @@ def frame_map(cam: ModelCamera, p2, p3, cand: Candidate, rvec_c0, tvec_c0) -> Ca
         covariance=partial(np.array, fit.K_cov),
         rvec=fit.rvec,
         tvec=fit.tvec,
-        e=frame_mean_norm(fit.residuals.T),
+        e=fit.e_px,
     )
 
 

@@ -153,6 +153,31 @@ def test_covariance_invariants_match_numpy():
             )
 
 
+def test_covariance_invariants_sum_in_point_order():
+    # The order the compiled core follows: the mean, then each centred product, summed point after point.
+    rng = np.random.default_rng(6)
+    for D in (2, 3):
+        points = rng.normal(0.0, 1.0, (97, D)) * 10.0 ** rng.uniform(-3, 6, (97, 1)) + 1e4
+        mean = [0.0] * D
+        for p in points.tolist():
+            mean = [m + v for m, v in zip(mean, p)]
+        mean = [m / len(points) for m in mean]
+        pairs = [(0, 0), (0, 1), (1, 1)] if D == 2 else [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+        sums = [0.0] * len(pairs)
+        for p in points.tolist():
+            d = [v - m for v, m in zip(p, mean)]
+            sums = [s + d[i] * d[j] for s, (i, j) in zip(sums, pairs)]
+        c = [s / len(points) for s in sums]
+        if D == 2:
+            a, b, d = c
+            assert g.covariance_invariants(points) == (a + d, a * d - b * b, a * d - b * b)
+        else:
+            a, b, c_, d, e, f = c
+            det = (a * (d * f - e * e) - b * (b * f - e * c_)) + c_ * (b * e - d * c_)
+            minors = ((a * d - b * b) + (a * f - c_ * c_)) + (d * f - e * e)
+            assert g.covariance_invariants(points) == ((a + d) + f, minors, det)
+
+
 def test_the_pixel_rescale_by_hand():
     """Half resolution (scale 0.5): a half-resolution pixel covers 2x2 full ones, so the full image's
     top-left corner (-0.5, -0.5) stays, the far corner (1.5, 1.5) of its first 2x2 block is the first half

@@ -399,18 +399,18 @@ static void test_map_step(void)
     static double p2[2 * N], p3[3 * N], scratch[9 * N], residuals[2 * N];
     static const double rvec[3] = {0.12, -0.31, 0.05}, tvec[3] = {12.0, -25.0, 610.0};
     dimenet_feature_spec s = model_spec(0);
-    double k[4] = {3059.68, 3059.68, 2023.82, 1508.45}, prior[4], precision[16] = {0.0}, out_k[4], R[9], t[3];
-    double cov[100], weight = 0.0, Rs[9], turn[3] = {0.0, 0.0, 0.0};
+    double k[4] = {3059.68, 3059.68, 2023.82, 1508.45}, prior[4], prior_cov[16] = {0.0}, out_k[4], R[9], t[3];
+    double cov[100], weight = 0.0, Rs[9], turn[3] = {0.0, 0.0, 0.0}, e = -1.0, depth = 0.0;
     size_t S = 0, i;
     int steps = -1, c;
     make_frame(&s, N, rvec, tvec, 0.0, p2, p3);
     for (c = 0; c < 4; c++) {
-        precision[5 * c] = 1e-6, prior[c] = k[c];
+        prior_cov[5 * c] = 1e6, prior[c] = k[c];
     }
     CHECK(dimenet_map_scratch_doubles(N, &S) == DIMENET_OK && S == 9 * N, "the map step's scratch is 9 N");
     CHECK(dimenet_map_scratch_doubles((size_t)-1, &S) == DIMENET_E_ARGUMENT, "an overflowing scratch size");
-    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
-                           residuals, &steps, scratch, 9 * N)
+    CHECK(dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N)
               == DIMENET_OK,
           "the exact frame's step");
     rotation(rvec, Rs);
@@ -421,14 +421,16 @@ static void test_map_step(void)
         CHECK(near(R[c], Rs[c], 1e-9), "the exact frame keeps its pose");
     }
     CHECK(near(weight, 100.0, 1e-12), "no residuals: the noise floor 0.1 px weighs the data");
-    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, turn, -1.0, 0.1, out_k, R, t, cov, &weight,
-                           residuals, &steps, scratch, 9 * N)
+    CHECK(e >= 0.0 && e < 1e-6, "no residuals: a mean error of 0 px");
+    CHECK(depth > 0.0 && depth < tvec[2] + 1000.0, "the points are in front of the camera");
+    CHECK(dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, turn, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N)
                   == DIMENET_OK
               && near(out_k[2], k[2], 1e-6),
           "a zero turn changes nothing");
     prior[2] += 4.0;
-    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, 0.5, 0.1, out_k, R, t, cov, &weight,
-                           residuals, &steps, scratch, 9 * N)
+    CHECK(dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, NULL, 0.5, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N)
               == DIMENET_OK,
           "a prior 4 px off in cx");
     CHECK(steps == 1 && fabs(out_k[2] - k[2]) < 0.4, "the frame pulls cx back");
@@ -436,27 +438,48 @@ static void test_map_step(void)
     for (i = 0; i < 2 * N; i++) {
         CHECK(fabs(residuals[i]) < 1.0, "the residuals at the step are small");
     }
-    CHECK(cov[66] > 0.0 && cov[66] < 1.0 / 1e-6, "the posterior of fx is tighter than the prior");
-    CHECK(dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
-                           residuals, &steps, scratch, 9 * N - 1)
+    CHECK(e > 0.0 && e < 1.0, "the mean error at the step is small");
+    CHECK(cov[66] > 0.0 && cov[66] < 1e6, "the posterior of fx is tighter than the prior");
+    CHECK(dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N - 1)
               == DIMENET_E_ARGUMENT,
           "a short scratch is refused");
-    CHECK(dimenet_map_step(0, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
-                           residuals, &steps, scratch, 9 * N)
+    CHECK(dimenet_map_step(0, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N)
               == DIMENET_E_ARGUMENT,
           "no points are refused");
-    CHECK(dimenet_map_step(N, p2, p3, NULL, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
-                           residuals, &steps, scratch, 9 * N)
+    CHECK(dimenet_map_step(N, p2, p3, NULL, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N)
               == DIMENET_E_ARGUMENT,
           "a NULL prior is refused");
+    CHECK(dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, NULL, &depth, &steps, scratch, 9 * N)
+              == DIMENET_E_ARGUMENT,
+          "a NULL error output is refused");
+    prior_cov[10] = -1.0;
+    CHECK(dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                           residuals, &e, &depth, &steps, scratch, 9 * N)
+              == DIMENET_E_PRIOR_COVARIANCE,
+          "a prior covariance with a negative variance is refused");
+    CHECK(strcmp(dimenet_error_message(DIMENET_E_PRIOR_COVARIANCE),
+                 "the prior's covariance of K is not positive definite")
+              == 0,
+          "the prior covariance's message");
+    prior_cov[10] = 1e6;
+    { /* the camera 2 m behind its place: every point behind it */
+        const double back[3] = {tvec[0], tvec[1], tvec[2] - 2000.0};
+        c = dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, back, NULL, 0.5, 0.1, out_k, R, t, cov, &weight,
+                             residuals, &e, &depth, &steps, scratch, 9 * N);
+        CHECK(c != DIMENET_OK || depth < 0.0, "points behind the camera give a negative depth");
+    }
+    for (c = 0; c < 16; c++) { /* the widest prior a double holds: the data alone */
+        prior_cov[c] = c % 5 == 0 ? 1e300 : 0.0;
+    }
     for (i = 0; i < N; i++) { /* every point the same: no pose */
         p3[3 * i] = p3[0], p3[3 * i + 1] = p3[1], p3[3 * i + 2] = p3[2], p2[2 * i] = p2[0], p2[2 * i + 1] = p2[1];
     }
-    for (c = 0; c < 16; c++) {
-        precision[c] = 0.0;
-    }
-    c = dimenet_map_step(N, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
-                         residuals, &steps, scratch, 9 * N);
+    c = dimenet_map_step(N, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, out_k, R, t, cov, &weight,
+                         residuals, &e, &depth, &steps, scratch, 9 * N);
     CHECK(c == DIMENET_E_NOT_POSITIVE_DEFINITE || c == DIMENET_E_HESSIAN_DIAGONAL, "one point repeated fixes no pose");
 }
 
@@ -469,38 +492,63 @@ static void test_frame_checks(void)
     static const double rvec[3] = {0.12, -0.31, 0.05}, tvec[3] = {12.0, -25.0, 610.0};
     dimenet_feature_spec s = model_spec(0);
     unsigned r = 99u;
+    double inv[3] = {0.0, 0.0, 0.0};
     size_t i;
     make_frame(&s, N, rvec, tvec, 0.0, p2, p3);
-    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK && r == 0u,
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK && r == 0u,
           "an ordinary frame passes");
+    CHECK(inv[0] > 0.0 && inv[1] > 0.0 && inv[2] > 0.0 && inv[1] <= inv[0] * inv[0] / 3.0,
+          "a 3D cloud's covariance: a positive trace, minors and determinant, the minors at most T^2 / 3");
+    for (i = 0; i < 4; i++) { /* four points on a square of side 2 in z = 0: covariance diag(1, 1, 0) */
+        p3[3 * i] = (i % 2) ? 1.0 : -1.0, p3[3 * i + 1] = (i / 2) ? 1.0 : -1.0, p3[3 * i + 2] = 0.0;
+    }
+    CHECK(dimenet_frame_checks(4, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK && inv[0] == 2.0
+              && inv[1] == 1.0 && inv[2] == 0.0,
+          "a square's invariants by hand: trace 2, minors 1, determinant 0");
+    CHECK(dimenet_frame_checks(4, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, NULL) == DIMENET_OK,
+          "no invariants asked for");
+    make_frame(&s, N, rvec, tvec, 0.0, p2, p3);
     p2[6] = -0.5;
-    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK && r == 0u,
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK && r == 0u,
           "on the image's edge: inside");
     p2[6] = -0.51;
-    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
-              && r == DIMENET_CHECK_OUTSIDE,
-          "beyond the edge: outside");
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK
+              && r == DIMENET_CHECK_OUTSIDE && inv[0] != inv[0],
+          "beyond the edge: outside, no invariants (NaN)");
     p2[6] = NAN;
-    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK
               && r == DIMENET_CHECK_OUTSIDE,
           "a NaN pixel: outside");
     p2[6] = 100.0, p3[4] = 1e12;
-    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK
               && r == DIMENET_CHECK_OUTSIDE,
           "a coordinate at the range's end: outside");
     for (i = 0; i < N; i++) {
         p3[3 * i + 1] = 0.0, p3[3 * i + 2] = 0.0;
     }
-    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_OK
+    CHECK(dimenet_frame_checks(N, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_OK
               && r == DIMENET_CHECK_NOT_SPREAD,
           "collinear 3D points: not clearly spread");
-    CHECK(dimenet_frame_checks(0, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_E_ARGUMENT,
+    CHECK(dimenet_frame_checks(0, p2, p2, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_E_ARGUMENT,
           "no points are refused");
-    CHECK(dimenet_frame_checks(N, p2, NULL, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r) == DIMENET_E_ARGUMENT,
+    CHECK(dimenet_frame_checks(N, p2, NULL, p3, 4032, 3024, 1e12, 1e-4, 1e-10, &r, inv) == DIMENET_E_ARGUMENT,
           "a NULL buffer is refused");
 }
 
 /* The PnP's unit: the power of two nearest the RMS norm; 1 for zero or non-finite points; bad arguments. */
+/* The occupied cells of a grid by hand: a cell with one set channel counts, a NaN too, -0.0 does not. */
+static void test_occupied_cells(void)
+{
+    const double grid[12] = {0.0, 0.0, 0.0, 2.5, -0.0, -0.0, 0.0, 0.0, NAN, 0.0, 0.0, -1.0};
+    size_t occupied = 99;
+    CHECK(dimenet_occupied_cells(6, 2, grid, &occupied) == DIMENET_OK && occupied == 3,
+          "cells 1, 4 and 5 of six hold points");
+    CHECK(dimenet_occupied_cells(0, 2, grid, &occupied) == DIMENET_OK && occupied == 0, "no cells, none occupied");
+    CHECK(dimenet_occupied_cells(6, 0, grid, &occupied) == DIMENET_E_ARGUMENT, "no channel is refused");
+    CHECK(dimenet_occupied_cells(6, 2, NULL, &occupied) == DIMENET_E_ARGUMENT, "a NULL grid is refused");
+    CHECK(dimenet_occupied_cells((size_t)-1, 2, grid, &occupied) == DIMENET_E_ARGUMENT, "an overflowing size");
+}
+
 static void test_power_of_two_unit(void)
 {
     double p3[12] = {300.0, 0.0, 0.0, 0.0, 300.0, 0.0, 0.0, 0.0, 300.0, -300.0, 0.0, 0.0}, unit = 0.0;
@@ -522,6 +570,7 @@ int main(void)
     test_map_step();
     test_frame_checks();
     test_power_of_two_unit();
+    test_occupied_cells();
     test_sizes();
     test_exact_frame(0);
     test_exact_frame(1);

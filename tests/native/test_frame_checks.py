@@ -1,7 +1,7 @@
 """The input rules' fast tests in the compiled core (``native.core.frame_checks``, ``validated_frame``'s with
-a camera without a lens) against the numpy rules: the same verdict (all_inside, clearly_spread) on the bench's
-2000 frames and both models' golden frames, and the same accepted frames and InputError messages on hostile
-ones, alone and in a batch."""
+a camera without a lens) against the numpy rules: the same verdict (all_inside, clearly_spread) and the 3D
+points' covariance invariants to the bit on the bench's 2000 frames and both models' golden frames, and the same
+accepted frames, invariants and InputError messages on hostile ones, alone and in a batch."""
 
 from __future__ import annotations
 
@@ -39,9 +39,35 @@ def numpy_verdict(p2, p3) -> int:
     return 0 if spread else 2
 
 
-def core_verdict(p2, p3) -> int:
+def core_checks(p2, p3) -> tuple[int, tuple]:
     core = native._compiled()[0]
     return core.frame_checks(p2, p2, p3, IMAGE.width, IMAGE.height, MAX_COORDINATE, SPREAD_RATIO, SPREAD_ABSOLUTE)
+
+
+def core_verdict(p2, p3) -> int:
+    return core_checks(p2, p3)[0]
+
+
+def test_the_core_gives_the_references_invariants_to_the_bit():
+    # bench frames, then scenes from 1e-6 to 1e10 mm, far off their origin, planar and repeated points
+    p2, p3 = bench_frames(300, 320, (4032, 3024))
+    rng = np.random.default_rng(11)
+    scenes = list(p3)
+    for scale in 10.0 ** np.arange(-6, 11):
+        X = rng.normal(0.0, scale, (int(rng.integers(6, 2000)), 3)) + rng.normal(0.0, 30 * scale, 3)
+        scenes += [X, X * [1.0, 1.0, 0.0], np.repeat(X[:3], 4, 0)]
+    for X in scenes:
+        X = np.ascontiguousarray(X[np.all(np.abs(X) < MAX_COORDINATE, 1)])
+        x = np.full((len(X), 2), 100.0)
+        verdict, invariants = core_checks(x, X)
+        assert verdict != 1
+        assert invariants == covariance_invariants(X)  # floats compared exactly
+
+
+def test_outside_points_give_no_invariants():
+    x, X = hostile_frames()["outside"]
+    verdict, invariants = core_checks(x, X)
+    assert verdict == 1 and np.isnan(invariants).all()
 
 
 def test_the_same_verdict_on_the_bench_and_golden_frames():
@@ -83,13 +109,14 @@ def test_validated_frame_accepts_and_refuses_alike(case):
     for exact_map, name in ((False, "python"), (True, "c")):
         with native.using(name):
             try:
-                out[name] = validated_frame(IMAGE, lambda p, valid=True: p, x, X, exact_map=exact_map)[:3]
+                out[name] = validated_frame(IMAGE, lambda p, valid=True: p, x, X, exact_map=exact_map)
             except InputError as exc:
                 out[name] = str(exc)
     if isinstance(out["python"], str):
         assert out["python"] == out["c"], case
     else:
-        assert all(np.array_equal(a, b) for a, b in zip(out["python"], out["c"])), case
+        assert all(np.array_equal(a, b) for a, b in zip(out["python"][:3], out["c"][:3])), case
+        assert out["python"][3] == out["c"][3], case  # the 3D invariants, to the bit
 
 
 @pytest.mark.parametrize("case", sorted(hostile_frames()))

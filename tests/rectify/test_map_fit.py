@@ -123,3 +123,17 @@ def test_map_on_one_planar_view_follows_the_prior_where_the_data_says_nothing():
     assert np.all(np.isfinite(fit.k)) and np.all(np.abs(fit.k - k_params(K)) < 4 * 5.0)
     # The posterior is never wider than the prior (the data only add information).
     assert np.all(np.linalg.eigvalsh(prior - fit.K_cov) >= -1e-9)
+
+
+@pytest.mark.parametrize("depth_mm, code", [(350.0, None), (-1.0, "map_behind_camera"), (np.nan, "map_behind_camera")])
+def test_map_rectify_refuses_a_fit_with_a_point_behind_the_camera(monkeypatch, depth_mm, code):
+    # The fit's smallest depth (the kernel's, at the MAP pose) decides; NaN, which no comparison passes, too.
+    from dimenet.runtime.rectify import map_fit as module
+
+    x, X, K = _frame(np.random.default_rng(3))
+    k_net = k_params(K)
+    fit = map_fit(x, X, k_net, np.eye(4) * 25.0, *solve_pnp_start(x, X, K), K_start=K)
+    assert fit.steps == 1 and fit.depth_mm > 0
+    monkeypatch.setattr(module, "map_fit", lambda *args, **kwargs: replace(fit, depth_mm=depth_mm))
+    result, why = map_rectify(x, X, k_net, np.eye(4) * 25.0, np.array([[-1e9, 1e9]] * 4), K)
+    assert (why is None and result.depth_mm == depth_mm) if code is None else (result is None and why.code == code)

@@ -56,7 +56,7 @@ static void check(int ok)
 
 static int known(int code)
 {
-    return code >= DIMENET_OK && code <= DIMENET_E_NO_POSE_STEP;
+    return code >= DIMENET_OK && code <= DIMENET_E_PRIOR_COVARIANCE;
 }
 
 /* The paper's variants A to E (rectify/features.py VARIANTS), or (a first byte of 200 or more) any
@@ -203,11 +203,12 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         code = dimenet_pose_steps(n, p2, p3, k, rvec, tvec, 0, r_out, t_out, &e, &depth, NULL, 0);
         check(code == DIMENET_OK); /* no step cannot fail */
     }
-    /* mode map's step from a prior near K_c (a precision made of the input, possibly not positive definite)
+    /* mode map's step from a prior near K_c (a covariance made of the input, possibly not positive definite)
      * and the input's pose, turned or not, with a known or estimated noise; exact buffers; any values give a
      * known code, no points or a short scratch are refused */
     {
-        double prior[4], precision[16], turn[3], k_out[4], R[9], t_out[3], cov[100], weight = 0.0, noise;
+        double prior[4], prior_cov[16], turn[3], k_out[4], R[9], t_out[3], cov[100], weight = 0.0, noise;
+        double e_out = 0.0, depth = 0.0;
         double *residuals = (double *)malloc(sizeof(double) * (2 * n + 1));
         size_t M = 0;
         int steps = -1;
@@ -216,29 +217,30 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         prior[2] = spec.K_c_px[2] + number(&b, raw, -50.0, 50.0);
         prior[3] = spec.K_c_px[5] + number(&b, raw, -50.0, 50.0);
         for (i = 0; i < 16; i++) {
-            precision[i] = i % 5 == 0 ? number(&b, raw, 0.0, 1.0) : number(&b, raw, -1e-3, 1e-3);
+            prior_cov[i] = i % 5 == 0 ? number(&b, raw, 0.0, 1e4) : number(&b, raw, -10.0, 10.0);
         }
         for (i = 0; i < 3; i++) {
             turn[i] = number(&b, raw, -0.01, 0.01);
         }
         noise = take(&b) % 2u ? -1.0 : number(&b, raw, 0.0, 3.0);
         check(residuals != NULL && dimenet_map_scratch_doubles(n, &M) == DIMENET_OK && M <= S);
-        code = dimenet_map_step(n, p2, p3, prior, precision, rvec, tvec, take(&b) % 2u ? turn : NULL, noise, 0.1,
-                                k_out, R, t_out, cov, &weight, residuals, &steps, scratch, M);
+        code = dimenet_map_step(n, p2, p3, prior, prior_cov, rvec, tvec, take(&b) % 2u ? turn : NULL, noise, 0.1,
+                                k_out, R, t_out, cov, &weight, residuals, &e_out, &depth, &steps, scratch, M);
         check(n == 0 ? code == DIMENET_E_ARGUMENT
-                     : (code == DIMENET_OK || code == DIMENET_E_HESSIAN_DIAGONAL
+                     : (code == DIMENET_OK || code == DIMENET_E_PRIOR_COVARIANCE || code == DIMENET_E_HESSIAN_DIAGONAL
                         || code == DIMENET_E_NOT_POSITIVE_DEFINITE));
         check(code != DIMENET_OK || steps == 0 || steps == 1);
-        check(n == 0 || dimenet_map_step(n, p2, p3, prior, precision, rvec, tvec, NULL, -1.0, 0.1, k_out, R, t_out,
-                                         cov, &weight, residuals, &steps, scratch, M - 1)
+        check(n == 0 || dimenet_map_step(n, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, k_out, R, t_out,
+                                         cov, &weight, residuals, &e_out, &depth, &steps, scratch, M - 1)
                             == DIMENET_E_ARGUMENT);
         free(residuals);
     }
     /* the input rules' fast tests: a verdict for any values, a refusal of no points */
     {
         unsigned verdict = 99u;
+        double invariants[3];
         code = dimenet_frame_checks(n, p2, p2, p3, spec.image_width_px, spec.image_height_px, 1e12, 1e-4, 1e-10,
-                                    &verdict);
+                                    &verdict, invariants);
         check(n == 0 ? code == DIMENET_E_ARGUMENT : (code == DIMENET_OK && verdict <= DIMENET_CHECK_NOT_SPREAD));
     }
     /* the PnP's unit: a power of two (1 for no or non-finite points) for any values */
@@ -247,6 +249,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         int exponent;
         check(dimenet_power_of_two_unit(3 * n, p3, &unit) == DIMENET_OK);
         check(frexp(unit, &exponent) == 0.5 && unit > 0.0 && isfinite(unit));
+    }
+    /* the occupied cells of the input's values read as a grid of 1 to 5 channels: at most every cell */
+    {
+        size_t channels = 1u + take(&b) % 5u, occupied = 0;
+        check(dimenet_occupied_cells(3 * n / channels, channels, p3, &occupied) == DIMENET_OK
+              && occupied <= 3 * n / channels);
+        check(dimenet_occupied_cells(n, 0, p3, &occupied) == DIMENET_E_ARGUMENT);
     }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
