@@ -61,15 +61,6 @@ void dimenet__rodrigues(const double rvec[3], double R[9])
     }
 }
 
-void dimenet__norm_add(dimenet__norm_sum *sum, double norm)
-{
-    sum->lanes[sum->n % 4] = norm;
-    if (sum->n % 4 == 3) {
-        sum->total += ((sum->lanes[0] + sum->lanes[1]) + sum->lanes[2]) + sum->lanes[3];
-    }
-    sum->n++;
-}
-
 double dimenet__norm_mean(const dimenet__norm_sum *sum)
 {
     double total = sum->total;
