@@ -1,7 +1,8 @@
 /* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
  * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks), power_of_two_unit
- * (dimenet_power_of_two_unit), occupied_cells (dimenet_occupied_cells) and map_step (dimenet_map_step), under
- * the same rules as _module.c's (buffers checked, the GIL released in the kernel, no static mutable state). */
+ * (dimenet_power_of_two_unit), occupied_cells (dimenet_occupied_cells), map_step (dimenet_map_step) and
+ * map_posterior (dimenet_map_posterior), under the same rules as _module.c's (buffers checked, the GIL released
+ * in the kernels that loop over points, no static mutable state). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -220,6 +221,55 @@ static PyObject *occupied_cells(PyObject *module, PyObject *const *args, Py_ssiz
     return PyLong_FromSize_t(occupied);
 }
 
+PyDoc_STRVAR(map_posterior_doc,
+             "map_posterior(cov, k_cov_prior, noise_px, data_correlation, noise_scale_px, data_bias, k_cov_out)\n--\n\n"
+             "Mode map's posterior of K (dimenet_map_posterior; map_fit's K_cov to the bit): the K block of cov (10, "
+             "10) symmetrised, widened by the uncertainty model's data_correlation (4,), noise_scale_px and "
+             "data_bias (4,) against the network's k_cov_prior (4, 4) px^2 at the frame's 2D noise noise_px, into "
+             "k_cov_out (4, 4), all float64 C contiguous.");
+
+static PyObject *map_posterior(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const int ARRAY_ARGS[5] = {0, 1, 3, 5, 6};
+    static const char *const names[5] = {"cov", "k_cov_prior", "data_correlation", "data_bias", "k_cov_out"};
+    static const Py_ssize_t shapes[5][2] = {{10, 10}, {4, 4}, {4, -1}, {4, -1}, {4, 4}};
+    static const char ndims[5] = {2, 2, 1, 1, 2};
+    Py_buffer views[5];
+    int n_views = 0, code = DIMENET_OK, i;
+    double noise_px, noise_scale_px;
+    PyObject *result = NULL;
+    (void)module;
+    if (nargs != 7) {
+        PyErr_Format(PyExc_TypeError, "map_posterior takes 7 arguments, got %zd", nargs);
+        return NULL;
+    }
+    noise_px = PyFloat_AsDouble(args[2]);
+    noise_scale_px = PyFloat_AsDouble(args[4]);
+    if (PyErr_Occurred()) {
+        return NULL;
+    }
+    for (i = 0; i < 5; i++) {
+        if (dimenet_py_get_view(args[ARRAY_ARGS[i]], &views[i], names[i], 'd', ndims[i], shapes[i], i == 4) != 0) {
+            goto done;
+        }
+        n_views++;
+    }
+    code = dimenet_map_posterior((const double *)views[0].buf, (const double *)views[1].buf, noise_px,
+                                 (const double *)views[2].buf, noise_scale_px, (const double *)views[3].buf,
+                                 (double *)views[4].buf);
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, dimenet_error_message(code));
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
 PyDoc_STRVAR(map_step_doc,
              "map_step(points_2d, points_3d, k_prior, k_cov_prior, rvec, tvec, turn, noise_px, noise_floor_px, k_out, "
              "R_out, tvec_out, cov_out, residuals_out)\n--\n\n"
@@ -307,6 +357,7 @@ done:
 
 PyMethodDef dimenet_py_pose_methods[] = {
     {"map_step", (PyCFunction)(void (*)(void))map_step, METH_FASTCALL, map_step_doc},
+    {"map_posterior", (PyCFunction)(void (*)(void))map_posterior, METH_FASTCALL, map_posterior_doc},
     {"pose_steps", (PyCFunction)(void (*)(void))pose_steps, METH_FASTCALL, pose_steps_doc},
     {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
     {"power_of_two_unit", (PyCFunction)power_of_two_unit, METH_O, power_of_two_unit_doc},

@@ -183,6 +183,17 @@ int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *
                      double *residuals_px, double *e_px, double *depth_mm, int *steps, double *scratch,
                      size_t n_scratch);
 
+/* Mode map's posterior of K (rectify.map_fit's K_cov, to the bit): the K block of cov (10 x 10, the map step's
+ * inverse Hessian over (w, tau, fx, fy, cx, cy)), symmetrised as (A + A^T) / 2, then widened as
+ * rectify.uncertainty.Uncertainty.map_covariance does when data_correlation (rho, 4) has a nonzero entry: each
+ * parameter's standard deviation by sqrt(1 + 2 rho w sqrt(max(r (1 - r), 0))), r its posterior over its prior
+ * variance (k_cov_prior_px2, the network's 4 x 4 px^2), w = s^2 / (s^2 + noise_scale_px^2) with s = noise_px
+ * the frame's 2D noise; and when data_bias (b, 4) has a nonzero entry, plus the prior's covariance times b_p b_q.
+ * k_cov_px2 (4 x 4 px^2, row major) the result. DIMENET_E_ARGUMENT for a NULL pointer. */
+int dimenet_map_posterior(const double cov[100], const double k_cov_prior_px2[16], double noise_px,
+                          const double data_correlation[4], double noise_scale_px, const double data_bias[4],
+                          double k_cov_px2[16]);
+
 /* Bits of dimenet_frame_checks' result. */
 #define DIMENET_CHECK_OUTSIDE 1u     /* a value not finite, a 2D point outside the image or a 3D coordinate
                                         outside [-max_coordinate, max_coordinate) */

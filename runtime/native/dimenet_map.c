@@ -1,5 +1,6 @@
 /* dimenet_map: mode map's Gauss-Newton step over (pose, K) with the network's prior on K
- * (geometry/map_step.py, map_steps with one step), to the bit: every product in the reference's fixed order. */
+ * (geometry/map_step.py, map_steps with one step), to the bit: every product in the reference's fixed order;
+ * and its posterior of K, widened as the uncertainty model says (rectify/map_fit.py, rectify/uncertainty.py). */
 #include "dimenet_internal.h"
 
 #include <math.h>
@@ -149,5 +150,47 @@ int dimenet_map_step(size_t n_points, const double *points_2d_px, const double *
     *depth_mm = taken ? depth_new : depth;
     *weight_per_px2 = weight;
     *steps = taken;
+    return DIMENET_OK;
+}
+
+int dimenet_map_posterior(const double cov[100], const double k_cov_prior_px2[16], double noise_px,
+                          const double data_correlation[4], double noise_scale_px, const double data_bias[4],
+                          double k_cov_px2[16])
+{
+    double scale[4], w, s2;
+    int i, j, widens = 0, biased = 0;
+    if (cov == NULL || k_cov_prior_px2 == NULL || data_correlation == NULL || data_bias == NULL
+        || k_cov_px2 == NULL) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (i = 0; i < 4; i++) { /* map_fit: (cov[6:, 6:] + cov[6:, 6:].T) / 2 */
+        for (j = 0; j < 4; j++) {
+            k_cov_px2[4 * i + j] = (cov[10 * (6 + i) + 6 + j] + cov[10 * (6 + j) + 6 + i]) / 2.0;
+        }
+        widens |= data_correlation[i] != 0.0;
+        biased |= data_bias[i] != 0.0;
+    }
+    if (widens) { /* Uncertainty.posterior_scale, in Python's float order */
+        s2 = noise_px * noise_px;
+        w = s2 / (s2 + dimenet__python_square(noise_scale_px));
+        for (i = 0; i < 4; i++) {
+            double r = k_cov_px2[5 * i] / k_cov_prior_px2[5 * i], q = r * (1.0 - r);
+            q = 0.0 > q ? 0.0 : q; /* Python's max(q, 0.0): q unless 0.0 is larger (a NaN stays) */
+            scale[i] = data_correlation[i] != 0.0 ? sqrt(1.0 + 2.0 * data_correlation[i] * w * sqrt(q)) : 1.0;
+        }
+        for (i = 0; i < 4; i++) {
+            for (j = 0; j < 4; j++) {
+                k_cov_px2[4 * i + j] = k_cov_px2[4 * i + j] * (scale[i] * scale[j]);
+            }
+        }
+    }
+    if (biased) { /* + network * outer(b, b) */
+        for (i = 0; i < 4; i++) {
+            for (j = 0; j < 4; j++) {
+                double b = data_bias[i] * data_bias[j];
+                k_cov_px2[4 * i + j] = k_cov_px2[4 * i + j] + k_cov_prior_px2[4 * i + j] * b;
+            }
+        }
+    }
     return DIMENET_OK;
 }

@@ -23,6 +23,7 @@ observable even from one planar view, where the data alone cannot fix it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -39,6 +40,8 @@ from dimenet.runtime.rectify.uncertainty import Uncertainty
 # (training/METHOD.md, "MAP: steps and noise passes").
 ITERATIONS = 1
 NOISE_FLOOR_PX = 0.1
+# The compiled posterior's parameters without an uncertainty model: no correlation, no bias (s0 unused).
+NOT_WIDENED = Uncertainty(coef=np.zeros((4, 5)), correlation=np.eye(4))
 
 
 @dataclass(frozen=True)
@@ -89,10 +92,8 @@ def map_fit(
     k, R, tvec, cov, weight, residuals, e_px, depth_mm, steps = native.map_steps(
         points_2d, points_3d, k_net, K_cov_net, rvec, tvec, turn, noise_px, NOISE_FLOOR_PX, iterations
     )
-    K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
     noise_px = weight**-0.5
-    if uncertainty is not None:
-        K_cov = uncertainty.map_covariance(K_cov, K_cov_net, noise_px)
+    K_cov = map_posterior(cov, K_cov_net, noise_px, uncertainty)
     return MapFit(
         k=k,
         rvec=cv2.Rodrigues(R)[0].ravel(),
@@ -104,6 +105,25 @@ def map_fit(
         steps=steps,
         noise_px=noise_px,
     )
+
+
+def map_posterior(cov: np.ndarray, K_cov_net: np.ndarray, noise_px: float, uncertainty: Optional[Uncertainty]):
+    """The MAP posterior K_cov (4, 4) px^2: the K block of the step's inverse Hessian cov (10, 10), symmetrised,
+    widened by ``uncertainty.map_covariance`` against the network's K_cov_net (4, 4) px^2 at the frame's 2D noise
+    noise_px (None: not widened). In the compiled core where it is (``dimenet_map_posterior``, 1.4 against 17.5 us;
+    models_spec/BENCHMARKS.md), the same numbers to the bit."""
+    if native.core is not None:
+        u = NOT_WIDENED if uncertainty is None else uncertainty
+        K_cov = np.empty((4, 4))
+        try:  # the step's arrays as they come (float64, C-contiguous)
+            native.core.map_posterior(
+                cov, K_cov_net, noise_px, u.data_correlation, u.noise_scale_px, u.data_bias, K_cov
+            )
+            return K_cov
+        except TypeError:  # another layout: numpy
+            pass
+    K_cov = (cov[6:, 6:] + cov[6:, 6:].T) / 2
+    return K_cov if uncertainty is None else uncertainty.map_covariance(K_cov, K_cov_net, noise_px)
 
 
 def map_rectify(

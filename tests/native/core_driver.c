@@ -536,6 +536,29 @@ static void test_frame_checks(void)
 }
 
 /* The PnP's unit: the power of two nearest the RMS norm; 1 for zero or non-finite points; bad arguments. */
+/* Mode map's posterior by hand: the K block symmetrised; a correlation of 1 at r = 1/2 and s = s0 widens each
+ * standard deviation by sqrt(1 + 2 (1/2) (1/2)) = sqrt(3/2); a bias b adds b_p b_q times the prior. */
+static void test_map_posterior(void)
+{
+    double cov[100] = {0.0}, prior[16] = {0.0}, out[16], rho[4] = {0.0, 0.0, 0.0, 0.0}, bias[4] = {0.0, 0.0, 0.0, 0.0};
+    int i;
+    for (i = 0; i < 4; i++) {
+        cov[10 * (6 + i) + 6 + i] = 2.0, prior[5 * i] = 4.0;
+    }
+    cov[10 * 6 + 7] = 1.0, cov[10 * 7 + 6] = 0.5; /* not symmetric: (1 + 0.5) / 2 */
+    CHECK(dimenet_map_posterior(cov, prior, 2.0, rho, 2.0, bias, out) == DIMENET_OK && out[0] == 2.0
+              && out[1] == 0.75 && out[4] == 0.75 && out[5] == 2.0,
+          "no widening: the K block symmetrised");
+    rho[0] = 1.0;
+    CHECK(dimenet_map_posterior(cov, prior, 2.0, rho, 2.0, bias, out) == DIMENET_OK && near(out[0], 3.0, 1e-15)
+              && near(out[1], 0.75 * sqrt(1.5), 1e-15) && out[5] == 2.0,
+          "rho 1 at r = 1/2, s = s0: the variance times 3/2");
+    rho[0] = 0.0, bias[2] = 0.5;
+    CHECK(dimenet_map_posterior(cov, prior, 2.0, rho, 2.0, bias, out) == DIMENET_OK && out[10] == 3.0 && out[0] == 2.0,
+          "a bias of 0.5 adds a quarter of the prior");
+    CHECK(dimenet_map_posterior(NULL, prior, 2.0, rho, 2.0, bias, out) == DIMENET_E_ARGUMENT, "a NULL cov is refused");
+}
+
 /* The occupied cells of a grid by hand: a cell with one set channel counts, a NaN too, -0.0 does not. */
 static void test_occupied_cells(void)
 {
@@ -571,6 +594,7 @@ int main(void)
     test_frame_checks();
     test_power_of_two_unit();
     test_occupied_cells();
+    test_map_posterior();
     test_sizes();
     test_exact_frame(0);
     test_exact_frame(1);

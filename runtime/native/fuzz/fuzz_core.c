@@ -233,6 +233,21 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         check(n == 0 || dimenet_map_step(n, p2, p3, prior, prior_cov, rvec, tvec, NULL, -1.0, 0.1, k_out, R, t_out,
                                          cov, &weight, residuals, &e_out, &depth, &steps, scratch, M - 1)
                             == DIMENET_E_ARGUMENT);
+        { /* its posterior from the step's cov (or, without a step, the input's values) for any widening */
+            double k_cov[16], rho[4], bias[4];
+            for (i = 0; i < 4; i++) {
+                rho[i] = take(&b) % 2u ? number(&b, raw, 0.0, 1.0) : 0.0;
+                bias[i] = take(&b) % 2u ? number(&b, raw, 0.0, 3.0) : 0.0;
+            }
+            if (code != DIMENET_OK) {
+                for (i = 0; i < 100; i++) {
+                    cov[i] = number(&b, raw, -1e3, 1e3);
+                }
+            }
+            check(dimenet_map_posterior(cov, prior_cov, number(&b, raw, 0.0, 5.0), rho, number(&b, raw, 0.01, 5.0),
+                                        bias, k_cov)
+                  == DIMENET_OK);
+        }
         free(residuals);
     }
     /* the input rules' fast tests: a verdict for any values, a refusal of no points */
