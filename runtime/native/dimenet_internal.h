@@ -43,6 +43,12 @@ static inline void dimenet__norm_add(dimenet__norm_sum *sum, double norm)
     sum->n++;
 }
 
+/* np.min's running minimum of depths (mm): the smaller of depth and z, a NaN once met staying (start: HUGE_VAL). */
+static inline double dimenet__depth_min(double depth, double z)
+{
+    return depth != depth ? depth : (z < depth || z != z) ? z : depth;
+}
+
 /* The mean of the norms added, px (their total over their count). */
 double dimenet__norm_mean(const dimenet__norm_sum *sum);
 

@@ -49,9 +49,7 @@ static double pinhole_rows(size_t n, const double *p2, const double *p3, const d
         if (inv_z != NULL) {
             x[i] = xc, y[i] = yc, inv_z[i] = iz;
         }
-        if (zc < depth || zc != zc) {
-            depth = depth != depth ? depth : zc;
-        }
+        depth = dimenet__depth_min(depth, zc);
     }
     return depth;
 }

@@ -23,9 +23,7 @@ static void pose_error_and_depth(size_t N, const double *p2, const double *p3, c
         double zc = ((X * R[6] + Y * R[7]) + Z * R[8]) + t[2];
         double inv_z = 1.0 / zc, a = xc * inv_z, b = yc * inv_z;
         double du = (a * k[0] + k[2]) - p2[2 * i], dv = (b * k[1] + k[3]) - p2[2 * i + 1];
-        if (zc < depth || zc != zc) {
-            depth = depth != depth ? depth : zc;
-        }
+        depth = dimenet__depth_min(depth, zc);
         dimenet__norm_add(&norms, sqrt(du * du + dv * dv));
     }
     *e_px = dimenet__norm_mean(&norms);
