@@ -1,8 +1,9 @@
 /* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
  * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks), power_of_two_unit
- * (dimenet_power_of_two_unit), occupied_cells (dimenet_occupied_cells), map_step (dimenet_map_step) and
- * map_posterior (dimenet_map_posterior), under the same rules as _module.c's (buffers checked, the GIL released
- * in the kernels that loop over points, no static mutable state). */
+ * (dimenet_power_of_two_unit), occupied_cells (dimenet_occupied_cells), network_covariance
+ * (dimenet_network_covariance), map_step (dimenet_map_step) and map_posterior (dimenet_map_posterior), under the
+ * same rules as _module.c's (buffers checked, the GIL released in the kernels that loop over points, no static
+ * mutable state). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -221,6 +222,64 @@ static PyObject *occupied_cells(PyObject *module, PyObject *const *args, Py_ssiz
     return PyLong_FromSize_t(occupied);
 }
 
+PyDoc_STRVAR(network_covariance_doc,
+             "network_covariance(n_points, occupied_cells, mean_pmd_px, thickness_3d, d_floor_px, t_floor, columns, "
+             "coef, correlation, k_cov_out)\n--\n\n"
+             "The network's covariance of Delta K of one frame (dimenet_network_covariance; "
+             "Uncertainty.frame_covariance to the bit) into k_cov_out (4, 4) px^2 from the frame's four statistics "
+             "(numbers), their floors, columns (bytes: the statistics coef weighs, 0 to 3), coef (4, 1 + "
+             "len(columns)) and correlation (4, 4), all float64 C contiguous. ValueError for a count below 1 or a "
+             "column outside 0 to 3.");
+
+static PyObject *network_covariance(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[3] = {"coef", "correlation", "k_cov_out"};
+    static const Py_ssize_t shapes[3][2] = {{4, -1}, {4, 4}, {4, 4}};
+    Py_buffer views[3];
+    int n_views = 0, code = DIMENET_OK, i;
+    double numbers[6];
+    char *columns;
+    Py_ssize_t n_columns;
+    PyObject *result = NULL;
+    (void)module;
+    if (nargs != 10) {
+        PyErr_Format(PyExc_TypeError, "network_covariance takes 10 arguments, got %zd", nargs);
+        return NULL;
+    }
+    for (i = 0; i < 6; i++) {
+        numbers[i] = PyFloat_AsDouble(args[i]);
+    }
+    if (PyErr_Occurred() || PyBytes_AsStringAndSize(args[6], &columns, &n_columns) != 0) {
+        return NULL;
+    }
+    for (i = 0; i < 3; i++) {
+        if (dimenet_py_get_view(args[7 + i], &views[i], names[i], 'd', 2, shapes[i], i == 2) != 0) {
+            goto done;
+        }
+        n_views++;
+    }
+    if (views[0].shape[1] != 1 + n_columns) {
+        PyErr_SetString(PyExc_ValueError, "network_covariance: coef must be (4, 1 + len(columns))");
+        goto done;
+    }
+    code = dimenet_network_covariance(numbers[0], numbers[1], numbers[2], numbers[3], numbers[4], numbers[5],
+                                      (size_t)n_columns, (const unsigned char *)columns,
+                                      (const double *)views[0].buf, (const double *)views[1].buf,
+                                      (double *)views[2].buf);
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, "network_covariance: counts >= 1 and at most four columns, each 0 to 3, "
+                                          "expected");
+        goto done;
+    }
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
 PyDoc_STRVAR(map_posterior_doc,
              "map_posterior(cov, k_cov_prior, noise_px, data_correlation, noise_scale_px, data_bias, k_cov_out)\n--\n\n"
              "Mode map's posterior of K (dimenet_map_posterior; map_fit's K_cov to the bit): the K block of cov (10, "
@@ -362,5 +421,6 @@ PyMethodDef dimenet_py_pose_methods[] = {
     {"frame_checks", (PyCFunction)(void (*)(void))frame_checks, METH_FASTCALL, frame_checks_doc},
     {"power_of_two_unit", (PyCFunction)power_of_two_unit, METH_O, power_of_two_unit_doc},
     {"occupied_cells", (PyCFunction)(void (*)(void))occupied_cells, METH_FASTCALL, occupied_cells_doc},
+    {"network_covariance", (PyCFunction)(void (*)(void))network_covariance, METH_FASTCALL, network_covariance_doc},
     {NULL, NULL, 0, NULL},
 };

@@ -120,6 +120,17 @@ int dimenet_frame_features(const dimenet_feature_spec *spec, size_t n_points, co
  * count. DIMENET_E_ARGUMENT for a NULL pointer, no channel or a size that overflows. */
 int dimenet_occupied_cells(size_t n_cells, size_t n_channels, const double *grid, size_t *occupied);
 
+/* rectify.uncertainty.Uncertainty.frame_covariance: the network's covariance of Delta K (4 x 4 px^2, row major,
+ * into k_cov_px2) of one frame from its statistics n_points and occupied_cells (counts >= 1), mean_pmd_px and
+ * thickness_3d, the last two floored at d_floor_px and t_floor (Python's max: a NaN stays). With z = (log n,
+ * log m, log d, log t) and coef (4 x (1 + n_columns), row major) weighing [1, z[columns[0]], ...], sigma_p =
+ * exp(coef_p0 + coef_p1 z[columns[0]] + ...) summed left to right, and k_cov_px2[p][q] = (sigma_p sigma_q)
+ * correlation[p][q]. DIMENET_E_ARGUMENT for a NULL pointer, more than four columns, a column outside 0 to 3 or a
+ * count below 1. */
+int dimenet_network_covariance(double n_points, double occupied_cells, double mean_pmd_px, double thickness_3d,
+                               double d_floor_px, double t_floor, size_t n_columns, const unsigned char *columns,
+                               const double *coef, const double correlation[16], double k_cov_px2[16]);
+
 /* The monomial Gram (DIMENET_GRAM_SIZE x DIMENET_GRAM_SIZE, row major) Q Q^T of n_points points, Q the
  * monomials 1, a, b, ab, a^2, b^2, 1/Z, a/Z, b/Z (a = X/Z, b = Y/Z) and the residuals r_u, r_v of each:
  * x_c0_mm, y_c0_mm, inv_z_c0_per_mm the points in {C} (n_points each), residual_u_px, residual_v_px

@@ -97,6 +97,41 @@ int dimenet_occupied_cells(size_t n_cells, size_t n_channels, const double *grid
     return DIMENET_OK;
 }
 
+int dimenet_network_covariance(double n_points, double occupied_cells, double mean_pmd_px, double thickness_3d,
+                               double d_floor_px, double t_floor, size_t n_columns, const unsigned char *columns,
+                               const double *coef, const double correlation[16], double k_cov_px2[16])
+{
+    double z[4], sigma[4];
+    size_t p, q, j;
+    if (columns == NULL || coef == NULL || correlation == NULL || k_cov_px2 == NULL || n_columns > 4
+        || !(n_points >= 1.0) || !(occupied_cells >= 1.0)) {
+        return DIMENET_E_ARGUMENT;
+    }
+    for (j = 0; j < n_columns; j++) {
+        if (columns[j] > 3) {
+            return DIMENET_E_ARGUMENT;
+        }
+    }
+    z[0] = log(n_points);
+    z[1] = log(occupied_cells);
+    z[2] = log(d_floor_px > mean_pmd_px ? d_floor_px : mean_pmd_px);
+    z[3] = log(t_floor > thickness_3d ? t_floor : thickness_3d);
+    for (p = 0; p < 4; p++) {
+        const double *row = coef + p * (1 + n_columns);
+        double acc = row[0];
+        for (j = 0; j < n_columns; j++) {
+            acc = acc + row[1 + j] * z[columns[j]];
+        }
+        sigma[p] = exp(acc);
+    }
+    for (p = 0; p < 4; p++) {
+        for (q = 0; q < 4; q++) {
+            k_cov_px2[4 * p + q] = (sigma[p] * sigma[q]) * correlation[4 * p + q];
+        }
+    }
+    return DIMENET_OK;
+}
+
 /* -- numpy's sums ----------------------------------------------------------------------------- */
 
 /* numpy's sum of a run under a where= mask: each run of kept values pairwise, the runs in order. */

@@ -41,6 +41,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from dimenet.runtime import native
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.json_text import JsonProblem, is_number, numbers, required, shown
 
@@ -118,6 +119,12 @@ class Uncertainty:
                 )
             object.__setattr__(self, "population_sigma_px", pop)
         object.__setattr__(self, "_columns", [STATISTICS.index(name) for name in self.statistics])
+        # per frame: the core's arguments, the reference's plain floats
+        object.__setattr__(self, "_column_bytes", bytes(self._columns))
+        c = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (self.coef, self.correlation))
+        object.__setattr__(self, "_c", c)
+        object.__setattr__(self, "_coef_rows", c[0].tolist())
+        object.__setattr__(self, "_correlation_rows", c[1].tolist())
         object.__setattr__(self, "_rho", rho.tolist())  # plain floats for the per-frame widening
 
     @property
@@ -226,15 +233,39 @@ class Uncertainty:
         return np.exp(stats @ self.coef[:, 1:].T + self.coef[:, 0])
 
     def frame_covariance(self, n_points: int, occupied: int, mean_pmd_px: float, thickness_3d: float) -> np.ndarray:
-        """``covariance`` of one frame from its four numbers (the runtime's single-frame path)."""
+        """``covariance`` of one frame from its four numbers (the runtime's single-frame path): in the compiled core
+        where it is (``dimenet_network_covariance``, models_spec/BENCHMARKS.md has its us), else
+        ``frame_covariance_reference``, the same numbers to the bit."""
+        if native.core is None:
+            return self.frame_covariance_reference(n_points, occupied, mean_pmd_px, thickness_3d)
+        k_cov = np.empty((4, 4))
+        native.core.network_covariance(
+            n_points, occupied, mean_pmd_px, thickness_3d, D_FLOOR_PX, T_FLOOR, self._column_bytes, *self._c, k_cov
+        )
+        return k_cov
+
+    def frame_covariance_reference(
+        self, n_points: int, occupied: int, mean_pmd_px: float, thickness_3d: float
+    ) -> np.ndarray:
+        """``frame_covariance`` in plain floats, in a stated order the core follows: sigma_p = exp(coef_p0 +
+        coef_p1 z_1 + ...) summed left to right (libm's log and exp, as ``math``'s), then (sigma_p sigma_q) C_pq.
+        (The batch's ``covariance`` sums by a matrix product: the two agree to rounding.)"""
         all_z = (
             math.log(n_points),
             math.log(occupied),
             math.log(max(mean_pmd_px, D_FLOOR_PX)),
             math.log(max(thickness_3d, T_FLOOR)),
         )
-        s = np.exp(self.coef @ np.array((1.0, *(all_z[c] for c in self._columns))))
-        return np.outer(s, s) * self.correlation
+        z = [all_z[c] for c in self._columns]
+        sigma = []
+        for row in self._coef_rows:
+            acc = row[0]
+            for w, v in zip(row[1:], z):
+                acc = acc + w * v
+            sigma.append(_float_exp(acc))
+        return np.array(
+            [[(s_p * s_q) * c for s_q, c in zip(sigma, row)] for s_p, row in zip(sigma, self._correlation_rows)]
+        )
 
     def covariance(self, stats: np.ndarray) -> np.ndarray:
         """(B, 4) frame statistics -> (B, 4, 4) covariance of Delta K, px^2."""
@@ -296,6 +327,14 @@ def log_sigma_range(coef: np.ndarray, statistics: tuple, n_cells: int) -> tuple:
             low += ends.min(1)
             high += ends.max(1)
     return low, high
+
+
+def _float_exp(x: float) -> float:
+    """libm's exp (``math.exp``'s, as the core's), inf where it overflows (math.exp raises there)."""
+    try:
+        return math.exp(x)
+    except OverflowError:
+        return math.inf
 
 
 def _exp(x: float) -> str:

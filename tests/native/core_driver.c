@@ -572,6 +572,40 @@ static void test_occupied_cells(void)
     CHECK(dimenet_occupied_cells((size_t)-1, 2, grid, &occupied) == DIMENET_E_ARGUMENT, "an overflowing size");
 }
 
+/* The network's covariance by hand: sigma_0 = exp(0.5 + log n) with one statistic (log n), the others exp of
+ * their intercepts; the floors; a NaN statistic; bad columns and counts. */
+static void test_network_covariance(void)
+{
+    const double correlation[16] = {1.0, 0.5, 0.0, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0};
+    const double coef[8] = {0.5, 1.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0};
+    const unsigned char n_column[1] = {0}, pmd_column[1] = {2}, bad[1] = {4};
+    double out[16];
+    CHECK(dimenet_network_covariance(4.0, 3.0, 1.0, 0.1, 0.05, 1e-6, 1, n_column, coef, correlation, out) == DIMENET_OK
+              && near(out[0], 16.0 * exp(1.0), 1e-14) && out[5] == 1.0 && near(out[1], 2.0 * exp(0.5), 1e-14)
+              && near(out[10], exp(2.0), 1e-14) && near(out[15], exp(-2.0), 1e-15) && out[2] == 0.0,
+          "sigma (4 exp(0.5), 1, e, 1 / e), correlation 0.5 between fx and fy");
+    CHECK(dimenet_network_covariance(4.0, 3.0, 0.01, 0.1, 0.05, 1e-6, 1, pmd_column, coef, correlation, out)
+                  == DIMENET_OK
+              && near(out[0], 0.05 * 0.05 * exp(1.0), 1e-15),
+          "a PMD below the floor reads as the floor");
+    CHECK(dimenet_network_covariance(4.0, 3.0, NAN, 0.1, 0.05, 1e-6, 1, pmd_column, coef, correlation, out)
+                  == DIMENET_OK
+              && isnan(out[0]) && isnan(out[15]),
+          "a NaN PMD stays NaN (Python's max), in every sigma (0 NaN is NaN)");
+    CHECK(dimenet_network_covariance(4.0, 3.0, 1.0, 0.1, 0.05, 1e-6, 1, bad, coef, correlation, out)
+              == DIMENET_E_ARGUMENT,
+          "a column outside 0 to 3 is refused");
+    CHECK(dimenet_network_covariance(0.0, 3.0, 1.0, 0.1, 0.05, 1e-6, 1, n_column, coef, correlation, out)
+              == DIMENET_E_ARGUMENT,
+          "no points are refused");
+    CHECK(dimenet_network_covariance(4.0, 3.0, 1.0, 0.1, 0.05, 1e-6, 5, n_column, coef, correlation, out)
+              == DIMENET_E_ARGUMENT,
+          "more than four columns are refused");
+    CHECK(dimenet_network_covariance(4.0, 3.0, 1.0, 0.1, 0.05, 1e-6, 1, n_column, NULL, correlation, out)
+              == DIMENET_E_ARGUMENT,
+          "a NULL coef is refused");
+}
+
 static void test_power_of_two_unit(void)
 {
     double p3[12] = {300.0, 0.0, 0.0, 0.0, 300.0, 0.0, 0.0, 0.0, 300.0, -300.0, 0.0, 0.0}, unit = 0.0;
@@ -594,6 +628,7 @@ int main(void)
     test_frame_checks();
     test_power_of_two_unit();
     test_occupied_cells();
+    test_network_covariance();
     test_map_posterior();
     test_sizes();
     test_exact_frame(0);

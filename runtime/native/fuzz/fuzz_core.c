@@ -272,6 +272,31 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
               && occupied <= 3 * n / channels);
         check(dimenet_occupied_cells(n, 0, p3, &occupied) == DIMENET_E_ARGUMENT);
     }
+    /* the network's covariance for any statistics, floors and weights: a result, or a refusal of a bad count or
+     * column, never a crash */
+    {
+        double coef[20], correlation[16], k_cov[16], stats[6];
+        unsigned char columns[5];
+        size_t n_columns = take(&b) % 6u;
+        int refused = 0;
+        for (i = 0; i < 20; i++) {
+            coef[i] = number(&b, raw, -50.0, 50.0);
+        }
+        for (i = 0; i < 16; i++) {
+            correlation[i] = number(&b, raw, -1.0, 1.0);
+        }
+        for (i = 0; i < 6; i++) {
+            stats[i] = number(&b, raw, -10.0, 1e6);
+        }
+        for (i = 0; i < n_columns; i++) {
+            columns[i] = (unsigned char)(take(&b) % 5u);
+            refused |= columns[i] > 3;
+        }
+        refused |= n_columns > 4 || !(stats[0] >= 1.0) || !(stats[1] >= 1.0);
+        code = dimenet_network_covariance(stats[0], stats[1], stats[2], stats[3], stats[4], stats[5], n_columns,
+                                          columns, coef, correlation, k_cov);
+        check(code == (refused ? DIMENET_E_ARGUMENT : DIMENET_OK));
+    }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
 }
