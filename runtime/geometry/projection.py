@@ -13,8 +13,7 @@ MIN_DEPTH_MM = 1e-6
 
 def k_params(K: np.ndarray) -> np.ndarray:
     """(..., 3, 3) intrinsic matrices -> (..., 4) as (fx, fy, cx, cy) in pixels."""
-    K = np.asarray(K, dtype=np.float64)
-    return np.stack([K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]], axis=-1)
+    return np.asarray(K, dtype=np.float64)[..., (0, 1, 0, 1), (0, 1, 2, 2)]
 
 
 def k_matrix(params: np.ndarray) -> np.ndarray:
