@@ -1,9 +1,9 @@
 /* dimenet.runtime.native._core, the pose and checks half of the binding (_module.c has the module and the
  * feature stage): pose_steps (dimenet_pose_steps), frame_checks (dimenet_frame_checks), power_of_two_unit
  * (dimenet_power_of_two_unit), occupied_cells (dimenet_occupied_cells), network_covariance
- * (dimenet_network_covariance), map_step (dimenet_map_step) and map_posterior (dimenet_map_posterior), under the
- * same rules as _module.c's (buffers checked, the GIL released in the kernels that loop over points, no static
- * mutable state). */
+ * (dimenet_network_covariance), stream_step (dimenet_stream_step), map_step (dimenet_map_step) and map_posterior
+ * (dimenet_map_posterior), under the same rules as _module.c's (buffers checked, the GIL released in the kernels
+ * that loop over points, no static mutable state). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
@@ -280,6 +280,59 @@ done:
     return result;
 }
 
+PyDoc_STRVAR(stream_step_doc,
+             "stream_step(k, P, k_prior_last, k_prior, z, R, Q, tau_s, dt_s, reset, chi2_limit, k_out, P_out)\n--\n\n"
+             "One frame of the stream's Kalman filter (dimenet_stream_step; rectify.stream_filter's reference to the "
+             "bit) into k_out (4,) px and P_out (4, 4) px^2: k, k_prior_last, k_prior, z, tau_s (4,) and P, R, Q (4, "
+             "4), all float64 C contiguous; returns (jumped, updated). ValueError for dt_s < 0 unless reset.");
+
+static PyObject *stream_step(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const int ARRAY_ARGS[10] = {0, 1, 2, 3, 4, 5, 6, 7, 11, 12};
+    static const char *const names[10] = {"k", "P", "k_prior_last", "k_prior", "z", "R", "Q", "tau_s", "k_out", "P_out"};
+    static const Py_ssize_t shapes[10][2] = {{4, -1}, {4, 4}, {4, -1}, {4, -1}, {4, -1},
+                                             {4, 4},  {4, 4}, {4, -1}, {4, -1}, {4, 4}};
+    static const char ndims[10] = {1, 2, 1, 1, 1, 2, 2, 1, 1, 2};
+    Py_buffer views[10];
+    const double *b[10];
+    int n_views = 0, code = DIMENET_OK, i, reset, jumped = 0, updated = 0;
+    double dt_s, chi2_limit;
+    PyObject *result = NULL;
+    (void)module;
+    if (nargs != 13) {
+        PyErr_Format(PyExc_TypeError, "stream_step takes 13 arguments, got %zd", nargs);
+        return NULL;
+    }
+    dt_s = PyFloat_AsDouble(args[8]);
+    chi2_limit = PyFloat_AsDouble(args[10]);
+    if (PyErr_Occurred()) {
+        return NULL;
+    }
+    reset = PyObject_IsTrue(args[9]);
+    if (reset < 0) {
+        return NULL;
+    }
+    for (i = 0; i < 10; i++) {
+        if (dimenet_py_get_view(args[ARRAY_ARGS[i]], &views[i], names[i], 'd', ndims[i], shapes[i], i >= 8) != 0) {
+            goto done;
+        }
+        b[i] = (const double *)views[i].buf;
+        n_views++;
+    }
+    code = dimenet_stream_step(b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], dt_s, reset, chi2_limit,
+                               (double *)views[8].buf, (double *)views[9].buf, &jumped, &updated);
+    if (code != DIMENET_OK) {
+        PyErr_SetString(PyExc_ValueError, "stream_step: dt_s >= 0 unless reset expected");
+        goto done;
+    }
+    result = Py_BuildValue("(OO)", jumped ? Py_True : Py_False, updated ? Py_True : Py_False);
+done:
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+    return result;
+}
+
 PyDoc_STRVAR(map_posterior_doc,
              "map_posterior(cov, k_cov_prior, noise_px, data_correlation, noise_scale_px, data_bias, k_cov_out)\n--\n\n"
              "Mode map's posterior of K (dimenet_map_posterior; map_fit's K_cov to the bit): the K block of cov (10, "
@@ -422,5 +475,6 @@ PyMethodDef dimenet_py_pose_methods[] = {
     {"power_of_two_unit", (PyCFunction)power_of_two_unit, METH_O, power_of_two_unit_doc},
     {"occupied_cells", (PyCFunction)(void (*)(void))occupied_cells, METH_FASTCALL, occupied_cells_doc},
     {"network_covariance", (PyCFunction)(void (*)(void))network_covariance, METH_FASTCALL, network_covariance_doc},
+    {"stream_step", (PyCFunction)(void (*)(void))stream_step, METH_FASTCALL, stream_step_doc},
     {NULL, NULL, 0, NULL},
 };

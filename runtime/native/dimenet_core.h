@@ -205,6 +205,17 @@ int dimenet_map_posterior(const double cov[100], const double k_cov_prior_px2[16
                           const double data_correlation[4], double noise_scale_px, const double data_bias[4],
                           double k_cov_px2[16]);
 
+/* One frame of the stream's Kalman filter over k = (fx, fy, cx, cy) px (rectify.stream_filter.stream_step to the
+ * bit): the state k (4) px, P (4 x 4 px^2, row major) reset to (k_prior, Q) when reset, else carried dt_s >= 0 s
+ * by the AR(1) about the priors (a = exp(-dt_s / tau_s), k' = k_prior + a (k - k_prior_last), P' = a_i a_j P +
+ * (1 - a_i a_j) Q); then, unless reset, an innovation z - k whose squared norm under S = P + R exceeds chi2_limit
+ * resets it (*jumped 1); then updated by the frame's z (4) px, R (4 x 4) px^2 with gain P S^-1 and P symmetrised
+ * (*updated 1; 0 where S is not positive definite, the state then only carried) into k_out, P_out.
+ * DIMENET_E_ARGUMENT for a NULL pointer or, unless reset, dt_s < 0 or NaN. */
+int dimenet_stream_step(const double k[4], const double P[16], const double k_prior_last[4], const double k_prior[4],
+                        const double z[4], const double R[16], const double Q[16], const double tau_s[4], double dt_s,
+                        int reset, double chi2_limit, double k_out[4], double P_out[16], int *jumped, int *updated);
+
 /* Bits of dimenet_frame_checks' result. */
 #define DIMENET_CHECK_OUTSIDE 1u     /* a value not finite, a 2D point outside the image or a 3D coordinate
                                         outside [-max_coordinate, max_coordinate) */

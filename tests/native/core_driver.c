@@ -606,6 +606,36 @@ static void test_network_covariance(void)
           "a NULL coef is refused");
 }
 
+/* The stream's Kalman step by hand: a reset with equal variances gives the mean of the prior and the evidence, half
+ * the variance; an innovation far beyond the limit resets first; evidence that is not positive definite leaves the
+ * state carried; dt_s < 0 without a reset is refused. */
+static void test_stream_step(void)
+{
+    const double eye[16] = {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0};
+    const double tau[4] = {30.0, 30.0, 0.6, 0.6}, k0[4] = {100.0, 100.0, 50.0, 40.0}, z[4] = {104.0, 98.0, 50.0, 46.0};
+    double far[4] = {120.0, 120.0, 70.0, 60.0}, negative[16], k[4], P[16];
+    int jumped = -1, updated = -1, i;
+    for (i = 0; i < 16; i++) {
+        negative[i] = -2.0 * eye[i];
+    }
+    CHECK(dimenet_stream_step(far, eye, k0, k0, z, eye, eye, tau, -1.0, 1, 30.0, k, P, &jumped, &updated) == DIMENET_OK
+              && k[0] == 102.0 && k[1] == 99.0 && k[3] == 43.0 && P[0] == 0.5 && P[1] == 0.0 && !jumped && updated,
+          "a reset: the mean of prior and evidence, half the variance");
+    CHECK(dimenet_stream_step(far, eye, k0, k0, z, eye, eye, tau, 0.0, 0, 30.0, k, P, &jumped, &updated) == DIMENET_OK
+              && jumped && updated && k[0] == 102.0 && P[5] == 0.5,
+          "an innovation of 668 beyond 30: reset, then updated");
+    CHECK(dimenet_stream_step(far, eye, k0, k0, z, negative, eye, tau, 0.0, 0, 30.0, k, P, &jumped, &updated)
+                  == DIMENET_OK
+              && !updated && !jumped && k[0] == 120.0 && P[0] == 1.0,
+          "evidence that is not positive definite: the state carried");
+    CHECK(dimenet_stream_step(far, eye, k0, k0, z, eye, eye, tau, -0.1, 0, 30.0, k, P, &jumped, &updated)
+              == DIMENET_E_ARGUMENT,
+          "dt_s < 0 without a reset is refused");
+    CHECK(dimenet_stream_step(far, NULL, k0, k0, z, eye, eye, tau, 0.0, 0, 30.0, k, P, &jumped, &updated)
+              == DIMENET_E_ARGUMENT,
+          "a NULL P is refused");
+}
+
 static void test_power_of_two_unit(void)
 {
     double p3[12] = {300.0, 0.0, 0.0, 0.0, 300.0, 0.0, 0.0, 0.0, 300.0, -300.0, 0.0, 0.0}, unit = 0.0;
@@ -629,6 +659,7 @@ int main(void)
     test_power_of_two_unit();
     test_occupied_cells();
     test_network_covariance();
+    test_stream_step();
     test_map_posterior();
     test_sizes();
     test_exact_frame(0);

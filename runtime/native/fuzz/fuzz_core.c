@@ -297,6 +297,27 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
                                           columns, coef, correlation, k_cov);
         check(code == (refused ? DIMENET_E_ARGUMENT : DIMENET_OK));
     }
+    /* the stream's Kalman step for any state and evidence: a result, or the refusal of dt_s < 0 without a reset */
+    {
+        double v[5][4], M[3][16], k_out[4], P_out[16], dt = number(&b, raw, -1.0, 10.0);
+        int reset = (int)(take(&b) % 2u), jumped = 0, updated = 0;
+        for (i = 0; i < 5; i++) {
+            size_t j;
+            for (j = 0; j < 4; j++) {
+                v[i][j] = number(&b, raw, 1e-3, 5000.0);
+            }
+        }
+        for (i = 0; i < 3; i++) {
+            size_t j;
+            for (j = 0; j < 16; j++) {
+                M[i][j] = number(&b, raw, -100.0, 100.0);
+            }
+        }
+        code = dimenet_stream_step(v[0], M[0], v[1], v[2], v[3], M[1], M[2], v[4], dt, reset,
+                                   number(&b, raw, 0.0, 100.0), k_out, P_out, &jumped, &updated);
+        check(code == (reset || dt >= 0.0 ? DIMENET_OK : DIMENET_E_ARGUMENT));
+        check(code != DIMENET_OK || ((jumped == 0 || jumped == 1) && (updated == 0 || updated == 1)));
+    }
     free(p2), free(p3), free(mask), free(features), free(rows), free(scratch);
     return 0;
 }
