@@ -13,9 +13,14 @@ and streams): a Kalman filter over k = (fx, fy, cx, cy) px. Each frame:
 3. events: a cut (the C0-side pose jumps by more than CUT_DEG or CUT_DEPTH of the scene's distance between frames),
    a gap in t_ns (more than GAP_FRAMES frame times) or an innovation beyond INNOVATION_CHI2 (a refocus) resets the
    state to K_c with Q before the update (``StreamFrame.event`` says which);
-4. update, then the fused K's pose by PnP over the frame's points, and the same never-worse rule as per frame
-   (``checks.loses_to_k_c``): where the fused K fits the frame's points worse than K_c (or leaves K_bounds, or has
-   no pose), the frame keeps K_c's own solution with the reason as its fallback, and the state is kept.
+4. update (where P + R is not positive definite, e.g. a NaN in the frame's K_cov, the state is only carried), then
+   the fused K's pose over the frame's points (Gauss-Newton steps from the frame's own pose, as the per-frame pose
+   under K; SQPnP where the steps find none or their pose would be refused), and the same never-worse rule as per
+   frame (``checks.loses_to_k_c``): where the fused K fits the frame's points worse than K_c (or leaves K_bounds,
+   or has no pose), the frame keeps K_c's own solution with the reason as its fallback, and the state is kept.
+
+Steps 1, 3's innovation test and 4's update are one call, ``rectify.stream_filter.stream_step`` (in the compiled
+core where it is).
 
 A frame may bring its own K_c (``update(..., K_c=)``: the platform's per-frame K, points format 2): the state is then
 K's offset from each frame's K_c, which the AR(1) draws back to 0 and which carries from frame to frame as the
@@ -49,6 +54,7 @@ from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import implausible_reason, loses_to_k_c, worse_reason
 from dimenet.runtime.rectify.gyro_ois import GyroOis, LensShiftOis
 from dimenet.runtime.rectify.results import Fallback, Rectification
+from dimenet.runtime.rectify.stream_filter import stream_step
 
 TAU_S = (30.0, 30.0, 0.6, 0.6)  # AR(1) time constants of fx, fy, cx, cy (s)
 FRAME_S = 1.0 / 30.0  # a frame's time when the stream has no t_ns
@@ -111,18 +117,6 @@ class Stream:
         elif lens_shift is not None:
             self.gyro = LensShiftOis(lens_shift, self.k_c, lens_shift_scale)
 
-    def _reset(self, k0: np.ndarray) -> None:
-        self.k, self.P = k0.copy(), self.Q.copy()
-
-    def _predict(self, dt_s: float, k0: np.ndarray) -> None:
-        """The state carried to this frame, whose prior is k0 (4,) px: its offset from the last prior kept, then drawn
-        towards k0."""
-        a = np.exp(-dt_s / self.tau_s)
-        A = np.outer(a, a)
-        offset = self.k - self._k0
-        self.k = k0 + a * offset
-        self.P = A * self.P + (1.0 - A) * self.Q
-
     def _event(self, t_ns: Optional[int], pose: tuple) -> tuple[Optional[str], float]:
         """Which event resets the state before this frame (or None), and the time since the last frame (s); ``pose``
         the frame's (R (3, 3), distance mm)."""
@@ -133,7 +127,8 @@ class Stream:
             return "gap", dt_s
         R0, d0 = self._pose
         R1, d1 = pose
-        turn = math.degrees(math.acos(float(np.clip((np.trace(R0.T @ R1) - 1.0) / 2.0, -1.0, 1.0))))
+        cos_turn = (float(np.vdot(R0, R1)) - 1.0) / 2.0  # trace(R0^T R1) = the elementwise products' sum
+        turn = math.degrees(math.acos(min(max(cos_turn, -1.0), 1.0)))
         if turn > CUT_DEG or abs(d1 - d0) > CUT_DEPTH * max(d0, 1e-9):
             return "cut", dt_s
         return None, dt_s
@@ -149,26 +144,24 @@ class Stream:
             raise InputError("a stream with motion tracks K about the camera's one K_c, not a frame's own")
         res = rect.rectify(points_2d, points_3d, refine=self.refine, K_c=K_c)
         k0 = self.k_c if K_c is None else k_params(res.K_c)
-        pose = (rotation_matrices(res.rvec), float(np.linalg.norm(res.tvec)))
+        pose = (rotation_matrices(np.ravel(res.rvec)), math.hypot(*np.ravel(res.tvec).tolist()))
         event, dt_s = self._event(t_ns, pose)
-        z, R = k_params(res.K), res.K_cov
-        if R is None:
-            R = self.Q
-        if event is not None:
-            self._reset(k0)
-        else:
-            self._predict(dt_s, k0)
-        self._k0 = k0
-        S = self.P + R
-        innovation = z - self.k
-        if event is None and float(innovation @ np.linalg.solve(S, innovation)) > INNOVATION_CHI2:
-            event = "jump"
-            self._reset(k0)
-            S, innovation = self.P + R, z - self.k
-        gain = np.linalg.solve(S.T, self.P.T).T  # P S^-1
-        self.k = self.k + gain @ innovation
-        self.P = (np.eye(4) - gain) @ self.P
-        self.P = (self.P + self.P.T) / 2.0
+        R = res.K_cov
+        step = stream_step(
+            k0 if self.k is None else self.k,
+            self.Q if self.P is None else self.P,
+            self._k0,
+            k0,
+            k_params(res.K),
+            self.Q if R is None else R,
+            self.Q,
+            self.tau_s,
+            dt_s,
+            event is not None,
+            INNOVATION_CHI2,
+        )
+        event = "jump" if step.jumped else event
+        self.k, self.P, self._k0 = step.k, step.P, k0
         self._t_ns = t_ns
         self._pose = pose
         if self.gyro is not None:
@@ -226,16 +219,23 @@ class Stream:
             e_c = native.error_at_pnp(p2, p3, K0)
         if not rect.k_within_bounds(self.k, K_c=K_c):
             return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0)
-        try:
-            rvec, tvec = pnp(p2, p3, K)
+        f0 = float(K0[0, 0])
+        try:  # Gauss-Newton steps from the frame's own pose, as the per-frame pose under K (stages.pose_under)
+            rvec, tvec, e, depth = native.pose_under_k(p2, p3, self.k, np.ravel(res.rvec), np.ravel(res.tvec))
+            refused = not depth > 0 or loses_to_k_c(e, e_c, f0)
         except InputError:
-            return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0)
-        e, depth = native.frame_error_and_depth(p2, p3, K, rvec, tvec)
-        if depth <= 0:
-            reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
-            return self._k_c_kept(res, p2, p3, event, reason, K0)
-        if loses_to_k_c(e, e_c, float(K0[0, 0])):
-            return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, float(K0[0, 0])), K0)
+            refused = True
+        if refused:  # SQPnP's pose under the tracked K, and the rules again there
+            try:
+                rvec, tvec = pnp(p2, p3, K)
+            except InputError:
+                return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0)
+            e, depth = native.frame_error_and_depth(p2, p3, K, rvec, tvec)
+            if depth <= 0:
+                reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
+                return self._k_c_kept(res, p2, p3, event, reason, K0)
+            if loses_to_k_c(e, e_c, f0):
+                return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, f0), K0)
         P = self.P.copy()
         fused = replace(
             res,
