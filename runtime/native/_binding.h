@@ -17,6 +17,9 @@ dimenet_py_state *dimenet_py_state_of(PyObject *module);
 int dimenet_py_get_view(PyObject *obj, Py_buffer *view, const char *name, char kind, int ndim,
                         const Py_ssize_t *shape, int writable);
 
+/* Releases views[0 .. n_views - 1], the last first. */
+void dimenet_py_release_views(Py_buffer *views, int n_views);
+
 /* pose_steps and frame_checks (_module_pose.c), added to the module at its creation. */
 extern PyMethodDef dimenet_py_pose_methods[];
 

@@ -23,6 +23,13 @@ dimenet_py_state *dimenet_py_state_of(PyObject *module)
 
 static void raise_frame_error(PyObject *module, int code, const dimenet_frame_stats *st, Py_ssize_t n_points);
 
+void dimenet_py_release_views(Py_buffer *views, int n_views)
+{
+    while (n_views > 0) {
+        PyBuffer_Release(&views[--n_views]);
+    }
+}
+
 int dimenet_py_get_view(PyObject *obj, Py_buffer *view, const char *name, char kind, int ndim,
                         const Py_ssize_t *shape, int writable)
 {
@@ -302,9 +309,7 @@ static PyObject *frame_features(PyObject *module, PyObject *const *args, Py_ssiz
     result = PyFloat_FromDouble(st.e_c_px);
 done:
     PyMem_RawFree(scratch);
-    while (n_views > 0) {
-        PyBuffer_Release(&views[--n_views]);
-    }
+    dimenet_py_release_views(views, n_views);
     return result;
 }
 

@@ -94,9 +94,7 @@ static PyObject *pose_steps(PyObject *module, PyObject *const *args, Py_ssize_t 
     result = Py_BuildValue("(dd)", e, depth);
 done:
     PyMem_RawFree(scratch);
-    while (n_views > 0) {
-        PyBuffer_Release(&views[--n_views]);
-    }
+    dimenet_py_release_views(views, n_views);
     return result;
 }
 
@@ -151,9 +149,7 @@ static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_
     }
     result = Py_BuildValue("(k(ddd))", (unsigned long)flags, invariants[0], invariants[1], invariants[2]);
 done:
-    while (n_views > 0) {
-        PyBuffer_Release(&views[--n_views]);
-    }
+    dimenet_py_release_views(views, n_views);
     return result;
 }
 
@@ -274,9 +270,7 @@ static PyObject *network_covariance(PyObject *module, PyObject *const *args, Py_
     result = Py_None;
     Py_INCREF(result);
 done:
-    while (n_views > 0) {
-        PyBuffer_Release(&views[--n_views]);
-    }
+    dimenet_py_release_views(views, n_views);
     return result;
 }
 
@@ -327,9 +321,7 @@ static PyObject *stream_step(PyObject *module, PyObject *const *args, Py_ssize_t
     }
     result = Py_BuildValue("(OO)", jumped ? Py_True : Py_False, updated ? Py_True : Py_False);
 done:
-    while (n_views > 0) {
-        PyBuffer_Release(&views[--n_views]);
-    }
+    dimenet_py_release_views(views, n_views);
     return result;
 }
 
@@ -376,9 +368,7 @@ static PyObject *map_posterior(PyObject *module, PyObject *const *args, Py_ssize
     result = Py_None;
     Py_INCREF(result);
 done:
-    while (n_views > 0) {
-        PyBuffer_Release(&views[--n_views]);
-    }
+    dimenet_py_release_views(views, n_views);
     return result;
 }
 
