@@ -11,7 +11,8 @@ so its c is no evidence of the loop; the frame's own points are, summed over man
 of a bank (CUTOFFS_HZ), after subtracting the gyroscope's bias (its running mean: cumulative over the first
 BIAS_TAU_S, then exponential; what a bias leaves after the high-pass is a small constant). Each (cutoff, gain) pair
 of the bank (x GAINS) is scored by the mean reprojection error its K leaves on the frame's points (pose by PnP),
-every SCORE_EVERY-th frame, with a forgetting factor: the loop is the best-scored pair, learned from the frames,
+every SCORE_EVERY-th frame (the pose under each K by Gauss-Newton steps from the frame's own), with a forgetting
+factor: the loop is the best-scored pair, learned from the frames,
 not assumed. The focal length is K_c's or the stream's tracked one, whichever has left less error with the loop's
 c (the network's f is biased on some recordings, and right on others). sigma of c: SIGMA_FLOOR_PX and the spread
 of the best few pairs' predictions.
@@ -63,6 +64,15 @@ def _samples(samples, columns: str, bound: float) -> np.ndarray:
     return samples
 
 
+def _error(points_2d: np.ndarray, points_3d: np.ndarray, k: np.ndarray, pose: tuple) -> float:
+    """The mean reprojection error (px) under k (4,) px at its pose: two Gauss-Newton steps from ``pose`` (the frame's
+    own: a pair's c is a few px from it), SQPnP's pose where the steps find none. InputError when there is no pose."""
+    try:
+        return native.pose_under_k(points_2d, points_3d, k, *pose)[2]
+    except InputError:
+        return native.error_at_pnp(points_2d, points_3d, k_matrix(k))
+
+
 class _LoopBank:
     """The scoring both predictors share: rows of lens shifts at gain 1 (``_shifts``) times GAINS, each pair scored
     on the frames' points; ``k_c`` (4,) px."""
@@ -76,9 +86,10 @@ class _LoopBank:
     def _shifts(self) -> np.ndarray:
         raise NotImplementedError
 
-    def score(self, points_2d: np.ndarray, points_3d: np.ndarray, f_tracked: np.ndarray) -> None:
+    def score(self, points_2d: np.ndarray, points_3d: np.ndarray, f_tracked: np.ndarray, pose: tuple) -> None:
         """Score the bank on one frame's points (px, mm), every SCORE_EVERY-th call, with K_c's (fx, fy); then the
-        best pair's c with ``f_tracked`` (2,) px (the stream's filter) against it."""
+        best pair's c with ``f_tracked`` (2,) px (the stream's filter) against it. Each K's error is at its pose by
+        ``_error`` from ``pose`` (rvec, tvec (3,)), the frame's own."""
         self._frames += 1
         if (self._frames - 1) % SCORE_EVERY:
             return
@@ -90,18 +101,16 @@ class _LoopBank:
                 if gain == 0.0 and i:  # no OIS: the same K at every cutoff
                     errors[i, j] = errors[0, j]
                     continue
-                K = k_matrix(np.r_[k[:2], self.k_c[2:] + gain * shift])
                 try:
-                    errors[i, j] = native.error_at_pnp(points_2d, points_3d, K)
+                    errors[i, j] = _error(points_2d, points_3d, np.r_[k[:2], self.k_c[2:] + gain * shift], pose)
                 except InputError:
                     errors[i, j] = np.nan
         if not np.all(np.isfinite(errors)):
             return
         self._scores = SCORE_MEMORY * self._scores + errors
         i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
-        K = k_matrix(np.r_[f_tracked, self.k_c[2:] + GAINS[j] * shifts[i]])
         try:
-            e = native.error_at_pnp(points_2d, points_3d, K)
+            e = _error(points_2d, points_3d, np.r_[f_tracked, self.k_c[2:] + GAINS[j] * shifts[i]], pose)
         except InputError:
             return
         self._f_scores = SCORE_MEMORY * self._f_scores + (errors[i, j], e)

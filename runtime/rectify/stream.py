@@ -165,12 +165,13 @@ class Stream:
         self._t_ns = t_ns
         self._pose = pose
         if self.gyro is not None:
-            self._gyro_c(points_2d, points_3d, event, t_ns)
+            self._gyro_c(points_2d, points_3d, event, t_ns, (np.ravel(res.rvec), np.ravel(res.tvec)))
         return self._checked(points_2d, points_3d, res, event, K_c)
 
-    def _gyro_c(self, points_2d, points_3d, event: Optional[str], t_ns: int) -> None:
+    def _gyro_c(self, points_2d, points_3d, event: Optional[str], t_ns: int, pose: tuple) -> None:
         """The principal point from the gyroscope's prediction (``rectify.gyro_ois``) in place of the filter's, the
-        loop scored on the frame's points (in the pinhole image of K_c with a lens)."""
+        loop scored on the frame's points (in the pinhole image of K_c with a lens) from the frame's pose (rvec,
+        tvec)."""
         gyro, rect = self.gyro, self.rectifier
         if event in ("cut", "gap"):
             gyro.recentre()
@@ -179,7 +180,7 @@ class Stream:
         p3 = np.asarray(points_3d, dtype=np.float64).reshape(-1, 3)
         if rect.dist_coeffs is not None:
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
-        gyro.score(p2, p3, self.k[:2])
+        gyro.score(p2, p3, self.k[:2], pose)
         c, var = gyro.c()
         self.k = np.r_[self.k[:2] if gyro.f_tracked_wins() else self.k_c[:2], c]
         self.P = self.P.copy()
