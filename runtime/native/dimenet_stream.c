@@ -62,6 +62,18 @@ static double dot4(const double x[4], const double y[4])
     return acc;
 }
 
+/* The state reset: k_prior and Q. */
+static void reset_state(const double k_prior[4], const double Q[16], double k[4], double P[16])
+{
+    int i;
+    for (i = 0; i < 4; i++) {
+        k[i] = k_prior[i];
+    }
+    for (i = 0; i < 16; i++) {
+        P[i] = Q[i];
+    }
+}
+
 /* S = P + R, factored; the innovation z - k. */
 static int factored(const double P[16], const double R[16], const double k[4], const double z[4], double L[16],
                     double innovation[4])
@@ -91,12 +103,7 @@ int dimenet_stream_step(const double k[4], const double P[16], const double k_pr
     *jumped = 0;
     *updated = 0;
     if (reset) {
-        for (i = 0; i < 4; i++) {
-            k_out[i] = k_prior[i];
-        }
-        for (i = 0; i < 16; i++) {
-            P_out[i] = Q[i];
-        }
+        reset_state(k_prior, Q, k_out, P_out);
     } else { /* the AR(1) about the priors */
         double a[4];
         for (i = 0; i < 4; i++) {
@@ -117,12 +124,7 @@ int dimenet_stream_step(const double k[4], const double P[16], const double k_pr
         solve4(L, innovation, x);
         if (dot4(innovation, x) > chi2_limit) { /* a jump: the state reset, then updated */
             *jumped = 1;
-            for (i = 0; i < 4; i++) {
-                k_out[i] = k_prior[i];
-            }
-            for (i = 0; i < 16; i++) {
-                P_out[i] = Q[i];
-            }
+            reset_state(k_prior, Q, k_out, P_out);
             if (!factored(P_out, R, k_out, z, L, innovation)) {
                 return DIMENET_OK;
             }

@@ -54,7 +54,7 @@ def stream_step_reference(k, P, k_prior_last, k_prior, z, R, Q, tau_s, dt_s, res
     Q = _rows(Q)
     k0 = [float(v) for v in np.ravel(k_prior)]
     if reset:
-        k, P = list(k0), [list(row) for row in Q]
+        k, P = _reset_state(k0, Q)
     else:
         k, P = _predicted(k, P, k_prior_last, k0, Q, tau_s, dt_s)
     z, R = [float(v) for v in np.ravel(z)], _rows(R)
@@ -80,18 +80,16 @@ def _predicted(k, P, k_prior_last, k0, Q, tau_s, dt_s) -> tuple[list, list]:
 
 
 def _updated(k, P, k0, Q, z, R, reset, chi2_limit) -> tuple[list, list, bool, bool]:
-    L = _cholesky([[p + r for p, r in zip(p_row, r_row)] for p_row, r_row in zip(P, R)])
+    L, innovation = _factored(P, R, k, z)
     if L is None:
         return k, P, False, False
-    innovation = [z_i - k_i for z_i, k_i in zip(z, k)]
     jumped = False
     if not reset and _dot(innovation, _solve(L, innovation)) > chi2_limit:
         jumped = True
-        k, P = list(k0), [list(row) for row in Q]
-        L = _cholesky([[p + r for p, r in zip(p_row, r_row)] for p_row, r_row in zip(P, R)])
+        k, P = _reset_state(k0, Q)
+        L, innovation = _factored(P, R, k, z)
         if L is None:
             return k, P, True, False
-        innovation = [z_i - k_i for z_i, k_i in zip(z, k)]
     gain = [_solve(L, row) for row in P]  # rows of P S^-1 (S symmetric)
     k = [k_i + _dot(g, innovation) for k_i, g in zip(k, gain)]
     P = [
@@ -100,6 +98,16 @@ def _updated(k, P, k0, Q, z, R, reset, chi2_limit) -> tuple[list, list, bool, bo
     ]
     P = [[(P[i][j] + P[j][i]) / 2.0 for j in range(4)] for i in range(4)]
     return k, P, jumped, True
+
+
+def _reset_state(k0: list, Q: list) -> tuple[list, list]:
+    return list(k0), [list(row) for row in Q]
+
+
+def _factored(P, R, k, z) -> tuple[list | None, list]:
+    """(the Cholesky factor of S = P + R, or None; the innovation z - k)."""
+    L = _cholesky([[p + r for p, r in zip(p_row, r_row)] for p_row, r_row in zip(P, R)])
+    return L, [z_i - k_i for z_i, k_i in zip(z, k)]
 
 
 def _dot(x, y) -> float:
