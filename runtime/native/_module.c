@@ -30,6 +30,20 @@ void dimenet_py_release_views(Py_buffer *views, int n_views)
     }
 }
 
+int dimenet_py_get_views(PyObject *const *args, const int *arg_index, const char *const *names, const char *ndims,
+                         const Py_ssize_t (*shapes)[2], int n, int first_writable, Py_buffer *views)
+{
+    int i;
+    for (i = 0; i < n; i++) {
+        if (dimenet_py_get_view(args[arg_index[i]], &views[i], names[i], 'd', ndims[i], shapes[i], i >= first_writable)
+            != 0) {
+            dimenet_py_release_views(views, i);
+            return -1;
+        }
+    }
+    return 0;
+}
+
 int dimenet_py_get_view(PyObject *obj, Py_buffer *view, const char *name, char kind, int ndim,
                         const Py_ssize_t *shape, int writable)
 {

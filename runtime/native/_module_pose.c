@@ -108,9 +108,12 @@ PyDoc_STRVAR(frame_checks_doc,
 
 static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
-    static const char *const names[] = {"points_2d_image", "points_2d", "points_3d"};
+    static const int ARRAY_ARGS[3] = {0, 1, 2};
+    static const char *const names[3] = {"points_2d_image", "points_2d", "points_3d"};
+    static const Py_ssize_t shapes[3][2] = {{-1, -1}, {-1, -1}, {-1, -1}};
+    static const char ndims[3] = {2, 2, 2};
     Py_buffer views[3];
-    int n_views = 0, code, i;
+    int code, i;
     double numbers[5], invariants[3];
     unsigned flags = 0u;
     PyObject *result = NULL;
@@ -125,12 +128,8 @@ static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_
             return NULL;
         }
     }
-    for (i = 0; i < 3; i++) {
-        Py_ssize_t any[2] = {-1, -1};
-        if (dimenet_py_get_view(args[i], &views[i], names[i], 'd', 2, any, 0) != 0) {
-            goto done;
-        }
-        n_views++;
+    if (dimenet_py_get_views(args, ARRAY_ARGS, names, ndims, shapes, 3, 3, views) != 0) {
+        return NULL;
     }
     if (views[0].shape[1] != 2 || views[1].shape[1] != 2 || views[2].shape[1] != 3 || views[0].shape[0] < 1
         || views[1].shape[0] != views[0].shape[0] || views[2].shape[0] != views[0].shape[0]) {
@@ -149,7 +148,7 @@ static PyObject *frame_checks(PyObject *module, PyObject *const *args, Py_ssize_
     }
     result = Py_BuildValue("(k(ddd))", (unsigned long)flags, invariants[0], invariants[1], invariants[2]);
 done:
-    dimenet_py_release_views(views, n_views);
+    dimenet_py_release_views(views, 3);
     return result;
 }
 
@@ -229,10 +228,12 @@ PyDoc_STRVAR(network_covariance_doc,
 
 static PyObject *network_covariance(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
+    static const int ARRAY_ARGS[3] = {7, 8, 9};
     static const char *const names[3] = {"coef", "correlation", "k_cov_out"};
     static const Py_ssize_t shapes[3][2] = {{4, -1}, {4, 4}, {4, 4}};
+    static const char ndims[3] = {2, 2, 2};
     Py_buffer views[3];
-    int n_views = 0, code = DIMENET_OK, i;
+    int code = DIMENET_OK, i;
     double numbers[6];
     char *columns;
     Py_ssize_t n_columns;
@@ -248,11 +249,8 @@ static PyObject *network_covariance(PyObject *module, PyObject *const *args, Py_
     if (PyErr_Occurred() || PyBytes_AsStringAndSize(args[6], &columns, &n_columns) != 0) {
         return NULL;
     }
-    for (i = 0; i < 3; i++) {
-        if (dimenet_py_get_view(args[7 + i], &views[i], names[i], 'd', 2, shapes[i], i == 2) != 0) {
-            goto done;
-        }
-        n_views++;
+    if (dimenet_py_get_views(args, ARRAY_ARGS, names, ndims, shapes, 3, 2, views) != 0) {
+        return NULL;
     }
     if (views[0].shape[1] != 1 + n_columns) {
         PyErr_SetString(PyExc_ValueError, "network_covariance: coef must be (4, 1 + len(columns))");
@@ -270,7 +268,7 @@ static PyObject *network_covariance(PyObject *module, PyObject *const *args, Py_
     result = Py_None;
     Py_INCREF(result);
 done:
-    dimenet_py_release_views(views, n_views);
+    dimenet_py_release_views(views, 3);
     return result;
 }
 
@@ -289,7 +287,7 @@ static PyObject *stream_step(PyObject *module, PyObject *const *args, Py_ssize_t
     static const char ndims[10] = {1, 2, 1, 1, 1, 2, 2, 1, 1, 2};
     Py_buffer views[10];
     const double *b[10];
-    int n_views = 0, code = DIMENET_OK, i, reset, jumped = 0, updated = 0;
+    int code = DIMENET_OK, i, reset, jumped = 0, updated = 0;
     double dt_s, chi2_limit;
     PyObject *result = NULL;
     (void)module;
@@ -306,12 +304,11 @@ static PyObject *stream_step(PyObject *module, PyObject *const *args, Py_ssize_t
     if (reset < 0) {
         return NULL;
     }
+    if (dimenet_py_get_views(args, ARRAY_ARGS, names, ndims, shapes, 10, 8, views) != 0) {
+        return NULL;
+    }
     for (i = 0; i < 10; i++) {
-        if (dimenet_py_get_view(args[ARRAY_ARGS[i]], &views[i], names[i], 'd', ndims[i], shapes[i], i >= 8) != 0) {
-            goto done;
-        }
         b[i] = (const double *)views[i].buf;
-        n_views++;
     }
     code = dimenet_stream_step(b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], dt_s, reset, chi2_limit,
                                (double *)views[8].buf, (double *)views[9].buf, &jumped, &updated);
@@ -321,7 +318,7 @@ static PyObject *stream_step(PyObject *module, PyObject *const *args, Py_ssize_t
     }
     result = Py_BuildValue("(OO)", jumped ? Py_True : Py_False, updated ? Py_True : Py_False);
 done:
-    dimenet_py_release_views(views, n_views);
+    dimenet_py_release_views(views, 10);
     return result;
 }
 
@@ -339,7 +336,7 @@ static PyObject *map_posterior(PyObject *module, PyObject *const *args, Py_ssize
     static const Py_ssize_t shapes[5][2] = {{10, 10}, {4, 4}, {4, -1}, {4, -1}, {4, 4}};
     static const char ndims[5] = {2, 2, 1, 1, 2};
     Py_buffer views[5];
-    int n_views = 0, code = DIMENET_OK, i;
+    int code = DIMENET_OK;
     double noise_px, noise_scale_px;
     PyObject *result = NULL;
     (void)module;
@@ -352,11 +349,8 @@ static PyObject *map_posterior(PyObject *module, PyObject *const *args, Py_ssize
     if (PyErr_Occurred()) {
         return NULL;
     }
-    for (i = 0; i < 5; i++) {
-        if (dimenet_py_get_view(args[ARRAY_ARGS[i]], &views[i], names[i], 'd', ndims[i], shapes[i], i == 4) != 0) {
-            goto done;
-        }
-        n_views++;
+    if (dimenet_py_get_views(args, ARRAY_ARGS, names, ndims, shapes, 5, 4, views) != 0) {
+        return NULL;
     }
     code = dimenet_map_posterior((const double *)views[0].buf, (const double *)views[1].buf, noise_px,
                                  (const double *)views[2].buf, noise_scale_px, (const double *)views[3].buf,
@@ -368,7 +362,7 @@ static PyObject *map_posterior(PyObject *module, PyObject *const *args, Py_ssize
     result = Py_None;
     Py_INCREF(result);
 done:
-    dimenet_py_release_views(views, n_views);
+    dimenet_py_release_views(views, 5);
     return result;
 }
 
