@@ -15,7 +15,7 @@ from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import k_matrix, k_params, solve_pnp_start
 from dimenet.runtime.rectify import stream as stream_module
-from dimenet.runtime.rectify.gyro_ois import LensShiftOis
+from dimenet.runtime.rectify.gyro_ois import CUTOFFS_HZ, GAINS, LensShiftOis
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.stream import FRAME_S, TAU_S, Stream
 from dimenet.runtime.sim.recording import nominal_camera, simulate_recording, write_recording
@@ -206,6 +206,22 @@ def test_the_lens_shift_is_interpolated_and_scaled(rectifier):
         LensShiftOis(np.array([[0, 0.0, 0.0], [np.nan, 0.0, 0.0]]), np.zeros(4))
     with pytest.raises(InputError, match="not both"):
         rectifier.stream(motion=np.zeros((2, 4)), lens_shift=np.zeros((2, 3)))
+
+
+def test_the_loop_bank_scores_its_pairs_at_poses_stepped_from_the_frames(recording, rectifier, monkeypatch):
+    """The OIS loop bank scores each (cutoff, gain) pair's K at a pose stepped from the frame's own (one
+    ``native.pose_under_k`` per pair), not at a fresh SQPnP: a scoring frame calls the steps once per pair that moves
+    c, plus the tracked f's; SQPnP runs only where the steps find no pose."""
+    calls, sqpnp = [], []
+    steps, error_at_pnp = native.pose_under_k, native.error_at_pnp
+    monkeypatch.setattr(native, "pose_under_k", lambda *a, **k: calls.append(1) or steps(*a, **k))
+    monkeypatch.setattr(native, "error_at_pnp", lambda *a: sqpnp.append(1) or error_at_pnp(*a))
+    stream = rectifier.stream(motion=recording.gyro)
+    x, X, t_ns = next(frames(recording))
+    before = len(calls)
+    stream.update(x, X, t_ns)  # the first frame scores the bank
+    moving = len(CUTOFFS_HZ) * sum(1 for g in GAINS if g) + 1  # the no-OIS pair once, then the tracked f
+    assert len(calls) - before >= moving + 1 and not sqpnp
 
 
 def test_motion_needs_t_ns(recording, rectifier):
