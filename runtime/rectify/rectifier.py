@@ -164,6 +164,11 @@ class Rectifier:
         training frames in the camera's pixels (None: the model has none, spec < 1.6)."""
         return self._cam.population_cov_user
 
+    def frame_population_K_cov(self, K_c: Optional[ArrayLike] = None) -> Optional[np.ndarray]:
+        """``population_K_cov`` of the camera with a frame's own prior ``K_c`` (3, 3) px, as ``rectify``'s (None: the
+        Rectifier's): the K_cov of a frame that keeps that K_c."""
+        return self.population_K_cov if K_c is None else self._frame_camera(K_c).population_cov_user
+
     def k_within_bounds(self, k: np.ndarray, K_c: Optional[ArrayLike] = None) -> bool:
         """The K-bounds rule (``ModelSpec.k_within_bounds``) for k (4,) px in the camera's pixels; ``K_c`` (3, 3) px a
         frame's own prior, as ``rectify``'s (its camera's bounds)."""

@@ -63,6 +63,7 @@ CUT_DEG = 8.0  # the pose turning by more than this between frames is a cut ...
 CUT_DEPTH = 0.25  # ... or its distance changing by more than this share
 INNOVATION_CHI2 = 30.0  # squared Mahalanobis innovation (4 dof) beyond which the state resets (p ~ 5e-6)
 EVENTS = ("start", "cut", "gap", "jump")
+MAX_T_NS = 2**63 - 1  # |t_ns|: a signed 64-bit nanosecond clock (the points and motion formats' too)
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,19 @@ class StreamFrame:
     per_frame: Rectification
     event: Optional[str]
     fused: bool
+
+
+def _checked_t_ns(t_ns) -> Optional[int]:
+    """A frame's ``t_ns`` as an int (ns), or None; InputError unless it is None or an integer (an int, a numpy integer
+    or an integral float, not a bool) of magnitude at most MAX_T_NS."""
+    if t_ns is None:
+        return None
+    if isinstance(t_ns, (int, np.integer, float, np.floating)) and not isinstance(t_ns, bool):
+        if isinstance(t_ns, (int, np.integer)) or math.isfinite(t_ns) and float(t_ns).is_integer():
+            value = int(t_ns)
+            if abs(value) <= MAX_T_NS:
+                return value
+    raise InputError(f"t_ns must be None or an integer of nanoseconds (|t_ns| <= 2**63 - 1), got {t_ns!r}")
 
 
 class Stream:
@@ -98,12 +112,15 @@ class Stream:
             raise InputError(
                 f"{rectifier.model.source}: a stream needs a model with an uncertainty model (spec >= 1.6)"
             )
-        tau = np.asarray(tau_s, dtype=np.float64)
-        if tau.shape != (4,) or not np.all(tau > 0) or not frame_s > 0:
-            raise InputError(f"tau_s must be 4 times > 0 s and frame_s > 0 s, got {tau_s!r}, {frame_s!r}")
+        try:
+            tau, frame = np.asarray(tau_s, dtype=np.float64), float(frame_s)
+        except (TypeError, ValueError):
+            tau, frame = None, math.nan
+        if tau is None or tau.shape != (4,) or not np.all(tau > 0) or not 0 < frame < math.inf:
+            raise InputError(f"tau_s must be 4 times > 0 s and frame_s a finite time > 0 s, got {tau_s!r}, {frame_s!r}")
         self.rectifier, self.refine = rectifier, refine
         self.k_c, self.Q = k_params(rectifier.K_c), np.array(Q, dtype=np.float64)
-        self.tau_s, self.frame_s = tau, float(frame_s)
+        self.tau_s, self.frame_s = tau, frame
         self.k: Optional[np.ndarray] = None
         self.P: Optional[np.ndarray] = None
         self._k0 = self.k_c  # the prior the state was last drawn towards: K_c, or the last frame's own
@@ -135,9 +152,11 @@ class Stream:
 
     def update(self, points_2d, points_3d, t_ns: Optional[int] = None, *, K_c=None) -> StreamFrame:
         """The frame's K fused with the stream's state: points as ``Rectifier.rectify`` takes them; ``t_ns`` the
-        frame's time (ns, None: FRAME_S after the last); ``K_c`` (3, 3) px this frame's own prior, as ``rectify``'s
-        (None: the Rectifier's). InputError as ``rectify``'s (the state is left as it was)."""
+        frame's time (an integer of ns, ``_checked_t_ns``; None: FRAME_S after the last); ``K_c`` (3, 3) px this
+        frame's own prior, as ``rectify``'s (None: the Rectifier's). InputError as ``rectify``'s, or for a t_ns that
+        is no integer (the state is left as it was)."""
         rect = self.rectifier
+        t_ns = _checked_t_ns(t_ns)
         if self.gyro is not None and t_ns is None:
             raise InputError("a stream with motion needs each frame's t_ns (on the motion's clock)")
         if self.gyro is not None and K_c is not None:
@@ -187,14 +206,14 @@ class Stream:
         self.P[2:, :] = self.P[:, 2:] = 0.0
         self.P[2, 2], self.P[3, 3] = var
 
-    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback, K0) -> StreamFrame:
-        """The frame's K_c's (K0 (3, 3) px) own solution for a frame whose tracked K is refused (the per-frame result
-        when it is K_c's; else the pose under K_c by PnP, e = e_c), with ``reason``; K_cov the population spread. The
-        state is kept."""
+    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback, K0, K_c) -> StreamFrame:
+        """The frame's K_c's (K0 (3, 3) px; ``K_c`` the frame's own or None) own solution for a frame whose tracked K
+        is refused (the per-frame result when it is K_c's; else the pose under K_c by PnP, e = e_c), with ``reason``;
+        K_cov the population spread of K_c's camera (``Rectifier.frame_population_K_cov``). The state is kept."""
         if res.fallback is not None and res.fallback.refusal:
             return StreamFrame(res, res, event, False)
         rvec, tvec = pnp(p2, p3, K0)
-        Q = self.Q
+        Q = self.rectifier.frame_population_K_cov(K_c)
         kept = replace(
             res,
             K=K0.copy(),
@@ -219,7 +238,7 @@ class Stream:
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
             e_c = native.error_at_pnp(p2, p3, K0)
         if not rect.k_within_bounds(self.k, K_c=K_c):
-            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0)
+            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0, K_c)
         f0 = float(K0[0, 0])
         try:  # Gauss-Newton steps from the frame's own pose, as the per-frame pose under K (stages.pose_under)
             rvec, tvec, e, depth = native.pose_under_k(p2, p3, self.k, np.ravel(res.rvec), np.ravel(res.tvec))
@@ -230,13 +249,15 @@ class Stream:
             try:
                 rvec, tvec = pnp(p2, p3, K)
             except InputError:
-                return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0)
+                return self._k_c_kept(
+                    res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0, K_c
+                )
             e, depth = native.frame_error_and_depth(p2, p3, K, rvec, tvec)
             if depth <= 0:
                 reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
-                return self._k_c_kept(res, p2, p3, event, reason, K0)
+                return self._k_c_kept(res, p2, p3, event, reason, K0, K_c)
             if loses_to_k_c(e, e_c, f0):
-                return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, f0), K0)
+                return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, f0), K0, K_c)
         P = self.P.copy()
         fused = replace(
             res,

@@ -143,9 +143,39 @@ def test_ois_off_stays_within_two_sigma_of_k_c():
     assert np.mean(inside) >= 0.9
 
 
-def test_bad_options(rectifier):
-    with pytest.raises(InputError, match="tau_s"):
-        Stream(rectifier, tau_s=(1.0, 1.0, 0.0, 1.0))
+@pytest.mark.parametrize(
+    "options", [{"tau_s": (1.0, 1.0, 0.0, 1.0)}, {"tau_s": "abcd"}, {"frame_s": float("inf")}, {"frame_s": "x"}]
+)
+def test_bad_options(rectifier, options):
+    with pytest.raises(InputError, match="tau_s must be 4 times > 0 s and frame_s a finite time"):
+        Stream(rectifier, **options)
+
+
+@pytest.mark.parametrize(
+    "t_ns", [float("nan"), float("inf"), 1e12 + 0.5, 2**63, -(2**63), "5", [5], True, np.uint64(2**64 - 1)]
+)
+def test_a_t_ns_that_is_no_integer_of_the_clock_is_refused_and_the_state_kept(recording, rectifier, streamed, t_ns):
+    """t_ns is None or an integer of ns within the 64-bit clock; anything else is an InputError (not a TypeError, a
+    NaN dt or a wrapped numpy subtraction) and the stream goes on as if the frame had not come."""
+    stream = rectifier.stream()
+    fs = list(frames(recording))[:4]
+    for f in fs[:2]:
+        stream.update(*f)
+    with pytest.raises(InputError, match="t_ns must be None or an integer of nanoseconds"):
+        stream.update(fs[2][0], fs[2][1], t_ns)
+    for f, want in zip(fs[2:], streamed[2:]):
+        got = stream.update(*f)
+        np.testing.assert_array_equal(got.result.K, want.result.K)
+        assert got.event == want.event
+
+
+def test_integral_t_ns_of_any_numeric_type_is_the_int(recording, rectifier, streamed):
+    stream = rectifier.stream()
+    for (p2, p3, t), kind, want in zip(frames(recording), (int, np.int64, float, np.float64, np.int32), streamed):
+        got = stream.update(p2, p3, kind(t - int(recording.t_ns[0])) if kind is np.int32 else kind(t))
+        if kind is not np.int32:
+            np.testing.assert_array_equal(got.result.K, want.result.K)
+    assert stream._t_ns == int(recording.t_ns[4] - recording.t_ns[0]) and type(stream._t_ns) is int
 
 
 def test_cli_temporal_writes_one_line_per_frame(recording, tmp_path, capsys):
@@ -311,6 +341,23 @@ def test_the_state_is_the_offset_from_each_frames_k_c(recording, rectifier):
         evidence.cov_px2 = np.eye(4) * 1e12  # after the first frame the frames say almost nothing
     a = np.exp(-FRAME_S / np.asarray(TAU_S)) ** 19
     np.testing.assert_allclose(stream.k - k_params(K), a * offset, atol=0.05)
+
+
+def test_a_frame_the_stream_refuses_under_its_own_k_c_reports_that_camera_s_population_spread(
+    recording, rectifier, monkeypatch, without_evidence_rule
+):
+    """Where the stream's K is refused under a frame's own K_c, the frame keeps that K_c with the K_cov a refused
+    ``rectify`` under it reports (``Rectifier.frame_population_K_cov``), not the Rectifier's camera's."""
+    monkeypatch.setattr(stream_module, "loses_to_k_c", lambda e, e_c, f: True)  # the stream's K always fits worse
+    p2, p3, t = next(frames(recording))
+    K = recording.dataset.K_platform[0]  # the platform's K: f about 1 % off the Rectifier's
+    out = rectifier.stream().update(p2, p3, t, K_c=K)
+    assert not out.fused and out.result.fallback.refusal and out.per_frame.fallback is None
+    np.testing.assert_array_equal(out.result.K, K)
+    want = rectifier.frame_population_K_cov(K)
+    np.testing.assert_array_equal(out.result.K_cov, want)
+    assert not np.allclose(want, rectifier.population_K_cov)  # a camera of other focal length: other pixels
+    np.testing.assert_array_equal(rectifier.frame_population_K_cov(), rectifier.population_K_cov)
 
 
 def test_a_stream_with_motion_refuses_a_frames_own_k_c(recording, rectifier):
