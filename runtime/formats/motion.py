@@ -21,7 +21,8 @@ import numpy as np
 
 from dimenet.runtime.errors import PointsError
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.text import decimal
+from dimenet.runtime.formats.text import decimal, t_ns_integer
+from dimenet.runtime.json_text import shown
 from dimenet.runtime.rectify.gyro_ois import MAX_RATE_RAD_S, MAX_SHIFT_PX
 
 GYRO_COLUMNS = ("t_ns", "gx_rad_s", "gy_rad_s", "gz_rad_s")
@@ -84,22 +85,32 @@ def read_motion(path: str | Path) -> Motion:
     columns, bound, unit = _KINDS[kind]
     index = [names.index(c) for c in columns]
     out = np.empty((len(rows) - 1, len(columns)))
+    previous = None  # the last row's t_ns
     for i, row in enumerate(rows[1:]):
         line = i + 2
         if len(row) != len(names):
             raise PointsError(f"{path}:{line}: expected {len(names)} fields as the header has, got {len(row)}")
-        t = row[index[0]].strip()
-        if not t.lstrip("+-").isdigit():
-            raise PointsError(f"{path}:{line}: t_ns must be an integer of nanoseconds, got {t!r}")
+        t = t_ns_integer(row[index[0]])
+        if t is None:
+            shown_t = shown(row[index[0]])
+            raise PointsError(
+                f"{path}:{line}: t_ns must be an integer of nanoseconds (|t_ns| <= 2**63 - 1), got {shown_t}"
+            )
         values = [decimal(row[j]) for j in index[1:]]
         if any(v is None or not abs(v) <= bound for v in values):
             raise PointsError(
                 f"{path}:{line}: {', '.join(columns[1:])} must be {unit.format(bound)}, got "
                 f"{', '.join(row[j] for j in index[1:])}"
             )
-        out[i] = (int(t), *values)
-        if i and out[i, 0] <= out[i - 1, 0]:
-            raise PointsError(f"{path}:{line}: t_ns must increase strictly, got {t} after {int(out[i - 1, 0])}")
+        out[i] = (t, *values)
+        if previous is not None and t <= previous:
+            raise PointsError(f"{path}:{line}: t_ns must increase strictly, got {t} after {previous}")
+        if previous is not None and out[i, 0] <= out[i - 1, 0]:  # beyond 2**53 ns float64 steps by more than 1 ns
+            raise PointsError(
+                f"{path}:{line}: t_ns {t} and {previous} are one float64 at this magnitude: count the clock from a "
+                "nearer start"
+            )
+        previous = t
     if len(out) < 2:
         raise PointsError(f"{path}:{len(rows) + 1}: the motion file needs at least 2 samples, it has {len(out)}")
     return Motion(kind, out)

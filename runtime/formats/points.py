@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import io
-import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from math import isfinite
@@ -30,14 +29,13 @@ import numpy as np
 
 from dimenet.runtime.errors import PointsError
 from dimenet.runtime.formats.atomic import atomic_write
-from dimenet.runtime.formats.text import decimal
+from dimenet.runtime.formats.text import decimal, t_ns_integer
 from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
+from dimenet.runtime.rectify.stream import MAX_T_NS
 
 MAX_LINE_BYTES = 64 << 10  # one row or object, its line end included (a point's row is ~80 bytes)
 MAX_FRAME_POINTS = 100_000  # rows of one frame: bounds the memory of a frame (~16 MB while read)
-MAX_T_NS = 2**63 - 1  # |t_ns|: a signed 64-bit nanosecond clock
 UNITS = {"mm": 1.0, "m": 1000.0}  # 3D columns X_<unit>, Y_<unit>, Z_<unit> -> mm
-_INTEGER = re.compile(r"[+-]?[0-9]+")
 _SEEN_BUFFER = 4096  # frame-id hashes held in a set before they join the sorted arrays
 FORMAT_NAME = "dimenet-points"
 FORMATS = (1, 2)  # format 2: the declaration line and a frame's own K_c
@@ -187,13 +185,11 @@ def _declared_format(text: str, lines: _Lines) -> int:
 
 
 def _t_ns(text: str, lines: _Lines, line: int) -> int:
-    """t_ns: an integer (ns) of magnitude at most MAX_T_NS (ASCII digits; its length is checked
-    before int() reads it, which refuses more than 4300 digits)."""
-    text = text.strip()
-    digits = text.lstrip("+-").lstrip("0")
-    if not _INTEGER.fullmatch(text) or len(digits) > len(str(MAX_T_NS)) or abs(int(text)) > MAX_T_NS:
+    """t_ns: an integer (ns) of magnitude at most MAX_T_NS (``text.t_ns_integer``)."""
+    t_ns = t_ns_integer(text)
+    if t_ns is None:
         raise lines.error(f"t_ns must be an integer of nanoseconds (|t_ns| <= 2**63 - 1), got {shown(text)}", line)
-    return int(text)
+    return t_ns
 
 
 def _csv_points(lines: _Lines) -> Iterator[tuple]:

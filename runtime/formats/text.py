@@ -4,11 +4,15 @@ BOM, from regular files only."""
 from __future__ import annotations
 
 import os
+import re
 import stat
 from pathlib import Path
 from typing import Optional
 
 from dimenet.runtime.errors import DimenetError
+from dimenet.runtime.rectify.stream import MAX_T_NS
+
+_INTEGER = re.compile(r"[+-]?[0-9]+")
 
 
 def read_text(path: Path, max_bytes: int, what: str, error: type[DimenetError]) -> str:
@@ -55,3 +59,14 @@ def _kind(mode: int) -> str:
     """What a file that is not a regular file is, in a few words."""
     kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"))
     return next((name for test, name in kinds if test(mode)), "a device or socket")
+
+
+def t_ns_integer(text: str) -> Optional[int]:
+    """The int of a timestamp in ns written as an ASCII integer (``-12``, ``+7``, ``0042``; surrounding whitespace) of
+    magnitude at most MAX_T_NS (a signed 64-bit clock), or None (its length is checked before int() reads it, which
+    refuses more than 4300 digits)."""
+    text = text.strip()
+    if not _INTEGER.fullmatch(text) or len(text.lstrip("+-").lstrip("0")) > len(str(MAX_T_NS)):
+        return None
+    value = int(text)
+    return value if abs(value) <= MAX_T_NS else None

@@ -121,6 +121,28 @@ def test_motion_file_errors_name_the_line(tmp_path):
         read_motion(path)
 
 
+@pytest.mark.parametrize(
+    "t_ns, message",
+    [
+        ("1" * 400, "must be an integer"),  # float() of it overflowed
+        ("1" * 5000, "must be an integer"),  # int() refuses more than 4300 digits
+        ("\u00b2", "must be an integer"),  # str.isdigit() takes a superscript two, int() does not
+        ("\u0661\u0662", "must be an integer"),  # Arabic-Indic digits: int() reads 12
+        (str(2**63), "must be an integer"),  # past the 64-bit clock
+        ("1.5", "must be an integer"),
+        ("9000000000000000001", "one float64 at this magnitude"),  # 1 ns after the first sample: no float64 between
+    ],
+)
+def test_a_motion_file_s_t_ns_is_an_integer_of_the_64_bit_clock(tmp_path, t_ns, message):
+    """The motion reader takes t_ns by the points reader's rule (``formats.text.t_ns_integer``)."""
+    path = tmp_path / "g.csv"
+    path.write_text(f"t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n9000000000000000000,0,0,0\n{t_ns},0,0,0\n", encoding="utf-8")
+    with pytest.raises(PointsError, match=rf"g.csv:3: t_ns .*{message}"):
+        read_motion(path)
+    path.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n-9000000000000000000,0,0,0\n+0042,0,0,0\n", encoding="utf-8")
+    np.testing.assert_array_equal(read_motion(path).samples[:, 0], [-9e18, 42.0])
+
+
 def test_the_lens_shift_samples_follow_the_true_principal_point(recording):
     """The platform's lens-shift samples, interpolated at each frame's time, against K_true's c - the nominal
     centre: the same motion up to the samples' gain and noise (and focus breathing's share of f)."""
