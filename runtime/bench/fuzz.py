@@ -6,8 +6,8 @@ K (``ok``): K_c's own solution with a reason, or a finite K inside the spec's bo
 point in front of the camera at its pose. Anything else is a ``crash`` (another exception) or
 ``silent-wrong``. Where onnx is installed, the full graph too (issue 48: within the parity bound of the
 runtime, masked garbage changing nothing, a frame without a point giving K_c), and with torch the .ort
-loader on mutated files. The suite runs a few hundred cases (tests/bench/test_fuzz.py), on both bundled
-models; ``dimenet bench --fuzz N`` runs as many as asked.
+loader on mutated files; streams in ``bench.fuzz_stream``. The suite runs a few hundred cases
+(tests/bench/test_fuzz.py), on both bundled models; ``dimenet bench --fuzz N`` runs as many as asked.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ class FuzzReport:
         return "\n".join(rows + self.failures)
 
 
-def _frame_variants(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: np.ndarray) -> Iterator:
+def frame_variants(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: np.ndarray) -> Iterator:
     """(name, points_2d, points_3d) hostile variants of one frame's valid points x (N, 2) px, X
     (N, 3) mm seen under K."""
     n = len(x)
@@ -105,24 +105,24 @@ def _frame_variants(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: n
     yield "3D as (N, 3, 1)", x, X[..., None]
 
 
-def _judge_frame(rect: Rectifier, X: np.ndarray, res) -> tuple[str, str]:
+def judge_frame(rect: Rectifier, X: np.ndarray, res, K_c=None) -> tuple[str, str]:
     """A result is ok when it is K_c's solution with a reason, or a finite, in-bounds K whose pose
-    has every point in front of the camera."""
+    has every point in front of the camera; ``K_c`` (3, 3) px the frame's own (None: the Rectifier's)."""
     depth = np.asarray(X, dtype=np.float64) @ cv2.Rodrigues(res.rvec)[0][2] + res.tvec[2]
     if not depth.min() > 0:
         return "silent-wrong", f"a point behind the camera at the returned pose (fallback {res.fallback!r})"
     if res.fallback is not None and res.fallback.refusal:
-        population = rect.population_K_cov
+        population = rect.frame_population_K_cov(K_c)
         kept_cov = res.K_cov is None if population is None else np.array_equal(res.K_cov, population)
-        same = np.array_equal(res.K, rect.K_c) and kept_cov
+        same = np.array_equal(res.K, rect.K_c if K_c is None else K_c) and kept_cov
         return ("ok", "") if same else ("silent-wrong", f"fallback {res.fallback!r} without K_c's solution")
     k = np.array([res.K[0, 0], res.K[1, 1], res.K[0, 2], res.K[1, 2]])
-    if not (np.isfinite(res.reprojection_error_px) and rect.k_within_bounds(k)):
+    if not (np.isfinite(res.reprojection_error_px) and rect.k_within_bounds(k, K_c=K_c)):
         return "silent-wrong", f"K {k.tolist()} or e {res.reprojection_error_px} with no fallback"
     return "ok", ""
 
 
-def _outcome(call: Callable, judge: Callable) -> tuple[str, str]:
+def outcome_of(call: Callable, judge: Callable) -> tuple[str, str]:
     try:
         result = call()
     except DimenetError:
@@ -141,12 +141,12 @@ def fuzz_rectifier(rect: Rectifier, frames, n_cases: int, rng: np.random.Generat
         b = int(rng.choice(rig))
         m = frames.valid[b]
         x, X, K = frames.points_2d[b][m], frames.points_3d[b][m], frames.K_true[b]
-        for name, p2, p3 in _frame_variants(rng, x, X, K):
+        for name, p2, p3 in frame_variants(rng, x, X, K):
             if done >= n_cases:
                 break
             done += 1
-            outcome, detail = _outcome(
-                lambda p2=p2, p3=p3: rect.rectify(p2, p3), lambda r, p3=p3: _judge_frame(rect, p3, r)
+            outcome, detail = outcome_of(
+                lambda p2=p2, p3=p3: rect.rectify(p2, p3), lambda r, p3=p3: judge_frame(rect, p3, r)
             )
             report.add("rectify", name, outcome, detail)
             try:
@@ -169,9 +169,9 @@ def fuzz_rectifier(rect: Rectifier, frames, n_cases: int, rng: np.random.Generat
                     reprojection_error_px=r.reprojection_error_px[1],
                     K_cov=None if r.K_cov is None or np.all(np.isnan(r.K_cov[1])) else r.K_cov[1],
                 )
-                return _judge_frame(rect, p3b[1], one)
+                return judge_frame(rect, p3b[1], one)
 
-            outcome, detail = _outcome(batch_call, batch_judge)
+            outcome, detail = outcome_of(batch_call, batch_judge)
             report.add("rectify_batch", name, outcome, detail)
 
 
@@ -187,7 +187,7 @@ def _masked_garbage(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, rvec
 
 def _graph_frames(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: np.ndarray) -> Iterator:
     """(name, points_2d, points_3d) for the full graph from one frame's inference points: as they are,
-    a random subset, in another unit, and ``_frame_variants``'s hostile frames that are (N, 2) and (N, 3)
+    a random subset, in another unit, and ``frame_variants``'s hostile frames that are (N, 2) and (N, 3)
     numbers (the others are the rectifier's input rules, which come before the graph)."""
     n = len(x)
     subset = np.sort(rng.choice(n, int(rng.integers(min(MIN_POINTS, n), n + 1)), replace=False))
@@ -195,7 +195,7 @@ def _graph_frames(rng: np.random.Generator, x: np.ndarray, X: np.ndarray, K: np.
     yield "as simulated", x, X
     yield "a subset", x[subset], X[subset]
     yield f"3D unit 1e{unit:.1f}", x, X * 10.0**unit
-    for name, p2, p3 in _frame_variants(rng, x, X, K):
+    for name, p2, p3 in frame_variants(rng, x, X, K):
         try:
             p2, p3 = np.asarray(p2, np.float64), np.asarray(p3, np.float64)
         except (TypeError, ValueError):
@@ -262,7 +262,7 @@ def fuzz_full_graph(
                 break
             done += 1
             garbage = bool(rng.random() < 0.5)
-            outcome, detail = _outcome(
+            outcome, detail = outcome_of(
                 lambda graph=graph, p2=p2, p3=p3, garbage=garbage: graph.against_runtime(rng, p2, p3, garbage),
                 lambda result: _judge_graph(result[1], vars(result[0]), parity_px(result[0].delta_k)),
             )
@@ -293,11 +293,36 @@ def _judge_graph(out: dict, want: dict, bound: float) -> tuple[str, str]:
     return "silent-wrong", f"{worst:.3g} px from the runtime's (bound {bound:g} px)"
 
 
+# Texts a number's field may hold that Python's int() or float() reads otherwise than a data file means, or not at all.
+HOSTILE_NUMBERS = (
+    "1" * 400,  # past float64
+    "1" * 5000,  # past int()'s 4300 digits
+    str(2**63),  # past the 64-bit clock
+    "\u00b2",  # str.isdigit() but not int()
+    "\u0661\u0662",  # Arabic-Indic digits: int() reads 12
+    "\uff11",  # a full-width one
+    "1_000",
+    "0x10",
+    "1e400",
+    "nan",
+    "-0",
+    " ",
+)
+
+
 def _mutations(rng: np.random.Generator, blob: bytes) -> Iterator[tuple[str, bytes]]:
-    """Byte-level mutations of a file: bit flips, truncation, a zeroed or random run, appended junk."""
+    """Byte-level mutations of a file: bit flips, truncation, a zeroed or random run, appended junk, and one field
+    (after a comma or a line end, or at a random byte) replaced by one of HOSTILE_NUMBERS."""
     n = len(blob)
     while True:
-        kind = int(rng.integers(5))
+        kind = int(rng.integers(6))
+        if kind == 5:
+            starts = [i + 1 for i, c in enumerate(blob) if c in b",\n"]
+            i = int(rng.choice(starts)) if starts else int(rng.integers(n))
+            end = min((j for j in (blob.find(b",", i), blob.find(b"\n", i)) if j >= 0), default=n)
+            number = HOSTILE_NUMBERS[int(rng.integers(len(HOSTILE_NUMBERS)))].encode("utf-8")
+            yield "a hostile number", blob[:i] + number + blob[end:]
+            continue
         b = bytearray(blob)
         if kind == 0:
             for i in rng.integers(0, n, int(rng.integers(1, 8))):
@@ -420,12 +445,12 @@ def fuzz_files(folder: str | Path, n_cases: int, rng: np.random.Generator, repor
                 call = lambda data=data, name=name: onnx_model_from_bytes(data, name)  # noqa: E731
             else:
                 call = lambda reader=reader, path=path: reader(path)  # noqa: E731
-            outcome, detail = _outcome(call, lambda result: ("ok", ""))
+            outcome, detail = outcome_of(call, lambda result: ("ok", ""))
             report.add(area, case, outcome, detail)
     crafted = _crafted_models(model)
     for _ in range(n_cases):
         case, data = next(crafted)
-        outcome, detail = _outcome(lambda data=data: onnx_model_from_bytes(data, "crafted.onnx"), _refused)
+        outcome, detail = outcome_of(lambda data=data: onnx_model_from_bytes(data, "crafted.onnx"), _refused)
         report.add("crafted model", case, outcome, detail)
 
 
@@ -449,7 +474,7 @@ def fuzz_ort_file(blob: bytes, source: str, n_cases: int, rng: np.random.Generat
     mutations = _mutations(rng, original)
     for _ in range(n_cases):
         case, data = next(mutations)
-        outcome, detail = _outcome(
+        outcome, detail = outcome_of(
             lambda data=data: onnx_model_from_bytes(data, "mutated.ort").delta_k(probe), same_delta_k
         )
         report.add(".ort file", case, outcome, detail)

@@ -9,6 +9,7 @@ import pytest
 from helpers import example_camera
 
 from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_full_graph, fuzz_ort_file, fuzz_rectifier
+from dimenet.runtime.bench.fuzz_stream import fuzz_streams
 from dimenet.runtime.rectify.model import MODEL_NAMES, bundled_model_bytes
 from dimenet.runtime.rectify.rectifier import Rectifier
 
@@ -22,6 +23,19 @@ def test_hostile_frames_end_typed_or_without_a_confident_wrong_k(frames, mode, m
     fuzz_rectifier(rect, frames, 84, np.random.default_rng(3), report)
     assert report.bad == 0, report.table()
     assert report.counts["rectify"]["typed"] > 20 and report.counts["rectify"]["ok"] > 5  # both kinds happen
+
+
+@pytest.mark.parametrize("model", MODEL_NAMES)
+def test_hostile_streams_end_typed_or_without_a_confident_wrong_k(frames, model):
+    """Streams (issue 51): hostile times, per-frame K_c, samples, options and frames; a typed error leaves the stream
+    usable (``fuzz_stream``)."""
+    camera = example_camera()
+    rect = Rectifier.load(model, K_c=camera.K, image_size=camera.image_size)
+    report = FuzzReport()
+    fuzz_streams(rect, frames, 60, np.random.default_rng(6), report)
+    assert report.bad == 0, report.table()
+    counts = report.counts["stream"]
+    assert counts["typed"] > 30 and counts["ok"] > 100, report.table()  # both kinds happen
 
 
 def test_mutated_files_end_in_typed_errors(tmp_path):

@@ -84,6 +84,7 @@ def test_bench_fuzz_reports_every_area_and_exits_0_without_findings(capsys):
     assert report["model"] == bundled_source("default")
     assert set(report["counts"]) == {
         "rectify",
+        "stream",
         "rectify_batch",
         "dataset file",
         "model file",

@@ -144,7 +144,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _add_fuzz(p: argparse.ArgumentParser) -> None:
     fuzz = p.add_argument_group(
         "fuzz (--fuzz N)",
-        "N hostile frames through the rectifier (modes dimenet and map, one by one and in batches) and N "
+        "N hostile frames through the rectifier (modes dimenet and map, one by one and in batches), N hostile "
+        "streams (times, per-frame K_c, motion samples, options, frames) and N "
         "mutated files of each kind (dataset, model, rig) through their readers: each must end in a typed "
         "error or in no confident wrong K; with onnx, N frames through the model's full graph (within the "
         "parity bound of the runtime, masked garbage and no point included), and with torch too N mutated "
@@ -208,6 +209,7 @@ def _run_fuzz(args: argparse.Namespace) -> int:
     import numpy as np
 
     from dimenet.runtime.bench.fuzz import FuzzReport, fuzz_files, fuzz_full_graph, fuzz_ort_file, fuzz_rectifier
+    from dimenet.runtime.bench.fuzz_stream import fuzz_streams
     from dimenet.runtime.bench.latency import bench_rectifier
     from dimenet.runtime.errors import DimenetError
     from dimenet.runtime.rectify.model import load_model, resolve_model
@@ -221,6 +223,7 @@ def _run_fuzz(args: argparse.Namespace) -> int:
     model = load_model(o["model"])
     for mode in ("dimenet", "map"):
         fuzz_rectifier(bench_rectifier(model, mode, frames), frames, args.fuzz, rng, report)
+    fuzz_streams(bench_rectifier(model, "dimenet", frames), frames, args.fuzz, rng, report)
     with tempfile.TemporaryDirectory() as folder:
         fuzz_files(folder, args.fuzz, rng, report)
     blob = resolve_model(o["model"]).model_bytes()
