@@ -174,7 +174,8 @@ def _k_names(has, lines: _Lines, what: str) -> bool:
 def _declared_format(text: str, lines: _Lines) -> int:
     """The format a declaration names (``dimenet-points/N``), or PointsError for another name or version."""
     name, _, version = text.strip().partition("/")
-    if name.strip() != FORMAT_NAME or not version.strip().isdigit():
+    version = version.strip()
+    if name.strip() != FORMAT_NAME or not (version.isascii() and version.isdigit() and len(version) <= 9):
         raise lines.error(f"the first line declares {shown(text.strip())}; expected {FORMAT_NAME}/N")
     if int(version) not in FORMATS:
         raise lines.error(

@@ -63,6 +63,9 @@ BAD = [
     ("#dimenet-points/3\n" + HEADER, 1, "dimenet-points/3 is not a format this release reads"),
     ("#dimenet-pts/2\n" + HEADER, 1, "expected dimenet-points/N"),
     ("#dimenet-points/two\n" + HEADER, 1, "expected dimenet-points/N"),
+    ("#dimenet-points/\u00b2\n" + HEADER, 1, "expected dimenet-points/N"),  # isdigit() but not int(): a ValueError
+    ("#dimenet-points/" + "1" * 5000 + "\n" + HEADER, 1, "expected dimenet-points/N"),  # past int()'s 4300 digits
+    ("#dimenet-points/\u0662\n" + HEADER, 1, "expected dimenet-points/N"),  # an Arabic-Indic 2: int() reads 2
     ("#dimenet-points/2\n" + HEADER.replace(",cy_px", ""), 2, "but not cy_px: a frame's K_c needs all four"),
     ("#dimenet-points/2\n" + HEADER + "\n" + _rows("a", K_ROW)[0] + "\n" + _rows("a", "3000,3010,2016.5,1512")[1], 4,
      "differ from the frame's first row (line 3)"),
