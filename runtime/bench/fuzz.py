@@ -13,6 +13,7 @@ loader on mutated files; streams in ``bench.fuzz_stream``. The suite runs a few 
 from __future__ import annotations
 
 import json
+import re
 import traceback
 from collections import Counter
 from collections.abc import Iterator
@@ -311,17 +312,16 @@ HOSTILE_NUMBERS = (
 
 
 def _mutations(rng: np.random.Generator, blob: bytes) -> Iterator[tuple[str, bytes]]:
-    """Byte-level mutations of a file: bit flips, truncation, a zeroed or random run, appended junk, and one field
-    (after a comma or a line end, or at a random byte) replaced by one of HOSTILE_NUMBERS."""
+    """Byte-level mutations of a file: bit flips, truncation, a zeroed or random run, appended junk, and one number
+    (a run of digits with its sign, point and exponent, or a random byte) replaced by one of HOSTILE_NUMBERS."""
     n = len(blob)
+    numbers = [m.span() for m in re.finditer(rb"[-+]?[0-9][0-9.eE+-]*", blob)] or [(i, i) for i in range(n)]
     while True:
         kind = int(rng.integers(6))
         if kind == 5:
-            starts = [i + 1 for i, c in enumerate(blob) if c in b",\n"]
-            i = int(rng.choice(starts)) if starts else int(rng.integers(n))
-            end = min((j for j in (blob.find(b",", i), blob.find(b"\n", i)) if j >= 0), default=n)
+            start, end = numbers[int(rng.integers(len(numbers)))]
             number = HOSTILE_NUMBERS[int(rng.integers(len(HOSTILE_NUMBERS)))].encode("utf-8")
-            yield "a hostile number", blob[:i] + number + blob[end:]
+            yield "a hostile number", blob[:start] + number + blob[end:]
             continue
         b = bytearray(blob)
         if kind == 0:
