@@ -4,8 +4,9 @@ ones.
 
 Every update must end in a ``DimenetError`` (``typed``) or in a frame that is no confident wrong K (``ok``: as
 ``fuzz.judge_frame`` under the frame's own K_c, and where the stream's K stands, e no worse than e_c by the
-never-worse rule and a finite K_cov). After the hostile frames, one clean frame must still give a K: a typed error
-leaves the stream usable (else ``silent-wrong``: the stream was left broken).
+never-worse rule and a finite K_cov). After the hostile frames, a clean frame must give a K where it gives one in a
+fresh stream of the same options: a typed error leaves the stream usable (else ``silent-wrong``: the stream was left
+broken).
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ def _motions(rng: np.random.Generator) -> Iterator[tuple[str, dict]]:
         yield f"{kind} of one sample", {kind: s[:1]}
         yield f"{kind} before the frames", {kind: s[:50]}
         yield f"{kind} after the frames", {kind: s[-50:]}
+        yield f"{kind} on another clock", {kind: np.c_[s[:, 0] + 10.0**15, s[:, 1:]]}
         yield f"{kind} large", {kind: np.c_[s[:, 0], s[:, 1:] * 1e4]}
         yield f"{kind} of other shapes", {kind: s[:, :2] if rng.random() < 0.5 else s[None]}
         yield f"{kind} as strings", {kind: s.astype(str)}
@@ -108,7 +110,7 @@ def judge_stream_frame(rect: Rectifier, X: np.ndarray, frame) -> tuple[str, str]
 
 def _run(rect: Rectifier, case: str, x, X, options: dict, inputs: list, report: FuzzReport) -> None:
     """One stream with ``options`` through ``inputs`` ((points_2d, points_3d, t_ns, K_c) per frame), then a clean
-    frame (the clean time after the last, at the Rectifier's K_c), each update's outcome added to ``report``."""
+    frame (a clean time after the last, at the Rectifier's K_c), each update's outcome added to ``report``."""
     made = []
     verdict = outcome_of(lambda: rect.stream(**options), lambda s: made.append(s) or ("ok", ""))
     if not made:
@@ -122,8 +124,10 @@ def _run(rect: Rectifier, case: str, x, X, options: dict, inputs: list, report: 
             lambda r, p3=p3: judge_stream_frame(rect, p3, r),
         )
         report.add("stream", case, *verdict)
-    clean = outcome_of(lambda: stream.update(x, X, T0_NS + 10 * FRAME_NS), lambda r: judge_stream_frame(rect, X, r))
-    if clean[0] == "typed":
+    t_ns = T0_NS + 10 * FRAME_NS
+    clean = outcome_of(lambda: stream.update(x, X, t_ns), lambda r: judge_stream_frame(rect, X, r))
+    fresh = outcome_of(lambda: rect.stream(**options).update(x, X, t_ns), lambda r: ("ok", ""))
+    if clean[0] == "typed" and fresh[0] == "ok":
         clean = ("silent-wrong", "a clean frame refused after the hostile ones: the stream was left broken")
     report.add("stream", f"{case}, then a clean frame", *clean)
 

@@ -45,6 +45,7 @@ MAX_SHIFT_PX = 10_000.0  # |lens shift| above this is no lens's (a unit error, o
 MAX_SCALE = 16.0  # stream px per active-array px: a stream is at most this much finer than the sensor's array
 SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the stroke's clip)
 SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
+MAX_OUTSIDE_S = 1.0  # a frame further than this outside the samples' span: the samples are on another clock
 
 
 def _samples(samples, columns: str, bound: float) -> np.ndarray:
@@ -85,6 +86,18 @@ class _LoopBank:
 
     def _shifts(self) -> np.ndarray:
         raise NotImplementedError
+
+    def check_time(self, t_ns: int) -> None:
+        """InputError when a frame's ``t_ns`` lies more than MAX_OUTSIDE_S outside the samples' span (``samples``: the
+        subclass's, t_ns first): samples on another clock than the points', or of another recording, would leave c
+        at K_c's or at a stale shift without a word."""
+        first, last = self.samples[0, 0], self.samples[-1, 0]
+        outside_s = max(first - t_ns, t_ns - last, 0.0) * 1e-9
+        if outside_s > MAX_OUTSIDE_S:
+            raise InputError(
+                f"the frame at t_ns {t_ns} lies {outside_s:.3g} s outside the motion's samples (t_ns {first:.0f} to "
+                f"{last:.0f}): the motion must be on the points' clock, of the same recording"
+            )
 
     def score(self, points_2d: np.ndarray, points_3d: np.ndarray, f_tracked: np.ndarray, pose: tuple) -> None:
         """Score the bank on one frame's points (px, mm), every SCORE_EVERY-th call, with K_c's (fx, fy); then the

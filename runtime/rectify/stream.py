@@ -161,6 +161,8 @@ class Stream:
             raise InputError("a stream with motion needs each frame's t_ns (on the motion's clock)")
         if self.gyro is not None and K_c is not None:
             raise InputError("a stream with motion tracks K about the camera's one K_c, not a frame's own")
+        if self.gyro is not None:
+            self.gyro.check_time(t_ns)
         res = rect.rectify(points_2d, points_3d, refine=self.refine, K_c=K_c)
         k0 = self.k_c if K_c is None else k_params(res.K_c)
         pose = (rotation_matrices(np.ravel(res.rvec)), math.hypot(*np.ravel(res.tvec).tolist()))

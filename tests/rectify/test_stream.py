@@ -15,7 +15,7 @@ from dimenet.runtime.cli.main import main
 from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import k_matrix, k_params, solve_pnp_start
 from dimenet.runtime.rectify import stream as stream_module
-from dimenet.runtime.rectify.gyro_ois import CUTOFFS_HZ, GAINS, LensShiftOis
+from dimenet.runtime.rectify.gyro_ois import CUTOFFS_HZ, GAINS, MAX_OUTSIDE_S, LensShiftOis
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.stream import FRAME_S, TAU_S, Stream
 from dimenet.runtime.sim.recording import nominal_camera, simulate_recording, write_recording
@@ -358,6 +358,23 @@ def test_a_frame_the_stream_refuses_under_its_own_k_c_reports_that_camera_s_popu
     np.testing.assert_array_equal(out.result.K_cov, want)
     assert not np.allclose(want, rectifier.population_K_cov)  # a camera of other focal length: other pixels
     np.testing.assert_array_equal(rectifier.frame_population_K_cov(), rectifier.population_K_cov)
+
+
+@pytest.mark.parametrize("option", ["motion", "lens_shift"])
+def test_a_frame_outside_the_motion_s_samples_is_refused_as_on_another_clock(recording, rectifier, option):
+    """Samples on another clock than the points' (here 11.6 days later) would leave c at K_c's (the gyroscope) or at
+    the first sample's shift (the lens shift) without a word: a frame more than MAX_OUTSIDE_S outside their span is
+    an InputError naming both, and the stream is as it was; within it, the frame is taken."""
+    samples = getattr(recording, "gyro" if option == "motion" else "lens_shift")
+    later = np.c_[samples[:, 0] + 10.0**15, samples[:, 1:]]
+    fs = list(frames(recording))
+    stream = rectifier.stream(**{option: later})
+    with pytest.raises(InputError, match=r"outside the motion's samples .*on the points' clock"):
+        stream.update(*fs[0])
+    assert stream.k is None  # nothing of the frame was taken
+    first = int(later[0, 0])
+    p2, p3, _ = fs[0]
+    assert stream.update(p2, p3, first - int(MAX_OUTSIDE_S * 1e9)).event == "start"  # at the tolerance's edge
 
 
 def test_a_stream_with_motion_refuses_a_frames_own_k_c(recording, rectifier):
