@@ -133,15 +133,23 @@ def outcome_of(call: Callable, judge: Callable) -> tuple[str, str]:
     return judge(result)
 
 
+def random_rig_frames(frames, rng: np.random.Generator) -> Iterator[tuple]:
+    """Endlessly, a rig frame of ``frames`` (a dataset) drawn at random: its valid points x (N, 2) px, X (N, 3) mm
+    and K_true (3, 3) px."""
+    rig = np.flatnonzero(frames.scene == "rig")
+    while True:
+        b = int(rng.choice(rig))
+        m = frames.valid[b]
+        yield frames.points_2d[b][m], frames.points_3d[b][m], frames.K_true[b]
+
+
 def fuzz_rectifier(rect: Rectifier, frames, n_cases: int, rng: np.random.Generator, report: FuzzReport) -> None:
     """``n_cases`` hostile frames made from ``frames`` (a dataset's rig frames), through
     ``rect.rectify`` and, two at a time with a clean frame, ``rect.rectify_batch``."""
-    rig = np.flatnonzero(frames.scene == "rig")
     done = 0
-    while done < n_cases:
-        b = int(rng.choice(rig))
-        m = frames.valid[b]
-        x, X, K = frames.points_2d[b][m], frames.points_3d[b][m], frames.K_true[b]
+    for x, X, K in random_rig_frames(frames, rng):
+        if done >= n_cases:
+            break
         for name, p2, p3 in frame_variants(rng, x, X, K):
             if done >= n_cases:
                 break

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from dimenet.runtime.bench.fuzz import FuzzReport, frame_variants, judge_frame, outcome_of
+from dimenet.runtime.bench.fuzz import FuzzReport, frame_variants, judge_frame, outcome_of, random_rig_frames
 from dimenet.runtime.rectify.checks import loses_to_k_c
 from dimenet.runtime.rectify.rectifier import Rectifier
 from dimenet.runtime.rectify.stream import MAX_T_NS
@@ -136,12 +136,10 @@ def fuzz_streams(rect: Rectifier, frames, n_cases: int, rng: np.random.Generator
     """``n_cases`` hostile streams made from ``frames`` (a dataset's rig frames): each FRAMES updates of one frame's
     points with 0.3 px of noise, one hostile element (times, per-frame K_c, samples, options, or one hostile frame
     among clean ones), then a clean frame."""
-    rig = np.flatnonzero(frames.scene == "rig")
     done = 0
-    while done < n_cases:
-        b = int(rng.choice(rig))
-        m = frames.valid[b]
-        x, X, K = frames.points_2d[b][m], frames.points_3d[b][m], frames.K_true[b]
+    for x, X, K in random_rig_frames(frames, rng):
+        if done >= n_cases:
+            break
         times = [T0_NS + i * FRAME_NS for i in range(FRAMES)]
         noisy = [x + rng.normal(0, 0.3, x.shape) for _ in range(FRAMES)]
 
