@@ -360,6 +360,33 @@ def test_a_frame_the_stream_refuses_under_its_own_k_c_reports_that_camera_s_popu
     np.testing.assert_array_equal(rectifier.frame_population_K_cov(), rectifier.population_K_cov)
 
 
+def test_the_gyroscope_s_bias_and_high_pass_follow_their_recursions_to_the_bit():
+    """GyroOis.advance (Python floats) against the recursions written in numpy arrays: the bias's running mean
+    b += min(1, dt / min(t, BIAS_TAU_S)) (g - b), then per cutoff hp = a (hp + (g - b) dt) with a = 1 / (1 + 2 pi f dt),
+    yaw from the rate about y, pitch about x; a recentre zeroes hp only."""
+    from dimenet.runtime.rectify.gyro_ois import BIAS_TAU_S, GyroOis
+
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.integers(2_000_000, 8_000_000, 400)) + 10**12  # ns
+    samples = np.c_[t, rng.normal(0.02, 0.3, (400, 3))]
+    gyro = GyroOis(samples, np.array([3000.0, 3000.0, 2000.0, 1500.0]))
+    bias, bias_s, hp = np.zeros(3), 0.0, np.zeros((len(CUTOFFS_HZ), 2))
+    cutoffs = np.asarray(CUTOFFS_HZ)
+    for i in range(1, len(samples)):
+        step_s = (samples[i, 0] - samples[i - 1, 0]) * 1e-9
+        bias_s += step_s
+        bias = bias + min(1.0, step_s / min(bias_s, BIAS_TAU_S)) * (samples[i, 1:] - bias)
+        rate = samples[i, 1:] - bias
+        hp = (1.0 / (1.0 + 2.0 * np.pi * cutoffs * step_s))[:, None] * (hp + np.array([rate[1], rate[0]]) * step_s)
+        if i == 200:
+            gyro.advance(int(samples[i, 0]))
+            hp[:] = 0.0
+            gyro.recentre()
+    gyro.advance(int(samples[-1, 0]))
+    np.testing.assert_array_equal(gyro.loop()["bias_rad_s"], bias)
+    np.testing.assert_array_equal(gyro._shifts(), 3000.0 * np.stack([np.tan(hp[:, 0]), -np.tan(hp[:, 1])], 1))
+
+
 @pytest.mark.parametrize("option", ["motion", "lens_shift"])
 def test_a_frame_outside_the_motion_s_samples_is_refused_as_on_another_clock(recording, rectifier, option):
     """Samples on another clock than the points' (here 11.6 days later) would leave c at K_c's (the gyroscope) or at
