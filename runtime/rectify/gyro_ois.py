@@ -99,6 +99,13 @@ class _LoopBank:
                 f"{last:.0f}): the motion must be on the points' clock, of the same recording"
             )
 
+    def _pair_ks(self) -> np.ndarray:
+        """(rows, GAINS, 4) px every pair's k: K_c's f, its c plus the gain times the row's shift."""
+        ks = np.empty(self._scores.shape + (4,))
+        ks[..., :2] = self.k_c[:2]
+        ks[..., 2:] = self.k_c[2:] + np.asarray(GAINS)[:, None] * self._shifts()[:, None, :]
+        return ks
+
     def score(self, points_2d: np.ndarray, points_3d: np.ndarray, f_tracked: np.ndarray, pose: tuple) -> None:
         """Score the bank on one frame's points (px, mm), every SCORE_EVERY-th call, with K_c's (fx, fy); then the
         best pair's c with ``f_tracked`` (2,) px (the stream's filter) against it. Each K's error is at its pose by
@@ -106,24 +113,24 @@ class _LoopBank:
         self._frames += 1
         if (self._frames - 1) % SCORE_EVERY:
             return
-        k = self.k_c
-        shifts = self._shifts()
+        ks = self._pair_ks()
         errors = np.empty_like(self._scores)
-        for i, shift in enumerate(shifts):
-            for j, gain in enumerate(GAINS):
-                if gain == 0.0 and i:  # no OIS: the same K at every cutoff
-                    errors[i, j] = errors[0, j]
-                    continue
-                try:
-                    errors[i, j] = _error(points_2d, points_3d, np.r_[k[:2], self.k_c[2:] + gain * shift], pose)
-                except InputError:
-                    errors[i, j] = np.nan
+        for i, j in np.ndindex(errors.shape):
+            if GAINS[j] == 0.0 and i:  # no OIS: the same K at every cutoff
+                errors[i, j] = errors[0, j]
+                continue
+            try:
+                errors[i, j] = _error(points_2d, points_3d, ks[i, j], pose)
+            except InputError:
+                errors[i, j] = np.nan
         if not np.all(np.isfinite(errors)):
             return
         self._scores = SCORE_MEMORY * self._scores + errors
         i, j = np.unravel_index(int(np.argmin(self._scores)), self._scores.shape)
+        k = ks[i, j]
+        k[:2] = f_tracked
         try:
-            e = _error(points_2d, points_3d, np.r_[f_tracked, self.k_c[2:] + GAINS[j] * shifts[i]], pose)
+            e = _error(points_2d, points_3d, k, pose)
         except InputError:
             return
         self._f_scores = SCORE_MEMORY * self._f_scores + (errors[i, j], e)
@@ -134,10 +141,8 @@ class _LoopBank:
 
     def c(self) -> tuple[np.ndarray, np.ndarray]:
         """(cx, cy) px of the best-scored loop now, and their variances (2,) px^2."""
-        shifts = self._shifts()
         order = np.argsort(self._scores, axis=None)[:SPREAD_PAIRS]
-        pairs = [np.unravel_index(o, self._scores.shape) for o in order]
-        preds = np.array([self.k_c[2:] + GAINS[j] * shifts[i] for i, j in pairs])
+        preds = self._pair_ks()[..., 2:].reshape(-1, 2)[order]
         return preds[0], SIGMA_FLOOR_PX**2 + preds.var(0)
 
 
