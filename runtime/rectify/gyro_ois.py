@@ -45,7 +45,8 @@ MAX_SHIFT_PX = 10_000.0  # |lens shift| above this is no lens's (a unit error, o
 MAX_SCALE = 16.0  # stream px per active-array px: a stream is at most this much finer than the sensor's array
 SIGMA_FLOOR_PX = 3.0  # c's sigma floor: the loop's model error (tan, bias, the stroke's clip)
 SPREAD_PAIRS = 3  # c's sigma adds the spread of the best few pairs' predictions
-MAX_OUTSIDE_S = 1.0  # a frame further than this outside the samples' span: the samples are on another clock
+MAX_OUTSIDE_S = 60.0  # a frame further than this outside the samples' span: the samples are on another clock
+# (boot time against Unix time, another recording's); a sensor started late or stopped early stays within it
 
 
 def _samples(samples, columns: str, bound: float) -> np.ndarray:

@@ -401,7 +401,7 @@ def test_a_frame_outside_the_motion_s_samples_is_refused_as_on_another_clock(rec
     assert stream.k is None  # nothing of the frame was taken
     first = int(later[0, 0])
     p2, p3, _ = fs[0]
-    assert stream.update(p2, p3, first - int(MAX_OUTSIDE_S * 1e9)).event == "start"  # at the tolerance's edge
+    assert stream.update(p2, p3, first - int(MAX_OUTSIDE_S * 1e9) + 1000).event == "start"  # 1 us inside the edge
 
 
 def test_a_stream_with_motion_refuses_a_frames_own_k_c(recording, rectifier):
