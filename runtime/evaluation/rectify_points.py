@@ -29,13 +29,19 @@ def rectified_records(rectifier: Rectifier, frames: Iterable[PointsFrame], *, re
 def streamed_records(stream: Stream, frames: Iterable[PointsFrame]) -> Iterator[dict]:
     """``frame_record`` of each frame's fused result (``Stream.update``, with the frame's own K_c where points
     format 2 gives one) with its ``event`` and whether K is the filter's (``fused``), or its ``error_record`` when
-    the rectifier refuses the frame; the run goes on. A frame with its own K_c in a stream with motion is a
-    PointsError: the motion (the gyroscope's loop, the lens shift) predicts c about the camera's one K_c."""
+    the rectifier refuses the frame; the run goes on. In a stream with motion, a frame with its own K_c or without
+    t_ns is a PointsError: the motion (the gyroscope's loop, the lens shift) predicts c about the camera's one K_c,
+    at each frame's time on its clock."""
     for frame in frames:
         if frame.K_c is not None and stream.gyro is not None:
             raise PointsError(
                 f"frame {frame.frame_id!r} (line {frame.line}) gives its own K_c (fx_px..cy_px): with --motion the "
                 "motion predicts c about the camera's one K_c; track the file without --motion"
+            )
+        if frame.t_ns is None and stream.gyro is not None:
+            raise PointsError(
+                f"frame {frame.frame_id!r} (line {frame.line}) has no t_ns: with --motion every frame needs its time "
+                "on the motion's clock (a t_ns column)"
             )
         try:
             out = stream.update(frame.points_2d, frame.points_3d, frame.t_ns, K_c=frame.K_c)

@@ -166,6 +166,21 @@ def test_temporal_tracks_a_format_2_file_about_each_frames_k_c(recording, camera
     assert err.count("\n") == 1 and "gives its own K_c" in err and "without --motion" in err
 
 
+def test_temporal_with_motion_refuses_a_file_without_t_ns_with_one_line(recording, camera_file, tmp_path, capsys):
+    """Without t_ns the motion cannot be placed: exit 2 naming the frame, not a refused record for every frame."""
+    lines = recording.read_text().splitlines()
+    t_column = lines[0].split(",").index("t_ns")
+    untimed = tmp_path / "untimed.csv"
+    untimed.write_text("\n".join(",".join(c for j, c in enumerate(r.split(",")) if j != t_column) for r in lines))
+    motion = tmp_path / "gyro.csv"
+    motion.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n0,0,0,0\n1000000000,0,0,0\n")
+    args = ["rectify", "--points", str(untimed), "--camera", str(camera_file), "--temporal", "--motion", str(motion)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "(line 2) has no t_ns" in err and "a t_ns column" in err
+    assert main(args[:-2]) == 0  # without the motion, a file without t_ns streams (one frame time apart)
+
+
 def _dimenet(command: str) -> subprocess.CompletedProcess:
     """``dimenet`` in a shell command line, with bash's pipefail: a pipe's status is dimenet's."""
     cli = f"{shlex.quote(sys.executable)} -m dimenet.runtime.cli.main"
