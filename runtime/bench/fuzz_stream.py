@@ -17,8 +17,8 @@ import numpy as np
 
 from dimenet.runtime.bench.fuzz import FuzzReport, frame_variants, judge_frame, outcome_of, random_rig_frames
 from dimenet.runtime.rectify.checks import loses_to_k_c
+from dimenet.runtime.rectify.clock import MAX_T_NS
 from dimenet.runtime.rectify.rectifier import Rectifier
-from dimenet.runtime.rectify.stream import MAX_T_NS
 
 FRAMES = 4  # hostile frames per case, then one clean frame
 FRAME_NS = 33_333_333  # 30 frames/s

@@ -31,7 +31,7 @@ from dimenet.runtime.errors import PointsError
 from dimenet.runtime.formats.atomic import atomic_write
 from dimenet.runtime.formats.text import decimal, t_ns_integer
 from dimenet.runtime.json_text import JsonProblem, is_number, parse_json, shown
-from dimenet.runtime.rectify.stream import MAX_T_NS
+from dimenet.runtime.rectify.clock import MAX_T_NS
 
 MAX_LINE_BYTES = 64 << 10  # one row or object, its line end included (a point's row is ~80 bytes)
 MAX_FRAME_POINTS = 100_000  # rows of one frame: bounds the memory of a frame (~16 MB while read)

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Optional
 
 from dimenet.runtime.errors import DimenetError
-from dimenet.runtime.rectify.stream import MAX_T_NS
+from dimenet.runtime.rectify.clock import MAX_T_NS
 
 _INTEGER = re.compile(r"[+-]?[0-9]+")
 

@@ -52,6 +52,7 @@ from dimenet.runtime.errors import InputError
 from dimenet.runtime.geometry import k_matrix, k_params, rotation_matrices, undistort_points
 from dimenet.runtime.geometry import solve_pnp_start as pnp
 from dimenet.runtime.rectify.checks import implausible_reason, loses_to_k_c, worse_reason
+from dimenet.runtime.rectify.clock import MAX_T_NS
 from dimenet.runtime.rectify.gyro_ois import GyroOis, LensShiftOis
 from dimenet.runtime.rectify.results import Fallback, Rectification
 from dimenet.runtime.rectify.stream_filter import stream_step
@@ -63,7 +64,6 @@ CUT_DEG = 8.0  # the pose turning by more than this between frames is a cut ...
 CUT_DEPTH = 0.25  # ... or its distance changing by more than this share
 INNOVATION_CHI2 = 30.0  # squared Mahalanobis innovation (4 dof) beyond which the state resets (p ~ 5e-6)
 EVENTS = ("start", "cut", "gap", "jump")
-MAX_T_NS = 2**63 - 1  # |t_ns|: a signed 64-bit nanosecond clock (the points and motion formats' too)
 
 
 @dataclass(frozen=True)
