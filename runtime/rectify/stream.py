@@ -208,12 +208,13 @@ class Stream:
         self.P[2:, :] = self.P[:, 2:] = 0.0
         self.P[2, 2], self.P[3, 3] = var
 
-    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback, K0, K_c) -> StreamFrame:
-        """The frame's K_c's (K0 (3, 3) px; ``K_c`` the frame's own or None) own solution for a frame whose tracked K
+    def _k_c_kept(self, res: Rectification, p2, p3, event: Optional[str], reason: Fallback, K_c) -> StreamFrame:
+        """The frame's K_c's (``res.K_c``; ``K_c`` the frame's own or None) own solution for a frame whose tracked K
         is refused (the per-frame result when it is K_c's; else the pose under K_c by PnP, e = e_c), with ``reason``;
         K_cov the population spread of K_c's camera (``Rectifier.frame_population_K_cov``). The state is kept."""
         if res.fallback is not None and res.fallback.refusal:
             return StreamFrame(res, res, event, False)
+        K0 = res.K_c
         rvec, tvec = pnp(p2, p3, K0)
         Q = self.rectifier.frame_population_K_cov(K_c)
         kept = replace(
@@ -240,7 +241,7 @@ class Stream:
             p2 = undistort_points(p2, rect.K_c, rect.dist_coeffs)
             e_c = native.error_at_pnp(p2, p3, K0)
         if not rect.k_within_bounds(self.k, K_c=K_c):
-            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K0, K_c)
+            return self._k_c_kept(res, p2, p3, event, implausible_reason(self.k - self._k0, self.k), K_c)
         f0 = float(K0[0, 0])
         try:  # Gauss-Newton steps from the frame's own pose, as the per-frame pose under K (stages.pose_under)
             rvec, tvec, e, depth = native.pose_under_k(p2, p3, self.k, np.ravel(res.rvec), np.ravel(res.tvec))
@@ -251,15 +252,13 @@ class Stream:
             try:
                 rvec, tvec = pnp(p2, p3, K)
             except InputError:
-                return self._k_c_kept(
-                    res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K0, K_c
-                )
+                return self._k_c_kept(res, p2, p3, event, Fallback("no_pose", "no PnP pose under the tracked K"), K_c)
             e, depth = native.frame_error_and_depth(p2, p3, K, rvec, tvec)
             if depth <= 0:
                 reason = Fallback("behind_camera", "a point lies behind the camera at the pose under the tracked K")
-                return self._k_c_kept(res, p2, p3, event, reason, K0, K_c)
+                return self._k_c_kept(res, p2, p3, event, reason, K_c)
             if loses_to_k_c(e, e_c, f0):
-                return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, f0), K0, K_c)
+                return self._k_c_kept(res, p2, p3, event, worse_reason(e, e_c, f0), K_c)
         P = self.P.copy()
         fused = replace(
             res,
