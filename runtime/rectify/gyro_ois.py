@@ -175,9 +175,10 @@ class GyroOis(_LoopBank):
             step_s = float((s[i, 0] - s[i - 1, 0]) * 1e-9)
             self._bias_s += step_s
             w = min(1.0, step_s / min(self._bias_s, BIAS_TAU_S))
-            bx, by, bz = (b + w * (g - b) for b, g in zip(self._bias, s[i, 1:].tolist()))
+            rates = s[i, 1:].tolist()
+            bx, by, bz = (b + w * (g - b) for b, g in zip(self._bias, rates))
             self._bias = (bx, by, bz)
-            pitch_rate, yaw_rate = float(s[i, 1]) - bx, float(s[i, 2]) - by  # about x and y
+            pitch_rate, yaw_rate = rates[0] - bx, rates[1] - by  # about x and y
             hp = []
             for cutoff, (yaw, pitch) in zip(CUTOFFS_HZ, self._hp):
                 a = 1.0 / (1.0 + 2.0 * math.pi * cutoff * step_s)
