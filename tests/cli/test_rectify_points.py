@@ -148,6 +148,17 @@ def test_a_format_2_file_rectifies_each_frame_about_its_own_k_c(recording, camer
     assert records[3]["K_c"][0][2] == example_camera().K[0, 2] + 12.0
 
 
+def _refused_with_motion(points, camera_file, tmp_path, capsys) -> str:
+    """The one line of `dimenet rectify --points POINTS --temporal --motion` (a still gyroscope) exiting 2."""
+    motion = tmp_path / "gyro.csv"
+    motion.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n0,0,0,0\n1000000000,0,0,0\n")
+    args = ["rectify", "--points", str(points), "--camera", str(camera_file), "--temporal", "--motion", str(motion)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    return err
+
+
 def test_temporal_tracks_a_format_2_file_about_each_frames_k_c(recording, camera_file, tmp_path, capsys):
     path = _format_2(recording, tmp_path, 4.0)
     assert main(["rectify", "--points", str(path), "--camera", str(camera_file), "--temporal"]) == 0
@@ -158,12 +169,8 @@ def test_temporal_tracks_a_format_2_file_about_each_frames_k_c(recording, camera
         np.testing.assert_array_equal(record["K_c"], frame.K_c)
         np.testing.assert_array_equal(record["K"], out.result.K)
         assert record["fused"] == out.fused and record["event"] == out.event
-    motion = tmp_path / "gyro.csv"
-    motion.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n0,0,0,0\n1000000000,0,0,0\n")
-    args = ["rectify", "--points", str(path), "--camera", str(camera_file), "--temporal", "--motion", str(motion)]
-    assert main(args) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "gives its own K_c" in err and "without --motion" in err
+    err = _refused_with_motion(path, camera_file, tmp_path, capsys)
+    assert "gives its own K_c" in err and "without --motion" in err
 
 
 def test_temporal_with_motion_refuses_a_file_without_t_ns_with_one_line(recording, camera_file, tmp_path, capsys):
@@ -172,13 +179,10 @@ def test_temporal_with_motion_refuses_a_file_without_t_ns_with_one_line(recordin
     t_column = lines[0].split(",").index("t_ns")
     untimed = tmp_path / "untimed.csv"
     untimed.write_text("\n".join(",".join(c for j, c in enumerate(r.split(",")) if j != t_column) for r in lines))
-    motion = tmp_path / "gyro.csv"
-    motion.write_text("t_ns,gx_rad_s,gy_rad_s,gz_rad_s\n0,0,0,0\n1000000000,0,0,0\n")
-    args = ["rectify", "--points", str(untimed), "--camera", str(camera_file), "--temporal", "--motion", str(motion)]
-    assert main(args) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "(line 2) has no t_ns" in err and "a t_ns column" in err
-    assert main(args[:-2]) == 0  # without the motion, a file without t_ns streams (one frame time apart)
+    err = _refused_with_motion(untimed, camera_file, tmp_path, capsys)
+    assert "(line 2) has no t_ns" in err and "a t_ns column" in err
+    args = ["rectify", "--points", str(untimed), "--camera", str(camera_file), "--temporal"]
+    assert main(args) == 0  # without the motion, a file without t_ns streams (one frame time apart)
 
 
 def _dimenet(command: str) -> subprocess.CompletedProcess:
